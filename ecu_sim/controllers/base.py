@@ -1,0 +1,95 @@
+"""The controller contract: one small interface for every control law.
+
+A controller is built once per agent with its parameters and the agent's static info; each
+cycle it gets a :class:`~ecu_sim.view.LocalView` and returns a :class:`~ecu_sim.view.Command`.
+State (integrators, observers, fractional memories) lives inside the controller object.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+from ecu_sim.view import AgentInfo, Command, LocalView
+
+
+class ControllerParams(BaseModel):
+    """Base of every law's parameter model (unknown keys are errors)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Controller(ABC):
+    """A control law for one agent."""
+
+    #: name used in scenario files (``[controller] law = "..."``)
+    name: ClassVar[str]
+    #: pydantic model of the law's parameters
+    Params: ClassVar[type[ControllerParams]]
+
+    def __init__(self, params: ControllerParams, agent: AgentInfo, plant_info: "PlantInfo") -> None:
+        self.params = params
+        self.agent = agent
+        self.plant_info = plant_info
+
+    @abstractmethod
+    def step(self, view: LocalView) -> Command:
+        """Compute this cycle's command from the local view."""
+
+    def reset(self) -> None:
+        """Forget internal state (ECU restart). Stateless laws need not override."""
+
+
+class PlantInfo(BaseModel):
+    """Model knowledge a law may use (nominal values, as the firmware would be configured)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    davis_c0: float  # N/kg
+    davis_c1: float  # N*s/(m*kg)
+    davis_c2: float  # N*s^2/(m^2*kg)
+    coupler_stiffness: float  # N/m
+    coupler_damping: float  # N*s/m
+    spacing_m: float  # l_s, desired gap between trains
+    emergency_gap_m: float  # l_e
+    radio_range_m: float  # beta
+    emergency_brake_mps2: float
+
+    def resistance_per_kg(self, v: float) -> float:
+        """Davis running resistance per kg at speed v (m/s), opposing motion for v >= 0."""
+        return self.davis_c0 + self.davis_c1 * v + self.davis_c2 * v * v
+
+
+_REGISTRY: dict[str, type[Controller]] = {}
+
+
+def register(cls: type[Controller]) -> type[Controller]:
+    """Class decorator: make a law available to scenarios under ``cls.name``."""
+    if cls.name in _REGISTRY:
+        raise ValueError(f"controller {cls.name!r} registered twice")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def get_controller(name: str) -> type[Controller]:
+    """Look a law up by name; the error lists the known names."""
+    import ecu_sim.controllers  # noqa: F401  (imports every law module, filling the registry)
+
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        known = ", ".join(sorted(_REGISTRY)) or "none"
+        raise KeyError(f"unknown controller law {name!r} (known: {known})") from None
+
+
+def known_controllers() -> list[str]:
+    import ecu_sim.controllers  # noqa: F401
+
+    return sorted(_REGISTRY)
+
+
+def build_controller(name: str, params: dict[str, Any], agent: AgentInfo, plant_info: PlantInfo) -> Controller:
+    """Validate ``params`` against the law's model and build one controller."""
+    cls = get_controller(name)
+    return cls(cls.Params(**params), agent, plant_info)

@@ -1,0 +1,116 @@
+"""Where every unit sits: flat unit indices, train membership, slot offsets and agent info.
+
+Units are numbered 0..n_total-1 front to back across the whole group (train 0's head first).
+Every other module (plant, ECUs, recording, metrics) uses this one numbering.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ecu_sim.view import AgentInfo
+from hil.scenario.model import TrainsConfig
+
+
+@dataclass(frozen=True)
+class TrainLayout:
+    """Static geometry of the train group."""
+
+    n_trains: int
+    units_per_train: int
+    mass_kg: np.ndarray  # (n,) physical mass per unit
+    effective_mass_kg: np.ndarray  # (n,) mass x (1 + rotating-mass factor)
+    length_m: np.ndarray  # (n,)
+    offset_m: np.ndarray  # (n,) x*_u = x_r - offset_m[u]
+    spacing_m: float
+    emergency_gap_m: float
+
+    @classmethod
+    def from_config(cls, trains: TrainsConfig) -> "TrainLayout":
+        n = trains.count * trains.units
+        length = np.full(n, trains.unit_length_m)
+        mass = np.full(n, trains.unit_mass_kg)
+        train_of = np.repeat(np.arange(trains.count), trains.units)
+        ahead = np.concatenate(([0.0], np.cumsum(length)[:-1]))  # lengths of all units ahead
+        offset = ahead + train_of * trains.spacing_m
+        return cls(
+            n_trains=trains.count,
+            units_per_train=trains.units,
+            mass_kg=mass,
+            effective_mass_kg=mass * (1.0 + trains.rotating_mass_factor),
+            length_m=length,
+            offset_m=offset,
+            spacing_m=trains.spacing_m,
+            emergency_gap_m=trains.emergency_gap_m,
+        )
+
+    @property
+    def n_units(self) -> int:
+        return self.n_trains * self.units_per_train
+
+    def index(self, train: int, unit: int) -> int:
+        """Flat index of (train, unit), both 0-based."""
+        return train * self.units_per_train + unit
+
+    def train_unit(self, u: int) -> tuple[int, int]:
+        return divmod(u, self.units_per_train)
+
+    def heads(self) -> np.ndarray:
+        return np.arange(self.n_trains) * self.units_per_train
+
+    def tails(self) -> np.ndarray:
+        return self.heads() + self.units_per_train - 1
+
+    def coupler_pairs(self) -> np.ndarray:
+        """(n_couplers, 2) flat indices (front unit, rear unit) of every coupler."""
+        pairs = [(self.index(i, j), self.index(i, j + 1)) for i in range(self.n_trains) for j in range(self.units_per_train - 1)]
+        return np.array(pairs, dtype=int).reshape(-1, 2)
+
+    def initial_positions(self, head_positions_m: list[float]) -> np.ndarray:
+        """Unit front-end positions with every coupler at rest (e = 0)."""
+        x = np.empty(self.n_units)
+        for i, head in enumerate(head_positions_m):
+            u0 = self.index(i, 0)
+            lengths = self.length_m[u0 : u0 + self.units_per_train]
+            x[u0 : u0 + self.units_per_train] = head - np.concatenate(([0.0], np.cumsum(lengths)[:-1]))
+        return x
+
+    def agent_info(self, u: int) -> AgentInfo:
+        train, unit = self.train_unit(u)
+        return AgentInfo(
+            train=train,
+            unit=unit,
+            n_trains=self.n_trains,
+            n_units=self.units_per_train,
+            mass_kg=float(self.effective_mass_kg[u]),
+            length_m=float(self.length_m[u]),
+            offset_m=float(self.offset_m[u]),
+            has_reference=(unit == 0),
+        )
+
+    def neighbours(self, u: int) -> list[tuple[int, str, str]]:
+        """(neighbour index, link, side) of unit u: adjacent units, and across trains for head/tail."""
+        train, unit = self.train_unit(u)
+        out: list[tuple[int, str, str]] = []
+        if unit > 0:
+            out.append((u - 1, "intra", "ahead"))
+        if unit < self.units_per_train - 1:
+            out.append((u + 1, "intra", "behind"))
+        if unit == 0 and train > 0:
+            out.append((self.index(train - 1, self.units_per_train - 1), "inter", "ahead"))
+        if unit == self.units_per_train - 1 and train < self.n_trains - 1:
+            out.append((self.index(train + 1, 0), "inter", "behind"))
+        return out
+
+    def gaps(self, x: np.ndarray) -> np.ndarray:
+        """Gap s_i = rear end of train i - front end of train i+1, for each adjacent pair."""
+        tails, heads = self.tails(), self.heads()
+        return (x[tails[:-1]] - self.length_m[tails[:-1]]) - x[heads[1:]]
+
+    def coupler_displacements(self, x: np.ndarray) -> np.ndarray:
+        """e = x_front - x_rear - l_front for every coupler (> 0 stretched)."""
+        p = self.coupler_pairs()
+        if len(p) == 0:
+            return np.zeros(0)
+        return x[p[:, 0]] - x[p[:, 1]] - self.length_m[p[:, 0]]
