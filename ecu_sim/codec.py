@@ -1,0 +1,333 @@
+"""Fast per-message codecs compiled once from the train DBC (the DBC is the single source of truth).
+
+cantools parses and models the DBC (``TrainDb.database``); each message is then compiled into a
+``MessageCodec`` of precomputed shifts, masks and raw limits, so the per-frame path never calls
+cantools. Encoding saturates out-of-range values (counted per signal) and fills the E2E header.
+"""
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cantools
+
+from ecu_sim.e2e import COUNTER_MASK, e2e_crc
+
+# The E2E header every message must carry: signal -> (start bit, length), unsigned, identity scaling.
+E2E_HEADER = {"CRC": (0, 8), "AliveCounter": (8, 4)}
+DATA_ID_ATTRIBUTE = "E2EDataID"
+MAX_CLASSIC_DLC = 8
+
+# What the firmware and the rig rely on: payload signal names in start-bit order per message family.
+# Per-unit families are named <family>_U01 .. _U<max_units>; the rest are single messages.
+UNIT_FAMILIES: dict[str, tuple[str, ...]] = {
+    "TractionCmd": ("Mode", "Force"),
+    "Sensor": ("Position", "Speed"),
+    "AgentState": ("Position", "Speed"),
+    "AgentAux": ("Accel", "Force"),
+}
+SINGLE_MESSAGES: dict[str, tuple[str, ...]] = {
+    "Reference": ("Position", "Speed"),
+    "ReferenceAux": ("Accel",),
+    "RadioAheadState": ("Position", "Speed"),
+    "RadioAheadAux": ("Accel", "Force"),
+    "RadioBehindState": ("Position", "Speed"),
+    "RadioBehindAux": ("Accel", "Force"),
+}
+
+
+def default_dbc_path() -> Path:
+    """dbc/train.dbc of the source tree, else the copy a wheel installs under sys.prefix."""
+    repo = Path(__file__).resolve().parents[1] / "dbc" / "train.dbc"
+    installed = Path(sys.prefix) / "share" / "trainhil" / "dbc" / "train.dbc"
+    for path in (repo, installed):
+        if path.is_file():
+            return path
+    raise FileNotFoundError(f"train DBC not found: looked for {repo} and {installed}")
+
+
+def unit_message_name(family: str, unit0: int) -> str:
+    """DBC name of a per-unit message: 0-based unit index -> slot suffix _U01, _U02, ..."""
+    return f"{family}_U{unit0 + 1:02d}"
+
+
+@dataclass(frozen=True, slots=True)
+class _SignalSpec:
+    """Everything the hot path needs about one payload signal, taken from the DBC once."""
+
+    name: str
+    shift: int
+    mask: int
+    sign_bit: int  # 0 for unsigned signals
+    scale: float
+    offset: float
+    raw_min: int
+    raw_max: int
+
+
+class DbcMismatchError(ValueError):
+    """The DBC does not have the layout the firmware and rig are written against."""
+
+
+class MessageCodec:
+    """Encoder/decoder of one message: physical values in ``signals`` order <-> frame bytes."""
+
+    __slots__ = (
+        "name", "frame_id", "dlc", "cycle_time_s", "data_id", "signals", "units", "limits",
+        "saturations", "_specs", "_enc", "_dec",
+    )
+
+    def __init__(self, name: str, frame_id: int, dlc: int, cycle_time_s: float, data_id: int,
+                 specs: Sequence[_SignalSpec], units: Sequence[str]) -> None:
+        self.name = name
+        self.frame_id = frame_id
+        self.dlc = dlc
+        self.cycle_time_s = cycle_time_s
+        self.data_id = data_id
+        self._specs = tuple(specs)
+        self.signals: tuple[str, ...] = tuple(s.name for s in self._specs)
+        self.units: tuple[str, ...] = tuple(units)
+        # Physical range each signal can carry (what encode saturates to).
+        self.limits: tuple[tuple[float, float], ...] = tuple(
+            (s.raw_min * s.scale + s.offset, s.raw_max * s.scale + s.offset) for s in self._specs
+        )
+        self.saturations: dict[str, int] = {s.name: 0 for s in self._specs}
+        self._enc = tuple((s.offset, s.scale, s.raw_min, s.raw_max, s.mask, s.shift) for s in self._specs)
+        self._dec = tuple((s.shift, s.mask, s.sign_bit, s.scale, s.offset) for s in self._specs)
+
+    def __repr__(self) -> str:
+        return f"MessageCodec({self.name}, id=0x{self.frame_id:03X}, dlc={self.dlc}, signals={self.signals})"
+
+    def index(self, signal: str) -> int:
+        """Position of a payload signal in ``signals`` (the order of encode/decode values)."""
+        try:
+            return self.signals.index(signal)
+        except ValueError:
+            raise KeyError(f"message {self.name} has no payload signal {signal!r} (has {self.signals})") from None
+
+    def encode(self, values: Sequence[float], counter: int) -> bytes:
+        """Physical values (in ``signals`` order) -> frame bytes with alive counter and E2E CRC."""
+        if len(values) != len(self._enc):
+            raise ValueError(f"{self.name}: expected {len(self._enc)} values {self.signals}, got {len(values)}")
+        if not 0 <= counter <= COUNTER_MASK:
+            raise ValueError(f"{self.name}: alive counter {counter!r} is not in 0..{COUNTER_MASK}")
+        word = int(counter) << 8
+        i = 0
+        for value, (offset, scale, lo, hi, mask, shift) in zip(values, self._enc):
+            x = (value - offset) / scale
+            raw = round(x) if lo <= x <= hi else self._saturate(i, x, lo, hi)
+            word |= (raw & mask) << shift
+            i += 1
+        dlc = self.dlc
+        return (word | e2e_crc(self.data_id, word.to_bytes(dlc, "little"))).to_bytes(dlc, "little")
+
+    def _saturate(self, i: int, x: float, lo: int, hi: int) -> int:
+        """Raw value of an out-of-range (or NaN) scaled value: the nearest extreme, counted."""
+        name = self.signals[i]
+        if math.isnan(x):
+            raise ValueError(f"{self.name}.{name}: cannot encode NaN")
+        # Within half an LSB of the extreme it is plain quantisation, not saturation.
+        if x > hi + 0.5 or x < lo - 0.5:
+            self.saturations[name] += 1
+        return hi if x > hi else lo
+
+    def decode(self, data: bytes | bytearray | memoryview) -> tuple[float, ...]:
+        """Frame bytes -> physical values in ``signals`` order (E2E header not checked here)."""
+        if len(data) != self.dlc:
+            raise ValueError(f"{self.name}: frame has {len(data)} bytes, DLC is {self.dlc}")
+        word = int.from_bytes(data, "little")
+        out = []
+        for shift, mask, sign_bit, scale, offset in self._dec:
+            raw = (word >> shift) & mask
+            if raw & sign_bit:
+                raw -= mask + 1
+            out.append(raw * scale + offset)
+        return tuple(out)
+
+    def counter_of(self, data: bytes | bytearray | memoryview) -> int:
+        """Alive counter carried in the frame."""
+        self._check_length(data)
+        return data[1] & COUNTER_MASK
+
+    def crc_ok(self, data: bytes | bytearray | memoryview) -> bool:
+        """True when the frame's CRC byte matches this message's data ID and payload."""
+        self._check_length(data)
+        return data[0] == e2e_crc(self.data_id, data)
+
+    def _check_length(self, data: bytes | bytearray | memoryview) -> None:
+        if len(data) != self.dlc:
+            raise ValueError(f"{self.name}: frame has {len(data)} bytes, DLC is {self.dlc}")
+
+    def reset_saturations(self) -> None:
+        """Zero the saturation counts (e.g. between runs sharing one database)."""
+        for name in self.saturations:
+            self.saturations[name] = 0
+
+
+class _FrameIdMap(dict):
+    """frame id -> codec; a missing id raises KeyError naming it in hex."""
+
+    def __missing__(self, frame_id: int) -> MessageCodec:
+        raise KeyError(f"no message with frame id 0x{frame_id:03X} in the train DBC")
+
+
+def _raw_limits(signal, where: str) -> tuple[int, int]:
+    """Raw range of a signal: its bit range, narrowed by the DBC minimum/maximum when given."""
+    if signal.is_signed:
+        lo, hi = -(1 << (signal.length - 1)), (1 << (signal.length - 1)) - 1
+    else:
+        lo, hi = 0, (1 << signal.length) - 1
+    if signal.minimum is not None:
+        lo = max(lo, math.ceil((signal.minimum - signal.offset) / signal.scale - 1e-6))
+    if signal.maximum is not None:
+        hi = min(hi, math.floor((signal.maximum - signal.offset) / signal.scale + 1e-6))
+    if lo > hi:
+        raise DbcMismatchError(f"{where}: signal {signal.name} has an empty range [{signal.minimum}, {signal.maximum}]")
+    return lo, hi
+
+
+def _check_header(message, where: str) -> None:
+    """Every message must carry CRC and AliveCounter where the E2E code reads them."""
+    by_name = {s.name: s for s in message.signals}
+    for name, (start, length) in E2E_HEADER.items():
+        sig = by_name.get(name)
+        if sig is None:
+            raise DbcMismatchError(f"{where}: E2E signal {name} is missing")
+        ok = (sig.start == start and sig.length == length and sig.byte_order == "little_endian"
+              and not sig.is_signed and sig.scale == 1 and sig.offset == 0)
+        if not ok:
+            raise DbcMismatchError(
+                f"{where}: {name} must be unsigned Intel at bit {start}, {length} bits, scale 1 "
+                f"(is start {sig.start}, {sig.length} bits, {sig.byte_order}, signed={sig.is_signed}, "
+                f"scale {sig.scale}, offset {sig.offset})"
+            )
+
+
+def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
+    """Check one cantools message against what the code expects and build its codec."""
+    if message.is_extended_frame or message.is_fd or message.length > MAX_CLASSIC_DLC:
+        raise DbcMismatchError(f"{where}: must be a classical CAN frame with an 11-bit ID and DLC <= 8")
+    _check_header(message, where)
+    attr = message.dbc.attributes.get(DATA_ID_ATTRIBUTE) if message.dbc else None
+    if attr is None:
+        raise DbcMismatchError(f"{where}: no {DATA_ID_ATTRIBUTE} attribute")
+    if message.cycle_time is None:
+        raise DbcMismatchError(f"{where}: no GenMsgCycleTime attribute")
+    payload = sorted((s for s in message.signals if s.name not in E2E_HEADER), key=lambda s: s.start)
+    names = tuple(s.name for s in payload)
+    if names != expected:
+        raise DbcMismatchError(f"{where}: payload signals {names}, the code expects {expected}")
+    specs = []
+    for s in payload:
+        if s.byte_order != "little_endian" or s.is_float or s.is_multiplexer or s.multiplexer_ids:
+            raise DbcMismatchError(f"{where}: signal {s.name} must be a plain Intel integer signal")
+        lo, hi = _raw_limits(s, where)
+        mask = (1 << s.length) - 1
+        sign_bit = 1 << (s.length - 1) if s.is_signed else 0
+        specs.append(_SignalSpec(s.name, s.start, mask, sign_bit, float(s.scale), float(s.offset), lo, hi))
+    return MessageCodec(message.name, message.frame_id, message.length, message.cycle_time / 1000.0,
+                        int(attr.value), specs, [s.unit or "" for s in payload])
+
+
+class TrainDb:
+    """The train DBC: cantools' object model plus one compiled codec per message."""
+
+    def __init__(self, path: Path, database: cantools.database.can.Database, codecs: Sequence[MessageCodec],
+                 max_units: int) -> None:
+        self.path = path
+        self.database = database  # cantools object model (not used per frame)
+        self.max_units = max_units
+        self.by_name: dict[str, MessageCodec] = {c.name: c for c in codecs}
+        self.by_id: dict[int, MessageCodec] = _FrameIdMap((c.frame_id, c) for c in codecs)
+        self._units = {f: tuple(self.by_name[unit_message_name(f, u)] for u in range(max_units)) for f in UNIT_FAMILIES}
+
+    @classmethod
+    def load(cls, path: Path | str | None = None) -> "TrainDb":
+        """Load and check the DBC (default: :func:`default_dbc_path`), compile every message."""
+        path = default_dbc_path() if path is None else Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"train DBC not found: {path}")
+        try:
+            database = cantools.database.load_file(path, strict=True)
+        except cantools.errors.Error as exc:
+            raise DbcMismatchError(f"DBC {path}: cantools cannot load it: {exc}") from exc
+        by_name = {m.name: m for m in database.messages}
+        max_units = _count_unit_slots(by_name, path)
+        expected = dict(SINGLE_MESSAGES)
+        for family, signals in UNIT_FAMILIES.items():
+            expected.update({unit_message_name(family, u): signals for u in range(max_units)})
+        missing = [name for name in expected if name not in by_name]
+        if missing:
+            raise DbcMismatchError(f"DBC {path}: missing message(s) {', '.join(missing)}")
+        extra = [name for name in by_name if name not in expected]
+        if extra:
+            raise DbcMismatchError(f"DBC {path}: message(s) the code does not know: {', '.join(extra)}")
+        codecs = [_compile(by_name[n], sig, f"DBC {path}: message {n}") for n, sig in expected.items()]
+        return cls(path, database, codecs, max_units)
+
+    def traction_cmd(self, unit0: int) -> MessageCodec:
+        """TractionCmd codec of 0-based unit index ``unit0`` (slot _U{unit0 + 1:02d})."""
+        return self._unit("TractionCmd", unit0)
+
+    def sensor(self, unit0: int) -> MessageCodec:
+        """Sensor codec of 0-based unit index ``unit0`` (slot _U{unit0 + 1:02d})."""
+        return self._unit("Sensor", unit0)
+
+    def agent_state(self, unit0: int) -> MessageCodec:
+        """AgentState codec of 0-based unit index ``unit0`` (slot _U{unit0 + 1:02d})."""
+        return self._unit("AgentState", unit0)
+
+    def agent_aux(self, unit0: int) -> MessageCodec:
+        """AgentAux codec of 0-based unit index ``unit0`` (slot _U{unit0 + 1:02d})."""
+        return self._unit("AgentAux", unit0)
+
+    def _unit(self, family: str, unit0: int) -> MessageCodec:
+        if not 0 <= unit0 < self.max_units:
+            raise IndexError(f"{family}: unit index {unit0!r} is not in 0..{self.max_units - 1}")
+        return self._units[family][unit0]
+
+    @property
+    def reference(self) -> MessageCodec:
+        return self.by_name["Reference"]
+
+    @property
+    def reference_aux(self) -> MessageCodec:
+        return self.by_name["ReferenceAux"]
+
+    @property
+    def radio_ahead_state(self) -> MessageCodec:
+        return self.by_name["RadioAheadState"]
+
+    @property
+    def radio_ahead_aux(self) -> MessageCodec:
+        return self.by_name["RadioAheadAux"]
+
+    @property
+    def radio_behind_state(self) -> MessageCodec:
+        return self.by_name["RadioBehindState"]
+
+    @property
+    def radio_behind_aux(self) -> MessageCodec:
+        return self.by_name["RadioBehindAux"]
+
+    def total_saturations(self) -> dict[str, int]:
+        """Saturated encodes so far, keyed "Message.Signal" (non-zero entries only)."""
+        return {f"{c.name}.{s}": n for c in self.by_name.values() for s, n in c.saturations.items() if n}
+
+    def reset_saturations(self) -> None:
+        """Zero the saturation counts of every codec."""
+        for codec in self.by_name.values():
+            codec.reset_saturations()
+
+
+def _count_unit_slots(by_name: dict, path: Path) -> int:
+    """Number of unit slots: TractionCmd_U01.. consecutive from 1 (other families are checked against it)."""
+    n = 0
+    while unit_message_name("TractionCmd", n) in by_name:
+        n += 1
+    if n == 0:
+        raise DbcMismatchError(f"DBC {path}: missing message(s) {unit_message_name('TractionCmd', 0)}")
+    return n
