@@ -69,7 +69,9 @@ class RunLog:
     reference_change_times: list[float] = field(default_factory=list)
     radio_stats: dict[str, dict[str, int]] = field(default_factory=dict)  # link name -> counters
     codec_saturations: dict[str, int] = field(default_factory=dict)  # "Message.Signal" -> count
+    e2e: dict[str, dict[str, int]] = field(default_factory=dict)  # ECU name -> E2E status -> count
     frames_lost: int = 0
+    interrupted: bool = False  # stopped early (Ctrl-C): everything up to sim_time_s is valid
     sim_time_s: float = 0.0
     wall_time_s: float = 0.0
 
