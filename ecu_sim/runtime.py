@@ -1,0 +1,253 @@
+"""The ECU runtime: the firmware loop around one control law.
+
+Each cycle it reads the latest frame of every input stream (own sensor, neighbours' AgentState and
+AgentAux, the wayside reference), checks each with the E2E CRC and alive counter, judges freshness by
+age, builds the controller's :class:`~ecu_sim.view.LocalView`, runs the law, and encodes its outputs
+(TractionCmd, AgentState, AgentAux). It is clock-agnostic: the virtual-time runtime and a real-time
+process call ``on_frame`` when a frame arrives and ``cycle`` on the ECU's timer.
+
+Sample alignment: the plant samples every unit's sensors at the same instants and numbers them with the
+Sensor frame's alive counter. An ECU sends its AgentState/AgentAux with that same counter (so the counter
+means "sample k"; a repeated sample is REPEATED at the receivers), and keeps its own last samples by
+counter. A neighbour's state is then compared with our own state *at the same sample*: at 90 m/s one
+cycle of skew would otherwise read as 0.9 m of coupler displacement, nine times the seed-000 band.
+
+Degraded modes: a neighbour whose last good frame is older than ``neighbour_timeout_s`` is left out
+of the law; a stale own sensor or (for pinned units) a stale reference commands the service brake;
+losing the train ahead for longer than ``radio_contact_timeout_s`` after contact commands the
+emergency brake; a controller that raises or returns a non-finite force stops the ECU (it falls
+silent, and the plant's fail-safe takes over), as a crashed ECU would.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from ecu_sim.codec import MessageCodec, TrainDb
+from ecu_sim.controllers.base import Controller
+from ecu_sim.e2e import E2EChecker
+from ecu_sim.view import AgentInfo, BrakeMode, Command, LocalView, NeighbourView, ReferenceView
+from hil.scenario.model import EcuConfig
+
+INF = float("inf")
+
+
+@dataclass(slots=True)
+class InputSlot:
+    """Mailbox of one input stream: the last raw frame, and the last frame that passed the checks."""
+
+    codec: MessageCodec
+    checker: E2EChecker
+    raw: bytes | None = None
+    t_raw: float = -INF
+    values: tuple[float, ...] = ()
+    t_good: float = -INF  # reception time of the last good frame
+    counter: int = -1  # alive counter of the last good frame
+
+    def refresh(self) -> None:
+        """Check and decode the frame that arrived since the last cycle, if any."""
+        if self.raw is None:
+            return
+        data, self.raw = self.raw, None
+        if self.checker.check(data).usable:  # CRC and alive counter (AUTOSAR profile-1 semantics)
+            self.values = self.codec.decode(data)
+            self.t_good = self.t_raw
+            self.counter = data[1] & 0xF
+
+    def age(self, t: float) -> float:
+        return t - self.t_good
+
+
+@dataclass(frozen=True, slots=True)
+class NeighbourLink:
+    """Where one neighbour's state arrives from."""
+
+    state_id: int
+    aux_id: int | None
+    link: Literal["intra", "inter"]
+    side: Literal["ahead", "behind"]
+    offset_m: float
+
+
+@dataclass
+class EcuCounters:
+    cycles: int = 0
+    controller_errors: int = 0
+
+
+class Ecu:
+    """One power unit's onboard controller."""
+
+    def __init__(self, name: str, agent: AgentInfo, controller: Controller, db: TrainDb,
+                 neighbours: list[NeighbourLink], cfg: EcuConfig, sample_period_s: float = 0.01) -> None:
+        self.name = name
+        self.agent = agent
+        self.controller = controller
+        self.cfg = cfg
+        self.alive = True
+        self.events: list[tuple[float, str, str]] = []  # (t, level, text), drained by the runtime
+        self.counters = EcuCounters()
+        u = agent.unit
+        self._out_cmd = db.traction_cmd(u)
+        self._out_state = db.agent_state(u)
+        self._out_aux = db.agent_aux(u)
+        self._cmd_counter = 0
+        self._samples: list[tuple[float, float, float] | None] = [None] * 16  # own (x, v, t_rx) by sample counter
+        self._align_window_s = 8 * sample_period_s  # half the counter's wrap: older matches would be ambiguous
+        # A mailbox read once per cycle sees the counter advance by cycle/sample period; allow twice that
+        # (one jittered cycle) before a jump counts as a wrong sequence.
+        self._max_delta = min(14, 2 * max(1, round(cfg.cycle_s / sample_period_s)))
+        self.slots: dict[int, InputSlot] = {}
+        self._sensor = self._slot(db.sensor(u))
+        self._ref = self._slot(db.reference) if agent.has_reference else None
+        self._ref_aux = self._slot(db.reference_aux) if agent.has_reference else None
+        self._links = [(nl, self._slot(db.by_id[nl.state_id]), self._slot(db.by_id[nl.aux_id]) if nl.aux_id is not None else None)
+                       for nl in neighbours]
+        self.view = LocalView(t=0.0, dt=cfg.cycle_s, x=math.nan, v=math.nan,
+                              neighbours=[NeighbourView(nl.link, nl.side, nl.offset_m) for nl in neighbours],
+                              ref=ReferenceView())
+        self._flags: dict[str, bool] = {}
+
+    def _slot(self, codec: MessageCodec) -> InputSlot:
+        slot = InputSlot(codec, E2EChecker(codec.data_id, max_delta=self._max_delta, name=codec.name))
+        self.slots[codec.frame_id] = slot
+        return slot
+
+    def e2e_summary(self) -> dict[str, int]:
+        """E2E verdicts summed over every input stream (status name -> count)."""
+        totals: dict[str, int] = {}
+        for slot in self.slots.values():
+            for status, n in slot.checker.summary().items():
+                totals[status] = totals.get(status, 0) + n
+        return totals
+
+    @property
+    def rx_ids(self) -> set[int]:
+        """Acceptance filter: the IDs this ECU listens to."""
+        return set(self.slots)
+
+    # ---- called by the runtime
+    def on_frame(self, frame_id: int, data: bytes, t: float) -> None:
+        """Mailbox write: keep the latest frame of each stream (checked at the next cycle)."""
+        slot = self.slots.get(frame_id)
+        if slot is not None:
+            slot.raw = data
+            slot.t_raw = t
+
+    def cycle(self, t: float) -> list[tuple[int, bytes]]:
+        """Run one control cycle at time t; return the frames to send (id, data)."""
+        if not self.alive:
+            return []
+        self.counters.cycles += 1
+        for slot in self.slots.values():
+            slot.refresh()
+        cmd = self._control(t)
+        if cmd is None:
+            return []
+        return self._outputs(cmd)
+
+    def restart(self) -> None:
+        """Power-cycle: clear the controller's memory and the mailboxes, start sending again."""
+        self.controller.reset()
+        for slot in self.slots.values():
+            slot.raw, slot.values, slot.t_good, slot.counter = None, (), -INF, -1
+            slot.checker.reset()
+        self._samples = [None] * 16
+        self.alive = True
+
+    # ---- internals
+    def _control(self, t: float) -> Command | None:
+        view, cfg = self.view, self.cfg
+        view.t = t
+        sensor_ok = self._sensor.age(t) <= cfg.neighbour_timeout_s
+        self._flag(t, "sensor_stale", not sensor_ok, "WARN", "own sensor data stale: service brake")
+        if not sensor_ok:
+            return Command(0.0, BrakeMode.SERVICE, 0.0)
+        view.x, view.v = self._sensor.values
+        self._samples[self._sensor.counter] = (view.x, view.v, self._sensor.t_good)
+        self._fill_neighbours(t)
+        ref_ok = self._fill_reference(t)
+        try:
+            cmd = self.controller.step(view)
+            if not math.isfinite(cmd.force_n):
+                raise ValueError(f"controller returned a non-finite force {cmd.force_n}")
+        except Exception as exc:  # the firmware crashed: fall silent, the plant's fail-safe takes over
+            self.alive = False
+            self.counters.controller_errors += 1
+            self.events.append((t, "ERROR", f"controller {type(self.controller).__name__} failed: {exc!r}; ECU stopped"))
+            return None
+        if self.agent.has_reference:
+            self._flag(t, "ref_stale", not ref_ok, "WARN", "reference stale: service brake")
+            if not ref_ok:
+                cmd = Command(0.0, BrakeMode.SERVICE, 0.0)
+        if self._lost_train_ahead(t):
+            cmd = Command(0.0, BrakeMode.EMERGENCY, 0.0)
+        if cmd.mode == BrakeMode.EMERGENCY:
+            self._flag(t, "emergency", True, "ERROR", "emergency brake commanded")
+        return cmd
+
+    def _fill_neighbours(self, t: float) -> None:
+        timeout = self.cfg.neighbour_timeout_s
+        for nv, (nl, state, aux) in zip(self.view.neighbours, self._links):
+            age = state.age(t)
+            nv.age_s = age
+            nv.valid = age <= timeout
+            if not nv.valid:
+                continue
+            nv.x, nv.v = state.values
+            self._align(nv, state)
+            if aux is not None and aux.values and aux.age(t) <= timeout:
+                nv.a, nv.u = aux.values
+            else:
+                nv.a = nv.u = math.nan
+
+    def _align(self, nv: NeighbourView, state: InputSlot) -> None:
+        """Shift a neighbour's sample k by our own motion since our sample k (same-instant comparison)."""
+        own = self._samples[state.counter]
+        if own is None:
+            return
+        x_k, v_k, t_k = own
+        if 0.0 <= state.t_good - t_k < self._align_window_s:
+            nv.x += self.view.x - x_k
+            nv.v += self.view.v - v_k
+
+    def _fill_reference(self, t: float) -> bool:
+        if self._ref is None:
+            return True
+        ref = self.view.ref
+        ref.age_s = self._ref.age(t)
+        ref.valid = ref.age_s <= self.cfg.reference_timeout_s
+        if ref.valid:
+            ref.x, ref.v = self._ref.values
+            ref.a = self._ref_aux.values[0] if self._ref_aux and self._ref_aux.values else 0.0
+        return ref.valid
+
+    def _lost_train_ahead(self, t: float) -> bool:
+        """Head of a following train: contact with the train ahead lost for too long after it was made."""
+        for nl, state, _ in self._links:
+            if nl.link == "inter" and nl.side == "ahead" and state.t_good > -INF:
+                lost = state.age(t) > self.cfg.radio_contact_timeout_s
+                self._flag(t, "radio_lost", lost, "ERROR", "lost contact with the train ahead: emergency brake")
+                return lost
+        return False
+
+    def _flag(self, t: float, key: str, on: bool, level: str, text: str) -> None:
+        """Log a condition when it starts and when it clears (not every cycle)."""
+        if self._flags.get(key, False) != on:
+            self._flags[key] = on
+            self.events.append((t, level if on else "INFO", text if on else f"cleared: {text}"))
+
+    def _outputs(self, cmd: Command) -> list[tuple[int, bytes]]:
+        """TractionCmd always; AgentState/AgentAux only with a fresh own sample, numbered by that sample."""
+        self._cmd_counter = (self._cmd_counter + 1) & 0xF
+        c = self._out_cmd
+        frames = [(c.frame_id, c.encode((int(cmd.mode), cmd.force_n), self._cmd_counter))]
+        if self._flags.get("sensor_stale") or self._sensor.counter < 0:
+            return frames
+        v, k = self.view, self._sensor.counter
+        accel = cmd.accel_mps2 if math.isfinite(cmd.accel_mps2) else cmd.force_n / self.agent.mass_kg
+        s, a = self._out_state, self._out_aux
+        frames.append((s.frame_id, s.encode((v.x, v.v), k)))
+        frames.append((a.frame_id, a.encode((accel, cmd.force_n), k)))
+        return frames

@@ -1,0 +1,204 @@
+"""The CAN bus model: per-node TX queues, arbitration, exact frame durations, load and latency stats.
+
+``CanBusModel`` is clock-agnostic (it is told the time): the virtual-time runtime drives it from
+the event kernel (:class:`VirtualCanBus`), a real-time bus server can drive it from the wall clock.
+Semantics: when the bus goes idle, every node offers the head of its TX queue (the lowest ID it holds
+under the ``priority`` policy, its oldest frame under ``fifo``) and the lowest ID wins arbitration.
+A frame's transmission ends after its last bit including the 3-bit intermission, which is the time
+stamped on the received frame (the same convention as the response-time analysis).
+"""
+from __future__ import annotations
+
+import heapq
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable
+
+from hil.can.frame import frame_bits
+from hil.record.runlog import BusLog
+from hil.runtime.kernel import Kernel
+
+RxCallback = Callable[[int, bytes, int], None]  # (frame_id, data, t_end_ns)
+
+
+@dataclass(slots=True)
+class Transmission:
+    """A frame on the wire."""
+
+    node: "CanNode"
+    frame_id: int
+    data: bytes
+    t_enqueue: int
+    t_start: int
+    t_end: int
+
+
+class CanNode:
+    """A node's controller: a bounded TX queue and a receive callback behind an acceptance filter."""
+
+    def __init__(self, name: str, policy: str, depth: int, on_rx: RxCallback | None, rx_ids: set[int] | None,
+                 receive_own: bool = False) -> None:
+        self.name = name
+        self.on_rx = on_rx
+        self.rx_ids = rx_ids  # None = accept everything
+        self.receive_own = receive_own
+        self.depth = depth
+        self._priority = policy == "priority"
+        self._heap: list[tuple[int, int, bytes, int]] = []  # (id, seq, data, t_enqueue)
+        self._fifo: deque[tuple[int, int, bytes, int]] = deque()
+        self._seq = 0
+        self.sent = 0
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self._heap) if self._priority else len(self._fifo)
+
+    def push(self, frame_id: int, data: bytes, t: int) -> bool:
+        """Queue a frame; False (and counted) when the queue is full."""
+        if len(self) >= self.depth:
+            self.dropped += 1
+            return False
+        self._seq += 1
+        item = (frame_id, self._seq, data, t)
+        if self._priority:
+            heapq.heappush(self._heap, item)
+        else:
+            self._fifo.append(item)
+        return True
+
+    def head_id(self) -> int:
+        return self._heap[0][0] if self._priority else self._fifo[0][0]
+
+    def pop(self) -> tuple[int, int, bytes, int]:
+        return heapq.heappop(self._heap) if self._priority else self._fifo.popleft()
+
+
+class CanBusModel:
+    """Arbitration and timing of one CAN bus, told the time by its driver."""
+
+    def __init__(self, name: str, bitrate: int, policy: str = "priority", depth: int = 64, extended: bool = False,
+                 log: BusLog | None = None, load_window_s: float = 0.1) -> None:
+        if policy not in ("priority", "fifo"):
+            raise ValueError(f"queue policy must be 'priority' or 'fifo', got {policy!r}")
+        self.name = name
+        self.bitrate = bitrate
+        self.bit_ns = 1_000_000_000 // bitrate
+        if self.bit_ns * bitrate != 1_000_000_000:
+            raise ValueError(f"bitrate {bitrate} has no whole-nanosecond bit time")
+        self.policy = policy
+        self.depth = depth
+        self.extended = extended
+        self.log = log if log is not None else BusLog(name, bitrate)
+        self.nodes: list[CanNode] = []
+        self._listeners: dict[int, list[CanNode]] = {}  # frame id -> filtered receivers (built lazily)
+        self._catch_all: list[CanNode] = []
+        self.busy_until = 0
+        self.current: Transmission | None = None
+        self._window_ns = int(load_window_s * 1e9)
+        self._window_end = self._window_ns
+        self._window_busy = 0
+        self.frame_listeners: list[Callable[[Transmission], None]] = []  # e.g. CAN log writers
+
+    # ---- topology
+    def attach(self, name: str, on_rx: RxCallback | None = None, rx_ids: set[int] | None = None,
+               receive_own: bool = False) -> CanNode:
+        node = CanNode(name, self.policy, self.depth, on_rx, rx_ids, receive_own)
+        self.nodes.append(node)
+        self._listeners.clear()
+        self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
+        return node
+
+    def _receivers(self, frame_id: int) -> list[CanNode]:
+        found = self._listeners.get(frame_id)
+        if found is None:
+            found = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is not None and frame_id in n.rx_ids]
+            found += self._catch_all
+            self._listeners[frame_id] = found
+        return found
+
+    # ---- arbitration
+    def arbitrate(self, t: int) -> Transmission | None:
+        """If the bus is idle at t, start the winning pending frame and return it."""
+        if self.current is not None or t < self.busy_until:
+            return None
+        winner: CanNode | None = None
+        best = 1 << 30
+        for node in self.nodes:
+            if len(node) and node.head_id() < best:
+                best, winner = node.head_id(), node
+        if winner is None:
+            return None
+        frame_id, _, data, t_enq = winner.pop()
+        t_end = t + frame_bits(frame_id, data, self.extended) * self.bit_ns
+        self.current = Transmission(winner, frame_id, data, t_enq, t, t_end)
+        self.busy_until = t_end
+        return self.current
+
+    def complete(self) -> Transmission:
+        """End the current transmission: deliver it, update statistics."""
+        tx = self.current
+        assert tx is not None, "complete() without a transmission"
+        self.current = None
+        self._account(tx)
+        for node in self._receivers(tx.frame_id):
+            if node is not tx.node or node.receive_own:
+                node.on_rx(tx.frame_id, tx.data, tx.t_end)  # type: ignore[misc]
+        for listener in self.frame_listeners:
+            listener(tx)
+        return tx
+
+    def pending(self) -> bool:
+        return any(len(n) for n in self.nodes)
+
+    # ---- statistics
+    def _account(self, tx: Transmission) -> None:
+        tx.node.sent += 1
+        log = self.log
+        log.frames_sent += 1
+        log.frames.append((tx.t_end * 1e-9, tx.frame_id, (tx.t_end - tx.t_enqueue) * 1e-9, (tx.t_start - tx.t_enqueue) * 1e-9))
+        self._close_windows(tx.t_end)
+        self._window_busy += tx.t_end - tx.t_start
+
+    def _close_windows(self, t: int, inclusive: bool = False) -> None:
+        """Emit load samples for every window that ended before t (at or before t if inclusive).
+
+        A frame counts in the window its transmission ends in."""
+        while t > self._window_end or (inclusive and t == self._window_end):
+            self.log.load.append((self._window_end * 1e-9, self._window_busy / self._window_ns))
+            self._window_busy = 0
+            self._window_end += self._window_ns
+
+    def finish(self, t: int) -> None:
+        """Close the load windows up to t and fold the nodes' drop counts into the log."""
+        self._close_windows(t, inclusive=True)
+        self.log.frames_dropped = sum(n.dropped for n in self.nodes)
+
+
+class VirtualCanBus(CanBusModel):
+    """A CAN bus driven by the discrete-event kernel."""
+
+    def __init__(self, kernel: Kernel, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.kernel = kernel
+        self._arbitration_pending = False
+
+    def send(self, node: CanNode, frame_id: int, data: bytes) -> bool:
+        """Queue a frame at the kernel's current time. Same-time submissions all join one arbitration."""
+        ok = node.push(frame_id, data, self.kernel.now)
+        if ok and self.current is None and not self._arbitration_pending:
+            self._arbitration_pending = True
+            self.kernel.at(max(self.kernel.now, self.busy_until), self._arbitrate_event)
+        return ok
+
+    def _arbitrate_event(self, _: object = None) -> None:
+        self._arbitration_pending = False
+        tx = self.arbitrate(self.kernel.now)
+        if tx is not None:
+            self.kernel.at(tx.t_end, self._end_event)
+
+    def _end_event(self, _: object = None) -> None:
+        self.complete()
+        # Arbitrate in a fresh event so frames queued by other events at this same instant also compete.
+        if not self._arbitration_pending and self.pending():
+            self._arbitration_pending = True
+            self.kernel.at(self.kernel.now, self._arbitrate_event)

@@ -1,0 +1,113 @@
+"""The ``hil`` command line: run scenarios, list them.
+
+User errors (a bad scenario file, an unknown name) print one clear message and exit 2, no traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
+
+
+def _cmd_scenarios(args: argparse.Namespace) -> int:
+    for name, path in packaged_scenarios().items():
+        try:
+            desc = load_scenario(path).description
+        except ScenarioError as exc:
+            desc = f"(invalid: {exc})"
+        print(f"{name:24s} {desc}")
+    return 0
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return str(value)
+
+
+SUMMARY_KEYS = [
+    ("settling_time_s", "settling time (s, 0.5 km/h band)"),
+    ("speed_overshoot_max_mps", "max speed overshoot (m/s)"),
+    ("speed_error_max_after_settling_mps", "max |v - v_r| after settling (m/s)"),
+    ("coupler_max_abs_m", "max |coupler displacement| (m)"),
+    ("coupler_out_of_band_s", "time any coupler out of band (s)"),
+    ("gap_min_m", "min gap per train pair (m)"),
+    ("gap_final_m", "final gap per train pair (m)"),
+    ("frames_sent", "frames sent"),
+    ("frames_lost", "frames lost"),
+    ("bus_load_max", "max bus load"),
+    ("frame_latency_p99_s", "frame latency p99 (s)"),
+    ("sim_time_s", "simulated time (s)"),
+    ("wall_time_s", "wall time (s)"),
+    ("realtime_factor", "x real time"),
+]
+
+
+def print_summary(metrics: dict, out: Path) -> None:
+    title = f"{metrics.get('scenario')} ({metrics.get('runtime')})"
+    if metrics.get("interrupted"):
+        title += "  INTERRUPTED: partial results"
+    print(title)
+    for key, label in SUMMARY_KEYS:
+        if key in metrics:
+            print(f"  {label:38s} {_fmt(metrics[key])}")
+    sat = metrics.get("codec_saturations") or {}
+    if sat:
+        print(f"  {'signals saturated (count)':38s} " + ", ".join(f"{k}: {v}" for k, v in sat.items()))
+    print(f"  written to {out}/ (run.rrd, metrics.json)")
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from hil.session import run_scenario
+
+    overrides = {}
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    scenario = load_scenario(args.scenario, overrides)
+    out = Path(args.out) if args.out else Path("runs") / scenario.name
+    result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
+                          record=not args.no_record, progress=not args.quiet)
+    print_summary(result.metrics, out)
+    return 130 if result.log.interrupted else 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hil", description="trainhil: CAN emulation rig for cooperative train control")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run one scenario in virtual time and record it")
+    run.add_argument("scenario", help="packaged scenario name (see `hil scenarios`) or path to a .toml file")
+    run.add_argument("--out", help="output directory (default: runs/<scenario name>)")
+    run.add_argument("--duration", type=float, help="simulated seconds (default: the scenario's duration_s)")
+    run.add_argument("--seed", type=int, help="random seed (default: the scenario's seed)")
+    run.add_argument("--can-log", action="store_true", help="write one ASC CAN log per bus (python-can reads it)")
+    run.add_argument("--ideal", action="store_true", help="run the ideal network-free reference loop instead")
+    run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=_cmd_run)
+
+    sc = sub.add_parser("scenarios", help="list the packaged scenarios")
+    sc.set_defaults(func=_cmd_scenarios)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ScenarioError as exc:
+        print(f"hil: error: {exc}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:
+        print(f"hil: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

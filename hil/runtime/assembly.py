@@ -1,0 +1,73 @@
+"""Parts both runtimes build the same way from a scenario: layout, plant, reference, controllers.
+
+Keeping this in one place is what makes the ideal loop and the networked rig differ only by the network.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
+from hil.layout import TrainLayout
+from hil.plant import Plant
+from hil.reference import ReferenceProfile
+from hil.runtime.kernel import to_ns
+from hil.scenario.model import Scenario
+
+
+@dataclass
+class Assembly:
+    """The network-independent parts of a run."""
+
+    scenario: Scenario
+    layout: TrainLayout
+    plant: Plant
+    reference: ReferenceProfile
+    controllers: list[Controller]
+    plant_info: PlantInfo
+    seed: int
+    streams: dict[str, np.random.Generator]
+
+
+def plant_info(scenario: Scenario) -> PlantInfo:
+    """The nominal model knowledge a firmware is configured with."""
+    p = scenario.plant
+    return PlantInfo(
+        davis_c0=p.davis_c0, davis_c1=p.davis_c1, davis_c2=p.davis_c2,
+        coupler_stiffness=p.coupler_stiffness_n_per_m, coupler_damping=p.coupler_damping_ns_per_m,
+        spacing_m=scenario.trains.spacing_m, emergency_gap_m=scenario.trains.emergency_gap_m,
+        radio_range_m=scenario.radio.range_m, emergency_brake_mps2=p.failsafe.emergency_brake_mps2,
+    )
+
+
+def random_streams(seed: int) -> dict[str, np.random.Generator]:
+    """Independent, named random streams: adding a consumer never shifts another's draws."""
+    names = ("plant", "radio", "faults")
+    children = np.random.SeedSequence(seed).spawn(len(names))
+    return {name: np.random.default_rng(child) for name, child in zip(names, children)}
+
+
+def check_periods(scenario: Scenario) -> None:
+    """Periods that the plant samples must be whole multiples of its step (errors name the field)."""
+    step = to_ns(scenario.plant.step_s)
+    for field, value in (("can.sensor_period_s", scenario.can.sensor_period_s),
+                         ("recording.period_s", scenario.recording.period_s),
+                         ("ecu.cycle_s", scenario.ecu.cycle_s)):
+        if to_ns(value) % step:
+            raise ValueError(f"{field} = {value} must be a whole multiple of plant.step_s = {scenario.plant.step_s}")
+
+
+def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
+    """Build layout, plant (at its initial state), reference and one controller per unit."""
+    check_periods(scenario)
+    seed = scenario.seed if seed is None else seed
+    streams = random_streams(seed)
+    layout = TrainLayout.from_config(scenario.trains)
+    x0 = layout.initial_positions(scenario.trains.head_positions_m)
+    v0 = np.repeat(scenario.trains.initial_speeds_mps, layout.units_per_train).astype(float)
+    plant = Plant(scenario.plant, scenario.track, layout, x0, v0, streams["plant"])
+    info = plant_info(scenario)
+    controllers = [build_controller(scenario.controller.law, scenario.controller.params, layout.agent_info(u), info)
+                   for u in range(layout.n_units)]
+    return Assembly(scenario, layout, plant, ReferenceProfile.from_config(scenario.reference), controllers, info, seed, streams)

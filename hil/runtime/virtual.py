@@ -1,0 +1,226 @@
+"""The virtual-time rig: plant, ECUs, wayside, CAN buses and radio on one discrete-event queue.
+
+Data path (DESIGN.md): plant --Sensor frames--> train bus --> ECU --TractionCmd--> bus --> plant;
+ECUs exchange AgentState/AgentAux on their bus; the radio gateway forwards the tail's state to the
+next train's bus and the head's state back; the wayside sends Reference frames to every bus.
+Nothing crosses between these nodes except encoded CAN frames. Same seed, same run, bit for bit.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+from ecu_sim.codec import TrainDb
+from ecu_sim.runtime import Ecu, NeighbourLink
+from hil.can.bus import CanNode, VirtualCanBus
+from hil.radio.gateway import RadioGateway, build_links, standard_routes
+from hil.record.runlog import BusLog, RunLog
+from hil.runtime.assembly import Assembly, assemble
+from hil.runtime.kernel import Kernel, to_ns
+from hil.scenario.model import Scenario
+
+ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
+
+
+class VirtualRig:
+    """One scenario wired up over emulated CAN, ready to run in virtual time."""
+
+    def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None) -> None:
+        self.sc = scenario
+        self.parts: Assembly = assemble(scenario, seed)
+        self.layout = self.parts.layout
+        self.plant = self.parts.plant
+        self.db = db or TrainDb.load()
+        if self.layout.units_per_train > self.db.max_units:
+            raise ValueError(f"trains.units = {self.layout.units_per_train} exceeds the {self.db.max_units} unit slots of the DBC")
+        self.kernel = Kernel()
+        self.log = RunLog(self.layout)
+        self.log.reference_change_times = self.parts.reference.change_times
+        self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
+        self._plant_nodes = [self._attach_plant(i) for i in range(self.layout.n_trains)]
+        self._wayside_nodes = [bus.attach("Wayside") for bus in self.buses]
+        self.ecus: list[Ecu] = []
+        self._ecu_nodes: list[CanNode] = []
+        for u in range(self.layout.n_units):
+            self._attach_ecu(u)
+        self.gateway, self._gw_nodes = self._attach_radio()
+        self.e2e_errors = 0
+        self._sensor_counter = [0] * self.layout.n_units  # alive counters of the plant's Sensor frames
+        self._ref_counter = 0  # alive counter of the wayside's Reference frames
+        self._schedule()
+
+    # ------------------------------------------------------------------ wiring
+    def _make_bus(self, i: int) -> VirtualCanBus:
+        c = self.sc.can
+        log = BusLog(f"bus{i + 1}", c.bitrate)
+        self.log.buses.append(log)
+        return VirtualCanBus(self.kernel, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log=log)
+
+    def _attach_plant(self, i: int) -> CanNode:
+        units = range(self.layout.index(i, 0), self.layout.index(i, 0) + self.layout.units_per_train)
+        cmd_unit = {self.db.traction_cmd(self.layout.train_unit(u)[1]).frame_id: u for u in units}
+
+        def on_rx(frame_id: int, data: bytes, t_ns: int) -> None:
+            codec = self.db.by_id[frame_id]
+            if not codec.crc_ok(data):
+                self.e2e_errors += 1
+                self.log.event(t_ns * 1e-9, "WARN", f"bus{i + 1}/plant", f"{codec.name}: CRC error, frame ignored")
+                return
+            mode, force = codec.decode(data)
+            self.plant.command(cmd_unit[frame_id], force, int(mode), t_ns * 1e-9)
+
+        return self.buses[i].attach("Plant", on_rx, set(cmd_unit))
+
+    def _neighbour_links(self, u: int) -> list[NeighbourLink]:
+        db, L, fwd_aux = self.db, self.layout, self.sc.radio.forward_aux
+        links = []
+        for q, link, side in L.neighbours(u):
+            if link == "intra":
+                unit = L.train_unit(q)[1]
+                state, aux = db.agent_state(unit).frame_id, db.agent_aux(unit).frame_id
+            elif side == "ahead":
+                state, aux = db.radio_ahead_state.frame_id, db.radio_ahead_aux.frame_id if fwd_aux else None
+            else:
+                state, aux = db.radio_behind_state.frame_id, db.radio_behind_aux.frame_id if fwd_aux else None
+            links.append(NeighbourLink(state, aux, link, side, float(L.offset_m[q])))  # type: ignore[arg-type]
+        return links
+
+    def _attach_ecu(self, u: int) -> None:
+        train, unit = self.layout.train_unit(u)
+        name = f"train{train + 1}/unit{unit + 1}/ecu"
+        ecu = Ecu(name, self.layout.agent_info(u), self.parts.controllers[u], self.db, self._neighbour_links(u), self.sc.ecu,
+                  sample_period_s=self.sc.can.sensor_period_s)
+        on_frame = ecu.on_frame
+        node = self.buses[train].attach(f"ECU_U{unit + 1:02d}", lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
+        self.ecus.append(ecu)
+        self._ecu_nodes.append(node)
+
+    def _attach_radio(self) -> tuple[RadioGateway | None, list[CanNode]]:
+        n = self.layout.n_trains
+        if n < 2:
+            return None, []
+        links = build_links(self.sc.radio, n, self.parts.streams["radio"])
+        routes = standard_routes(n, self.layout.units_per_train, self.sc.radio.forward_aux)
+        position_ids = {self.db.agent_state(k).frame_id for k in range(self.layout.units_per_train)}
+        db = self.db
+
+        def position_of(frame_id: int, data: bytes) -> float | None:
+            return db.by_id[frame_id].decode(data)[0] if frame_id in position_ids else None
+
+        gateway = RadioGateway(routes, links, position_of)
+        nodes = []
+        for i, bus in enumerate(self.buses):
+            def on_rx(frame_id: int, data: bytes, t_ns: int, i: int = i) -> None:
+                for dst_bus, dst_id, payload, t_deliver in gateway.on_frame(i, frame_id, data, t_ns):
+                    self.kernel.at(t_deliver, self._gateway_send, (dst_bus, dst_id, payload))
+
+            nodes.append(bus.attach("RadioGW", on_rx, gateway.ids_for_bus(i)))
+        return gateway, nodes
+
+    def _gateway_send(self, item: tuple[int, int, bytes]) -> None:
+        bus, frame_id, data = item
+        self.buses[bus].send(self._gw_nodes[bus], frame_id, data)
+
+    # ------------------------------------------------------------------ periodic tasks
+    def _schedule(self) -> None:
+        sc, k = self.sc, self.kernel
+        self._step_ns = to_ns(sc.plant.step_s)
+        self._sensor_every = to_ns(sc.can.sensor_period_s) // self._step_ns
+        self._record_every = to_ns(sc.recording.period_s) // self._step_ns
+        self._tick = 0
+        k.every(0, self._step_ns, self._plant_tick)
+        k.every(0, to_ns(sc.reference.period_s), self._wayside_tick)
+        cycle = to_ns(sc.ecu.cycle_s)
+        for u, ecu in enumerate(self.ecus):
+            unit = self.layout.train_unit(u)[1]
+            phase = to_ns(sc.ecu.phase_s + unit * sc.ecu.stagger_s)
+            k.every(phase, cycle, lambda t, u=u: self._ecu_tick(u, t))
+
+    def _plant_tick(self, t_ns: int) -> None:
+        """Publish sensors and record at their periods (state at t), then integrate to t + step."""
+        tick, plant = self._tick, self.plant
+        self._tick += 1
+        if tick % self._sensor_every == 0:
+            self._publish_sensors()
+        if tick % self._record_every == 0:
+            x_r, v_r = self.parts.reference.at(t_ns * 1e-9)
+            self.log.add_sample(t_ns * 1e-9, x_r, v_r, plant.x, plant.v, plant.a, plant.force_cmd, plant.force_applied)
+        plant.step()
+        if plant.events:
+            for t, level, text in plant.events:
+                self.log.event(t, level, "plant", text)
+            plant.events.clear()
+
+    def _publish_sensors(self) -> None:
+        xs, vs = self.plant.measure()
+        L, db = self.layout, self.db
+        for u in range(L.n_units):
+            train, unit = L.train_unit(u)
+            codec = db.sensor(unit)
+            self._sensor_counter[u] = c = (self._sensor_counter[u] + 1) & 0xF
+            self.buses[train].send(self._plant_nodes[train], codec.frame_id, codec.encode((xs[u], vs[u]), c))
+
+    def _wayside_tick(self, t_ns: int) -> None:
+        x_r, v_r = self.parts.reference.at(t_ns * 1e-9)
+        self._ref_counter = c = (self._ref_counter + 1) & 0xF
+        ref = self.db.reference.encode((x_r, v_r), c)
+        aux = self.db.reference_aux.encode((0.0,), c)
+        for bus, node in zip(self.buses, self._wayside_nodes):
+            bus.send(node, self.db.reference.frame_id, ref)
+            bus.send(node, self.db.reference_aux.frame_id, aux)
+
+    def _ecu_tick(self, u: int, t_ns: int) -> None:
+        ecu = self.ecus[u]
+        frames = ecu.cycle(t_ns * 1e-9)
+        bus, node = self.buses[self.layout.train_unit(u)[0]], self._ecu_nodes[u]
+        for frame_id, data in frames:
+            bus.send(node, frame_id, data)
+        if ecu.events:
+            for t, level, text in ecu.events:
+                self.log.event(t, level, ecu.name, text)
+            ecu.events.clear()
+
+    # ------------------------------------------------------------------ running
+    def run(self, duration_s: float | None = None, progress: ProgressFn | None = None,
+            on_chunk: Callable[[RunLog], None] | None = None, chunk_s: float = 1.0) -> RunLog:
+        """Run to ``duration_s`` (scenario duration by default), calling ``on_chunk`` every ``chunk_s``
+        simulated seconds (incremental recording). Ctrl-C stops the run early and returns the log of
+        everything up to that point with ``log.interrupted`` set, so callers can still write it out."""
+        duration = self.sc.duration_s if duration_s is None else duration_s
+        end_ns, chunk_ns = to_ns(duration), to_ns(chunk_s)
+        wall0 = time.perf_counter()
+        try:
+            t = self.kernel.now
+            while t < end_ns:
+                t = min(t + chunk_ns, end_ns)
+                self.kernel.run(t)
+                if progress:
+                    progress(t * 1e-9)
+                if on_chunk:
+                    on_chunk(self.log)
+        except KeyboardInterrupt:
+            self.log.interrupted = True
+            self.log.event(self.kernel.now * 1e-9, "WARN", "rig", "run interrupted (Ctrl-C)")
+        finally:
+            self._finish(time.perf_counter() - wall0)
+        return self.log
+
+    def _finish(self, wall_s: float) -> None:
+        log, now = self.log, self.kernel.now
+        for bus in self.buses:
+            bus.finish(now)
+        radio = {name: dict(link.stats) for name, link in (self.gateway.links.items() if self.gateway else [])}
+        log.radio_stats = radio
+        not_delivered = sum(s.get("offered", 0) - s.get("delivered", 0) for s in radio.values())
+        log.frames_lost = sum(b.frames_dropped for b in log.buses) + not_delivered
+        log.codec_saturations = self.db.total_saturations()
+        log.e2e = {ecu.name: ecu.e2e_summary() for ecu in self.ecus}
+        log.sim_time_s = now * 1e-9
+        log.wall_time_s = wall_s
+
+
+def run_virtual(scenario: Scenario, duration_s: float | None = None, seed: int | None = None,
+                progress: ProgressFn | None = None) -> RunLog:
+    """Convenience: build and run a scenario in virtual time."""
+    return VirtualRig(scenario, seed).run(duration_s, progress)

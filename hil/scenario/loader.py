@@ -1,0 +1,92 @@
+"""Load and validate scenario files: packaged names or paths, errors that name file, field and value."""
+from __future__ import annotations
+
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from hil.scenario.model import Scenario
+
+
+class ScenarioError(ValueError):
+    """A user error in a scenario file: the message names the file, the field and the bad value."""
+
+
+def packaged_dir() -> Path:
+    return Path(str(resources.files("hil") / "scenarios"))
+
+
+def packaged_scenarios() -> dict[str, Path]:
+    """Packaged scenario name -> file."""
+    return {p.stem: p for p in sorted(packaged_dir().glob("*.toml"))}
+
+
+def resolve(name_or_path: str | Path) -> Path:
+    """A packaged scenario name (``seed000``) or a path to a TOML file."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise ScenarioError(f"{p}: no such scenario file")
+        return p
+    known = packaged_scenarios()
+    if str(name_or_path) in known:
+        return known[str(name_or_path)]
+    raise ScenarioError(f"unknown scenario {str(name_or_path)!r}: not a file, and not a packaged scenario ({', '.join(known)})")
+
+
+def _format_errors(source: str, err: ValidationError) -> str:
+    lines = [f"{source}: invalid scenario ({err.error_count()} error{'s' if err.error_count() > 1 else ''})"]
+    for e in err.errors():
+        where = ".".join(str(part) for part in e["loc"]) or "(top level)"
+        got = e.get("input")
+        shown = "" if isinstance(got, dict) else f" (got {got!r})"
+        lines.append(f"  {where}: {e['msg']}{shown}")
+    return "\n".join(lines)
+
+
+def _validate_controller(source: str, scenario: Scenario) -> None:
+    """Check the law exists and its params validate, so errors surface at load, not mid-run."""
+    from ecu_sim.controllers.base import get_controller
+
+    try:
+        law = get_controller(scenario.controller.law)
+    except KeyError as exc:
+        raise ScenarioError(f"{source}: controller.law: {exc.args[0]}") from None
+    try:
+        law.Params(**scenario.controller.params)
+    except ValidationError as exc:
+        msg = _format_errors(source, exc).replace("\n  ", "\n  controller.params.")
+        raise ScenarioError(msg) from None
+
+
+def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrides: dict[str, Any] | None = None) -> Scenario:
+    """Validate a parsed scenario (``overrides``: dotted keys -> values, applied first)."""
+    for dotted, value in (overrides or {}).items():
+        node = data
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ScenarioError(f"{source}: override {dotted!r}: {part!r} is not a table")
+        node[leaf] = value
+    try:
+        scenario = Scenario(**data)
+    except ValidationError as exc:
+        raise ScenarioError(_format_errors(source, exc)) from None
+    _validate_controller(source, scenario)
+    return scenario
+
+
+def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
+    """Read, parse and validate a scenario; every failure is a ScenarioError naming the file."""
+    path = resolve(name_or_path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{path}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from None
+    return scenario_from_dict(data, str(path), overrides)
