@@ -100,7 +100,7 @@ def test_ctrl_c_keeps_what_was_recorded(tmp_path, monkeypatch):
             raise KeyboardInterrupt
 
     monkeypatch.setattr(session.IncrementalRecorder, "__call__", interrupt_on_third)
-    result = session.run_scenario(seed000(), tmp_path, duration_s=100.0, chunk_s=5.0)
+    result = session.run_scenario(seed000(), tmp_path, duration_s=100.0, chunk_s=5.0, min_flush_wall_s=0.0)
     assert result.log.interrupted
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["interrupted"] is True

@@ -13,6 +13,7 @@ from typing import Callable
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.runtime import Ecu, NeighbourLink
+from ecu_sim.view import BrakeMode
 from hil.can.bus import CanNode, VirtualCanBus
 from hil.radio.gateway import RadioGateway, build_links, standard_routes
 from hil.record.runlog import BusLog, RunLog
@@ -20,6 +21,7 @@ from hil.runtime.assembly import Assembly, assemble
 from hil.runtime.kernel import Kernel, to_ns
 from hil.scenario.model import Scenario
 
+VALID_MODES = frozenset(float(m) for m in BrakeMode)
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
 
 
@@ -68,6 +70,9 @@ class VirtualRig:
                 self.log.event(t_ns * 1e-9, "WARN", f"bus{i + 1}/plant", f"{codec.name}: CRC error, frame ignored")
                 return
             mode, force = codec.decode(data)
+            if mode not in VALID_MODES:  # CRC-valid but meaningless: a firmware fault, not a command
+                self.log.event(t_ns * 1e-9, "WARN", f"bus{i + 1}/plant", f"{codec.name}: unknown Mode {mode:g}, frame ignored")
+                return
             self.plant.command(cmd_unit[frame_id], force, int(mode), t_ns * 1e-9)
 
         return self.buses[i].attach("Plant", on_rx, set(cmd_unit))
