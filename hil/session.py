@@ -124,9 +124,10 @@ def _every(fn, chunk_s: float, min_wall_s: float):
 
     def maybe(log: RunLog) -> None:
         now = time.perf_counter()
-        if log.t.size and log.t[-1] >= state["next"] and now - state["wall"] >= min_wall_s:
+        t = log.signals.last(0)
+        if t >= state["next"] and now - state["wall"] >= min_wall_s:
             fn(log)
-            state["next"], state["wall"] = log.t[-1] + chunk_s, now
+            state["next"], state["wall"] = t + chunk_s, now
 
     return maybe
 

@@ -29,27 +29,52 @@ def test_same_seed_same_run_bit_for_bit():
     assert a.radio_stats != c.radio_stats  # another seed draws other losses
 
 
-# Tolerance of the network run against the ideal loop, with fast cycles (5 ms), 1 Mbit/s and a perfect radio.
-# What separates them: ~1-3 ms of sensor-to-actuator latency and the DBC quantisation (1 mm, 0.5 mm/s, 10 N).
+# Network run vs ideal loop, with fast cycles (5 ms), 1 Mbit/s and a perfect radio. What separates them is
+# 1-3 ms of sensor-to-actuator latency and the DBC quantisation (1 mm, 0.5 mm/s, 10 N). Stated tolerances:
 SPEED_TOL_MPS = 0.05
-COUPLER_TOL_M = 0.01
-GAP_TOL_M = 1.0
+COUPLER_TOL_M = 0.005
+GAP_TOL_M = 0.05
+FAST = {"can.bitrate": 1_000_000, "ecu.cycle_s": 0.005, "can.sensor_period_s": 0.005, "reference.period_s": 0.005}
+# seed000's plant and law, started near the slots (the paper's start drives the finite-time law onto the coupler
+# barrier within 0.1 s, where a few ms of latency change the trajectory by ~1 m/s: see the next test and README).
+GENTLE = {"trains.head_positions_m": [108950.0, 105760.0, 102300.0], "trains.speeds_kmh": [310.0, 320.0, 312.0]}
+
+
+def max_differences(a, b) -> tuple[float, float, float]:
+    assert a.t.shape == b.t.shape and np.allclose(a.t, b.t)
+    return (float(np.abs(a.v - b.v).max()), float(np.abs(a.couplers - b.couplers).max()),
+            float(np.abs(a.gaps - b.gaps).max()))
 
 
 def test_network_run_agrees_with_ideal_loop():
-    fast = {"can.bitrate": 1_000_000, "ecu.cycle_s": 0.005, "can.sensor_period_s": 0.005, "reference.period_s": 0.005}
-    duration = 120.0
-    net = VirtualRig(seed000(**fast)).run(duration)
-    ideal = IdealLoop(seed000(**fast)).run(duration)
-    assert net.t.shape == ideal.t.shape and np.allclose(net.t, ideal.t)
-    dv = np.abs(net.v - ideal.v).max()
-    de = np.abs(net.couplers - ideal.couplers).max()
-    dg = np.abs(net.gaps - ideal.gaps).max()
-    print(f"network vs ideal over {duration} s: max |dv| = {dv:.4g} m/s, max |de| = {de:.4g} m, max |dgap| = {dg:.4g} m")
+    sc = seed000(**GENTLE, **FAST)
+    net, ideal = VirtualRig(sc).run(120.0), IdealLoop(sc).run(120.0)
+    dv, de, dg = max_differences(net, ideal)
+    print(f"finite-time, gentle start: max |dv| = {dv:.3g} m/s, |de| = {de:.3g} m, |dgap| = {dg:.3g} m")
     assert dv < SPEED_TOL_MPS and de < COUPLER_TOL_M and dg < GAP_TOL_M
-    # and the comparison can fail: a slow, lossy network is clearly farther from the ideal loop
-    slow = VirtualRig(seed000(**{"radio.latency_s": 0.5, "ecu.cycle_s": 0.05})).run(duration)
-    assert np.abs(slow.v - ideal.v).max() > 2 * dv
+    assert np.abs(ideal.speed_error[-1]).max() < 1.0  # the comparison is over a real transient, not a standstill
+    # the comparison can fail: slow cycles and radio latency are clearly farther from the ideal loop
+    slow = VirtualRig(seed000(**GENTLE, **{"radio.latency_s": 0.3, "ecu.cycle_s": 0.05})).run(120.0)
+    assert max_differences(slow, ideal)[0] > 2 * dv
+
+
+def test_baseline_from_the_papers_start_agrees_with_ideal_loop():
+    sc = load_scenario("seed000-consensus", FAST)
+    net, ideal = VirtualRig(sc).run(60.0), IdealLoop(sc).run(60.0)
+    dv, de, dg = max_differences(net, ideal)
+    print(f"consensus, paper's start: max |dv| = {dv:.3g} m/s, |de| = {de:.3g} m, |dgap| = {dg:.3g} m")
+    assert dv < 0.1 and de < 0.01 and dg < GAP_TOL_M
+
+
+def test_finite_time_law_on_the_barrier_is_delay_sensitive_not_chaotic():
+    """The documented finding: from the paper's start, a 1 mm perturbation barely moves the ideal loop, but the
+    network's few ms of latency move the run by ~1 m/s, because the barrier chatters at the sample rate."""
+    sc = seed000(**FAST)
+    ideal = IdealLoop(sc).run(30.0)
+    nudged = IdealLoop(seed000(**FAST, **{"trains.head_positions_m": [108800.001, 105000.0, 102200.0]})).run(30.0)
+    net = VirtualRig(sc).run(30.0)
+    assert max_differences(ideal, nudged)[0] < 1e-3
+    assert max_differences(net, ideal)[0] > 0.1
 
 
 def bus_message_set(rig: VirtualRig, source_bound_s: float) -> list[CanMessage]:
@@ -67,13 +92,13 @@ def bus_message_set(rig: VirtualRig, source_bound_s: float) -> list[CanMessage]:
 
 
 def test_measured_latencies_never_exceed_the_wcrt_bound():
-    rig = VirtualRig(seed000(**{"can.bitrate": 250_000}))  # a loaded bus makes the bound meaningful
+    rig = VirtualRig(seed000())  # 500 kbit/s: about half loaded
     log = rig.run(20.0)
     # Radio frames are released when their source frame ends on the other bus: their release jitter is at most
     # that source's own response time there, bounded by the same analysis on that bus (all buses are alike).
-    first = response_times(bus_message_set(rig, 0.0), 250_000)
+    first = response_times(bus_message_set(rig, 0.0), rig.sc.can.bitrate)
     jitter = max(first[rig.db.agent_state(0).name].r_s, first[rig.db.agent_aux(0).name].r_s)
-    bounds = response_times(bus_message_set(rig, jitter), 250_000)
+    bounds = response_times(bus_message_set(rig, jitter), rig.sc.can.bitrate)
     frames = log.buses[0].frames.array
     by_id = {m.can_id: bounds[m.name] for m in bus_message_set(rig, jitter)}
     assert set(np.unique(frames[:, 1]).astype(int)) <= set(by_id)

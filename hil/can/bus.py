@@ -34,43 +34,24 @@ class Transmission:
 
 
 class CanNode:
-    """A node's controller: a bounded TX queue and a receive callback behind an acceptance filter."""
+    """A node's CAN controller: a bounded TX queue and a receive callback behind an acceptance filter.
 
-    def __init__(self, name: str, policy: str, depth: int, on_rx: RxCallback | None, rx_ids: set[int] | None,
+    Under the ``priority`` policy the frames live in the bus's shared heap (the node only counts them):
+    since every node offers its lowest ID, the bus-wide lowest ID is the arbitration winner either way.
+    Under ``fifo`` the node keeps its own queue and offers its oldest frame.
+    """
+
+    def __init__(self, name: str, depth: int, on_rx: RxCallback | None, rx_ids: set[int] | None,
                  receive_own: bool = False) -> None:
         self.name = name
         self.on_rx = on_rx
         self.rx_ids = rx_ids  # None = accept everything
         self.receive_own = receive_own
         self.depth = depth
-        self._priority = policy == "priority"
-        self._heap: list[tuple[int, int, bytes, int]] = []  # (id, seq, data, t_enqueue)
-        self._fifo: deque[tuple[int, int, bytes, int]] = deque()
-        self._seq = 0
+        self.queued = 0
+        self.fifo: deque[tuple[int, int, bytes, int, "CanNode"]] = deque()
         self.sent = 0
         self.dropped = 0
-
-    def __len__(self) -> int:
-        return len(self._heap) if self._priority else len(self._fifo)
-
-    def push(self, frame_id: int, data: bytes, t: int) -> bool:
-        """Queue a frame; False (and counted) when the queue is full."""
-        if len(self) >= self.depth:
-            self.dropped += 1
-            return False
-        self._seq += 1
-        item = (frame_id, self._seq, data, t)
-        if self._priority:
-            heapq.heappush(self._heap, item)
-        else:
-            self._fifo.append(item)
-        return True
-
-    def head_id(self) -> int:
-        return self._heap[0][0] if self._priority else self._fifo[0][0]
-
-    def pop(self) -> tuple[int, int, bytes, int]:
-        return heapq.heappop(self._heap) if self._priority else self._fifo.popleft()
 
 
 class CanBusModel:
@@ -90,6 +71,9 @@ class CanBusModel:
         self.extended = extended
         self.log = log if log is not None else BusLog(name, bitrate)
         self.nodes: list[CanNode] = []
+        self._priority = policy == "priority"
+        self._heap: list[tuple[int, int, bytes, int, CanNode]] = []  # (id, seq, data, t_enqueue, node)
+        self._seq = 0
         self._listeners: dict[int, list[CanNode]] = {}  # frame id -> filtered receivers (built lazily)
         self._catch_all: list[CanNode] = []
         self.busy_until = 0
@@ -102,7 +86,7 @@ class CanBusModel:
     # ---- topology
     def attach(self, name: str, on_rx: RxCallback | None = None, rx_ids: set[int] | None = None,
                receive_own: bool = False) -> CanNode:
-        node = CanNode(name, self.policy, self.depth, on_rx, rx_ids, receive_own)
+        node = CanNode(name, self.depth, on_rx, rx_ids, receive_own)
         self.nodes.append(node)
         self._listeners.clear()
         self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
@@ -116,21 +100,40 @@ class CanBusModel:
             self._listeners[frame_id] = found
         return found
 
-    # ---- arbitration
+    # ---- queues and arbitration
+    def enqueue(self, node: CanNode, frame_id: int, data: bytes, t: int) -> bool:
+        """Queue a frame in a node's TX queue at time t; False (and counted) when the queue is full."""
+        if node.queued >= node.depth:
+            node.dropped += 1
+            return False
+        node.queued += 1
+        self._seq += 1
+        item = (frame_id, self._seq, data, t, node)
+        if self._priority:
+            heapq.heappush(self._heap, item)
+        else:
+            node.fifo.append(item)
+        return True
+
+    def _pop_winner(self) -> tuple[int, int, bytes, int, CanNode] | None:
+        if self._priority:
+            return heapq.heappop(self._heap) if self._heap else None
+        heads = [n for n in self.nodes if n.fifo]
+        if not heads:
+            return None
+        return min(heads, key=lambda n: n.fifo[0][0]).fifo.popleft()
+
     def arbitrate(self, t: int) -> Transmission | None:
         """If the bus is idle at t, start the winning pending frame and return it."""
         if self.current is not None or t < self.busy_until:
             return None
-        winner: CanNode | None = None
-        best = 1 << 30
-        for node in self.nodes:
-            if len(node) and node.head_id() < best:
-                best, winner = node.head_id(), node
-        if winner is None:
+        won = self._pop_winner()
+        if won is None:
             return None
-        frame_id, _, data, t_enq = winner.pop()
+        frame_id, _, data, t_enq, node = won
+        node.queued -= 1
         t_end = t + frame_bits(frame_id, data, self.extended) * self.bit_ns
-        self.current = Transmission(winner, frame_id, data, t_enq, t, t_end)
+        self.current = Transmission(node, frame_id, data, t_enq, t, t_end)
         self.busy_until = t_end
         return self.current
 
@@ -148,7 +151,7 @@ class CanBusModel:
         return tx
 
     def pending(self) -> bool:
-        return any(len(n) for n in self.nodes)
+        return bool(self._heap) if self._priority else any(n.fifo for n in self.nodes)
 
     # ---- statistics
     def _account(self, tx: Transmission) -> None:
@@ -184,7 +187,7 @@ class VirtualCanBus(CanBusModel):
 
     def send(self, node: CanNode, frame_id: int, data: bytes) -> bool:
         """Queue a frame at the kernel's current time. Same-time submissions all join one arbitration."""
-        ok = node.push(frame_id, data, self.kernel.now)
+        ok = self.enqueue(node, frame_id, data, self.kernel.now)
         if ok and self.current is None and not self._arbitration_pending:
             self._arbitration_pending = True
             self.kernel.at(max(self.kernel.now, self.busy_until), self._arbitrate_event)
@@ -198,7 +201,11 @@ class VirtualCanBus(CanBusModel):
 
     def _end_event(self, _: object = None) -> None:
         self.complete()
-        # Arbitrate in a fresh event so frames queued by other events at this same instant also compete.
-        if not self._arbitration_pending and self.pending():
+        if self._arbitration_pending or not self.pending():
+            return
+        if self.kernel.next_time() == self.kernel.now:
+            # Other events at this same instant may queue frames: arbitrate after them so they compete.
             self._arbitration_pending = True
             self.kernel.at(self.kernel.now, self._arbitrate_event)
+        else:
+            self._arbitrate_event()

@@ -5,6 +5,7 @@ metrics and the rerun writer read it. Arrays are indexed [sample, unit] front to
 """
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,25 +24,37 @@ class Event:
 
 
 class SampleTable:
-    """Growable table of float rows (time first) with amortised O(1) append."""
+    """Growable table of float rows (time first): appends go to a flat C array, O(1) and allocation-light.
 
-    def __init__(self, width: int, capacity: int = 4096) -> None:
-        self._data = np.empty((capacity, width))
-        self._n = 0
+    ``array`` materialises an (n, width) read-only numpy view, cached until the next append."""
 
-    def append(self, row: np.ndarray) -> None:
-        if self._n == len(self._data):
-            self._data = np.concatenate((self._data, np.empty_like(self._data)))
-        self._data[self._n] = row
-        self._n += 1
+    def __init__(self, width: int) -> None:
+        self.width = width
+        self._buf = array("d")
+        self._cache: np.ndarray | None = None
+
+    def append(self, row) -> None:
+        if len(row) != self.width:
+            raise ValueError(f"row of {len(row)} values, table has {self.width} columns")
+        if isinstance(row, np.ndarray):
+            self._buf.frombytes(row.astype(float, copy=False).tobytes())
+        else:
+            self._buf.extend(row)
+        self._cache = None
 
     def __len__(self) -> int:
-        return self._n
+        return len(self._buf) // self.width
+
+    def last(self, column: int = 0) -> float:
+        """Value of ``column`` in the last row (NaN when empty), without materialising the table."""
+        return self._buf[len(self._buf) - self.width + column] if self._buf else float("nan")
 
     @property
     def array(self) -> np.ndarray:
-        """A view of the filled rows."""
-        return self._data[: self._n]
+        """A read-only (n, width) array of the rows so far."""
+        if self._cache is None:
+            self._cache = np.frombuffer(self._buf.tobytes(), dtype=float).reshape(-1, self.width)
+        return self._cache
 
 
 @dataclass
@@ -52,7 +65,7 @@ class BusLog:
     bitrate: int
     load: SampleTable = field(default_factory=lambda: SampleTable(2))  # (t_window_end, load 0..1)
     # (t_end, frame_id, latency_s = end of transmission - enqueue time, queueing_s)
-    frames: SampleTable = field(default_factory=lambda: SampleTable(4, 65536))
+    frames: SampleTable = field(default_factory=lambda: SampleTable(4))
     frames_sent: int = 0
     frames_dropped: int = 0  # TX-queue overflow or injected drop
 

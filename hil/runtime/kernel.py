@@ -41,6 +41,10 @@ class Kernel:
 
         self.at(first_ns, tick, first_ns)
 
+    def next_time(self) -> int | None:
+        """Time of the next pending event (None when the queue is empty)."""
+        return self._queue[0][0] if self._queue else None
+
     def run(self, until_ns: int) -> None:
         """Process every event with time < until_ns, then set the clock to until_ns."""
         queue, pop = self._queue, heapq.heappop
