@@ -9,23 +9,11 @@ import ecu_sim.controllers.consensus as consensus_module
 from ecu_sim.controllers.base import PlantInfo
 from ecu_sim.controllers.consensus import ConsensusParams, OrdinaryConsensus
 from ecu_sim.controllers.finite_time import FiniteTimeParams
-from ecu_sim.view import AgentInfo, BrakeMode, LocalView, NeighbourView, ReferenceView
-
-M, L = 80e3, 80.0
-PLANT = PlantInfo(
-    davis_c0=0.01176, davis_c1=0.00077616, davis_c2=1.6e-5,
-    coupler_stiffness=1.6e5, coupler_damping=600.0,
-    spacing_m=3000.0, emergency_gap_m=1500.0, radio_range_m=10_000.0, emergency_brake_mps2=1.2,
-)
+from ecu_sim.view import AgentInfo, BrakeMode, ReferenceView
+from tests.law_views import M, PLANT, R, agent, nb, view
 
 
-def R(v: float) -> float:
-    return 0.01176 + 0.00077616 * v + 1.6e-5 * v * v
 
-
-def agent(unit=0, train=0, offset=0.0, ref=None, n_units=4) -> AgentInfo:
-    return AgentInfo(train=train, unit=unit, n_trains=3, n_units=n_units, mass_kg=M, length_m=L,
-                     offset_m=offset, has_reference=(unit == 0) if ref is None else ref)
 
 
 def ctl(a: AgentInfo, plant: PlantInfo = PLANT, **params) -> OrdinaryConsensus:
@@ -34,12 +22,6 @@ def ctl(a: AgentInfo, plant: PlantInfo = PLANT, **params) -> OrdinaryConsensus:
     return c
 
 
-def nb(link, side, offset, x, v, valid=True, weight=1.0) -> NeighbourView:
-    return NeighbourView(link=link, side=side, offset_m=offset, x=x, v=v, age_s=0.0, valid=valid, weight=weight)
-
-
-def view(x, v, neighbours=(), ref=None) -> LocalView:
-    return LocalView(t=0.0, dt=0.01, x=x, v=v, neighbours=list(neighbours), ref=ref or ReferenceView())
 
 
 def test_default_gains_are_the_linear_counterpart_of_the_finite_time_gains():

@@ -6,6 +6,7 @@ cost well under a microsecond per call and allocate nothing.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 from ecu_sim.controllers.base import PlantInfo
 from ecu_sim.view import AgentInfo, BrakeMode, Command, LocalView, NeighbourView
@@ -29,6 +30,16 @@ def check_neighbour(nb: NeighbourView, delta: float, dv: float) -> None:
     """Raise a clear error when a neighbour marked valid carries a non-finite position or speed."""
     if not (_isfinite(delta) and _isfinite(dv)):
         raise ValueError(f"valid {nb.link} neighbour {nb.side} has a non-finite state: x = {nb.x!r}, v = {nb.v!r}")
+
+
+def usable_neighbours(view: LocalView, offset: float) -> Iterator[tuple[NeighbourView, float, float]]:
+    """(neighbour, Delta = x~_q - x~_self, dv = v_q - v_self) for every valid neighbour, checked finite."""
+    x, v = view.x, view.v
+    for nb in view.neighbours:
+        if nb.valid:
+            delta, dv = (nb.x - x) + (nb.offset_m - offset), nb.v - v
+            check_neighbour(nb, delta, dv)
+            yield nb, delta, dv
 
 
 def gap_error(nb: NeighbourView, delta: float) -> float:

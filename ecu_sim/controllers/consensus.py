@@ -18,11 +18,11 @@ from pydantic import Field
 
 from ecu_sim.controllers.base import Controller, ControllerParams, PlantInfo, register
 from ecu_sim.controllers.common import (
-    check_neighbour,
     check_own_state,
     emergency_command,
     gap_error,
     train_ahead_too_close,
+    usable_neighbours,
 )
 from ecu_sim.view import AgentInfo, Command, LocalView
 
@@ -67,13 +67,8 @@ class OrdinaryConsensus(Controller):
         if train_ahead_too_close(view, agent, plant):
             return emergency_command(agent, plant)
         x, v, off = view.x, view.v, agent.offset_m
-        u = plant.davis_c0 + plant.davis_c1 * v + plant.davis_c2 * v * v
-        for nb in view.neighbours:
-            if not nb.valid:
-                continue
-            d = (nb.x - x) + (nb.offset_m - off)
-            dv = nb.v - v
-            check_neighbour(nb, d, dv)
+        u = plant.resistance_per_kg(v)
+        for nb, d, dv in usable_neighbours(view, off):
             if nb.link == "intra":
                 u += nb.weight * ((p.kx_intra - self._k_hat) * d + p.kv_intra * dv)
             elif gap_error(nb, d) <= self._beta_hat:

@@ -17,12 +17,12 @@ from pydantic import Field, model_validator
 
 from ecu_sim.controllers.base import Controller, ControllerParams, PlantInfo, register
 from ecu_sim.controllers.common import (
-    check_neighbour,
     check_own_state,
     emergency_command,
     gap_error,
     sig,
     train_ahead_too_close,
+    usable_neighbours,
 )
 from ecu_sim.view import AgentInfo, Command, LocalView
 
@@ -180,13 +180,8 @@ class FiniteTimeCruise(Controller):
             return emergency_command(agent, plant)
         a1, a2 = self._a1, self._a2
         x, v, off = view.x, view.v, agent.offset_m
-        u = plant.davis_c0 + plant.davis_c1 * v + plant.davis_c2 * v * v
-        for nb in view.neighbours:
-            if not nb.valid:
-                continue
-            d = (nb.x - x) + (nb.offset_m - off)
-            dv = nb.v - v
-            check_neighbour(nb, d, dv)
+        u = plant.resistance_per_kg(v)
+        for nb, d, dv in usable_neighbours(view, off):
             if nb.link == "intra":
                 e = d if nb.side == "ahead" else -d
                 w = nb.weight * self.intra_weight(e)

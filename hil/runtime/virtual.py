@@ -8,7 +8,6 @@ Nothing crosses between these nodes except encoded CAN frames. Same seed, same r
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Callable
 
 from ecu_sim.codec import TrainDb
