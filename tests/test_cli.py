@@ -66,3 +66,24 @@ def test_can_log_is_readable_by_python_can_with_end_of_frame_times(short_run):
     first = next(m for m in msgs if m.arbitration_id == db.reference.frame_id)
     x_r, v_r = db.reference.decode(bytes(first.data))
     assert x_r == pytest.approx(109_000.0, abs=1.0) and v_r == pytest.approx(316 / 3.6, abs=1e-3)
+
+
+def test_sigint_mid_run_leaves_readable_results(tmp_path):
+    """A real Ctrl-C (SIGINT) during `hil run`: exit 130, metrics.json and run.rrd readable up to the stop."""
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", "seed000", "--duration", "600", "--out", str(tmp_path),
+                             "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (tmp_path / "run.rrd").exists() or (tmp_path / "run.rrd").stat().st_size < 50_000:
+        assert proc.poll() is None and time.monotonic() < deadline, "run ended or never recorded"
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr
+    assert "INTERRUPTED" in stdout and "Traceback" not in stderr
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["interrupted"] is True and 0 < metrics["sim_time_s"] < 600
+    t, _ = read_scalars(tmp_path / "run.rrd")["/trains/3/units/4/speed_kmh"]
+    assert t[-1] > 0.0
