@@ -94,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sc = sub.add_parser("scenarios", help="list the packaged scenarios")
     sc.set_defaults(func=_cmd_scenarios)
+
+    from hil.can.cli import add_can_analysis_parser
+
+    add_can_analysis_parser(sub)
     return p
 
 
