@@ -111,6 +111,9 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # before or after the run loop (the run loop itself stops cleanly on its own)
+        print("hil: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

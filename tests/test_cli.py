@@ -75,10 +75,19 @@ def test_sigint_mid_run_leaves_readable_results(tmp_path):
 
     proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", "seed000", "--duration", "600", "--out", str(tmp_path),
                              "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
-    while not (tmp_path / "run.rrd").exists() or (tmp_path / "run.rrd").stat().st_size < 50_000:
+    deadline, rrd = time.monotonic() + 120, tmp_path / "run.rrd"
+
+    def size() -> int:
+        return rrd.stat().st_size if rrd.exists() else 0
+
+    while size() == 0:  # the writer starts with the blueprint ...
         assert proc.poll() is None and time.monotonic() < deadline, "run ended or never recorded"
-        time.sleep(0.2)
+        time.sleep(0.1)
+    time.sleep(0.5)
+    initial = size()
+    while size() < initial + 20_000:  # ... and the first flush of simulated signals follows
+        assert proc.poll() is None and time.monotonic() < deadline, "run ended or never recorded"
+        time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130, stderr
@@ -86,4 +95,18 @@ def test_sigint_mid_run_leaves_readable_results(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["interrupted"] is True and 0 < metrics["sim_time_s"] < 600
     t, _ = read_scalars(tmp_path / "run.rrd")["/trains/3/units/4/speed_kmh"]
-    assert t[-1] > 0.0
+    assert t[-1] >= 10.0  # at least the first flush (every 10 simulated seconds)
+
+
+def test_sigint_before_the_run_loop_exits_cleanly(tmp_path):
+    """Ctrl-C while the rig is still being built: no traceback, exit 130."""
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", "seed000", "--out", str(tmp_path), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    rrd = tmp_path / "run.rrd"
+    while not rrd.exists() and proc.poll() is None:  # the recording is opened before the rig is built
+        pass
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "Traceback" not in stderr
