@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tomllib
 from pathlib import Path
 
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
@@ -63,10 +64,22 @@ def print_summary(metrics: dict, out: Path) -> None:
     print(f"  written to {out}/ (run.rrd, metrics.json)")
 
 
+def parse_assignment(text: str) -> tuple[str, object]:
+    """``dotted.key=value`` with the value read as TOML (numbers, booleans, strings, arrays, inline tables)."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ScenarioError(f"--set {text!r}: expected dotted.key=value, e.g. radio.latency_s=0.2")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw  # a bare word: take it as a string (e.g. controller.law=consensus)
+    return key.strip(), value
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.session import run_scenario
 
-    overrides = {}
+    overrides = dict(parse_assignment(a) for a in args.set)
     if args.seed is not None:
         overrides["seed"] = args.seed
     scenario = load_scenario(args.scenario, overrides)
@@ -86,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", help="output directory (default: runs/<scenario name>)")
     run.add_argument("--duration", type=float, help="simulated seconds (default: the scenario's duration_s)")
     run.add_argument("--seed", type=int, help="random seed (default: the scenario's seed)")
+    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="override a scenario field, e.g. --set radio.latency_s=0.2 --set can.bitrate=250000 (repeatable)")
     run.add_argument("--can-log", action="store_true", help="write one ASC CAN log per bus (python-can reads it)")
     run.add_argument("--ideal", action="store_true", help="run the ideal network-free reference loop instead")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
@@ -96,7 +111,10 @@ def build_parser() -> argparse.ArgumentParser:
     sc.set_defaults(func=_cmd_scenarios)
 
     from hil.can.cli import add_can_analysis_parser
+    from hil.sweep.cli import add_sweep_parser, add_sweeps_list_parser
 
+    add_sweep_parser(sub)
+    add_sweeps_list_parser(sub)
     add_can_analysis_parser(sub)
     return p
 

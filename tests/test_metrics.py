@@ -211,3 +211,86 @@ def test_bad_arguments_name_the_field():
         compute_metrics(log, (0.1,))
     with pytest.raises(ValueError, match="settle_band_mps"):
         compute_metrics(log, BAND, settle_band_mps=0.0)
+
+
+# --------------------------------------------------------------------------- safety verdict, string stability, deadlines
+
+
+def test_safety_verdicts_flag_band_gap_and_collision_at_any_sample():
+    t = [0.0, 1.0, 2.0]
+    calm = compute_metrics(make_log(t, 10.0), BAND)
+    assert (calm["unsafe"], calm["collision"]) == (False, False)
+    pe = np.zeros((3, 4))
+    pe[2, 0] = 0.11  # coupler of train 1 stretched 0.11 m at the last sample only (it holds 0 s)
+    m = compute_metrics(make_log(t, 10.0, pe=pe), BAND)
+    assert m["coupler_out_of_band_s"] == 0.0 and (m["unsafe"], m["collision"]) == (True, False)
+    pe = np.zeros((3, 4))
+    pe[1, 2:] = 75.0  # gap = 100 - 75 = 25 m < l_e = 30 m, still positive
+    m = compute_metrics(make_log(t, 10.0, pe=pe), BAND)
+    assert (m["unsafe"], m["collision"]) == (True, False)
+    pe[1, 2:] = 100.5  # gap = -0.5 m: the trains overlap
+    m = compute_metrics(make_log(t, 10.0, pe=pe), BAND)
+    assert (m["unsafe"], m["collision"]) == (True, True)
+    empty = compute_metrics(RunLog(layout()), BAND)
+    assert (empty["unsafe"], empty["collision"], empty["string_stability_ratio"]) == (None, None, None)
+
+
+def three_single_unit_trains(gap_errors: np.ndarray) -> RunLog:
+    """3 trains x 1 unit of 25 m, l_s = 100 m; gap_errors (k, 2) = gap - l_s of each pair."""
+    cfg = TrainsConfig(count=3, units=1, unit_mass_kg=50_000.0, unit_length_m=25.0, head_positions_m=[0.0, -125.0, -250.0],
+                       speeds_mps=[10.0] * 3, spacing_m=100.0, emergency_gap_m=30.0)
+    log = RunLog(TrainLayout.from_config(cfg))
+    z = np.zeros(3)
+    for i, (d1, d2) in enumerate(gap_errors):
+        x = np.array([0.0, -125.0 - d1, -250.0 - d1 - d2])
+        log.add_sample(float(i), 0.0, 10.0, x, z + 10.0, z, z, z)
+    return log
+
+
+def test_string_stability_ratio_is_last_pair_peak_over_first_pair_peak():
+    log = three_single_unit_trains(np.array([[0.0, 0.0], [-4.0, 2.0], [3.0, -6.0], [1.0, 5.0]]))
+    m = compute_metrics(log, BAND)
+    assert m["gap_min_m"] == pytest.approx([96.0, 94.0])
+    assert m["string_stability_ratio"] == pytest.approx(6.0 / 4.0)
+    flat_first = three_single_unit_trains(np.array([[0.0, 0.0], [0.0, 2.0]]))
+    assert compute_metrics(flat_first, BAND)["string_stability_ratio"] is None  # 2 / 0: undefined
+    assert compute_metrics(make_log([0.0, 1.0], 10.0), BAND)["string_stability_ratio"] is None  # one pair only
+
+
+def _frames_bus(name: str, rows: list[tuple[float, int, float]]) -> BusLog:
+    """A bus whose frames were enqueued at `release` with `latency`, appended in order of end of transmission."""
+    bus = BusLog(name, 500_000)
+    for release, fid, lat in sorted(rows, key=lambda r: r[0] + r[2]):
+        bus.frames.append(np.array([release + lat, fid, lat, 0.0]))
+    return bus
+
+
+def test_deadline_misses_and_max_latency_per_id():
+    rows = [(0.00, 0x100, 0.001), (0.01, 0x100, 0.012), (0.02, 0x100, 0.002), (0.03, 0x100, 0.0105),  # period 10 ms
+            (0.000, 0x0C0, 0.001), (0.005, 0x0C0, 0.006), (0.010, 0x0C0, 0.0049),  # period 5 ms
+            (0.004, 0x7FF, 1.0)]  # a single frame: no period, so never a miss, but its latency counts in the max
+    # a radio-forwarded ID with jitter and two lost frames: intervals 9, 11, 10, 30 ms -> median period 10.5 ms
+    radio = [(0.0, 0x180, 0.001), (0.009, 0x180, 0.0104), (0.020, 0x180, 0.0106), (0.030, 0x180, 0.001), (0.060, 0x180, 0.002)]
+    ext = [(0.0, 0x18FF0001, 0.0005), (0.1, 0x18FF0001, 0.0007)]
+    log = make_log([0.0, 1.0], 10.0)
+    log.buses = [_frames_bus("bus1", rows), _frames_bus("bus2", radio + ext)]
+    m = compute_metrics(log, BAND)
+    b1, b2 = m["per_bus"]["bus1"], m["per_bus"]["bus2"]
+    assert b1["latency_max_by_id"] == pytest.approx({"0x0C0": 0.006, "0x100": 0.012, "0x7FF": 1.0})
+    assert b1["deadline_misses"] == 3  # 12 > 10 ms, 10.5 > 10 ms, 6 > 5 ms
+    assert b1["latency_to_period_max"] == pytest.approx(1.2)
+    assert b2["latency_max_by_id"] == pytest.approx({"0x180": 0.0106, "0x18FF0001": 0.0007})
+    assert b2["deadline_misses"] == 1  # only 10.6 ms exceeds the median period of 10.5 ms
+    assert b2["latency_to_period_max"] == pytest.approx(0.0106 / 0.0105)
+    assert m["deadline_misses"] == 4 and m["latency_to_period_max"] == pytest.approx(1.2)
+    assert m["frame_latency_max_s"] == pytest.approx(1.0)  # the existing keys are unchanged
+
+
+def test_no_frames_no_deadline_misses():
+    log = make_log([0.0, 1.0], 10.0)
+    log.buses = [BusLog("bus1", 500_000)]
+    m = compute_metrics(log, BAND)
+    b = m["per_bus"]["bus1"]
+    assert (b["latency_max_by_id"], b["deadline_misses"], b["latency_to_period_max"]) == ({}, 0, None)
+    assert (m["deadline_misses"], m["latency_to_period_max"]) == (0, None)
+    assert json.loads(json.dumps(m, allow_nan=False)) == m

@@ -45,6 +45,7 @@ def test_seed000_has_the_papers_numbers():
     ("p1 = 20.0", "p1 = 'fast'", "controller.params.p1"),
     ('law = "finite_time"', 'law = "no_such_law"', "controller.law"),
     ("speeds_kmh = [295.0, 275.0, 285.0]", "speeds_kmh = [295.0, 275.0]", "speeds_kmh has 2 values"),
+    ("step_s = 0.001", "step_s = 0.003", "can.sensor_period_s = 0.01 must be a whole multiple of plant.step_s"),
 ])
 def test_bad_fields_are_named(tmp_path, old, new, expected):
     path = write_variant(tmp_path, old, new)
@@ -69,3 +70,18 @@ def test_cli_reports_user_errors_without_traceback(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "can.bitrate" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_cli_set_overrides_fields(tmp_path):
+    out = tmp_path / "o"
+    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--duration", "1", "--out", str(out), "--quiet",
+                           "--no-record", "--set", "can.bitrate=1000000", "--set", "controller.law=consensus",
+                           "--set", "controller.params={}"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    import json
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["per_bus"]["bus1"]["load_max"] < 0.3  # half the 500 kbit/s load
+    bad = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--set", "radio.latency_s=-1"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "radio.latency_s" in bad.stderr

@@ -3,6 +3,13 @@
 Everything is computed vectorised from a RunLog. Values that are undefined (no samples, no couplers,
 never settled, non-finite) are None, never NaN, so `json.dumps(..., allow_nan=False)` always works.
 Durations "spent" in a condition use a zero-order hold: sample k holds until sample k+1.
+
+Safety verdicts (``unsafe``, ``collision``) look at every recorded sample; ``string_stability_ratio`` is the
+peak |gap - l_s| of the last train pair over that of the first pair (> 1: spacing errors grow along the chain).
+CAN deadlines are implicit (deadline = period): a frame misses its deadline when its latency (enqueue to end of
+transmission) exceeds its ID's period, taken as the median interval between consecutive enqueues of that ID on
+that bus in this run (so it follows the scenario's cycle settings; with >= 50 % radio loss the period of forwarded
+frames is overestimated). Frames dropped from a full TX queue are not in the latency table: see frames_dropped.
 """
 from __future__ import annotations
 
@@ -26,6 +33,7 @@ def compute_metrics(log: RunLog, coupler_band: tuple[float, float], settle_band_
     out.update(_settling_metrics(log, settle_band_mps))
     out.update(_coupler_metrics(log, lo, hi))
     out.update(_gap_metrics(log))
+    out.update(_safety_metrics(log, lo, hi))
     out.update(_effort_metrics(log))
     out.update(_bus_metrics(log.buses))
     out["frames_lost"] = int(log.frames_lost)
@@ -158,6 +166,20 @@ def _gap_metrics(log: RunLog) -> dict[str, Any]:
     }
 
 
+def _safety_metrics(log: RunLog, lo: float, hi: float) -> dict[str, Any]:
+    """Safety verdict over all samples, and the string-stability ratio of the spacing errors (None if undefined)."""
+    g, e, L = log.gaps, log.couplers, log.layout
+    if len(g) == 0:
+        return {"unsafe": None, "collision": None, "string_stability_ratio": None}
+    collision = bool(np.any(g < 0.0))
+    unsafe = collision or bool(np.any(g < L.emergency_gap_m)) or bool(np.any((e < lo) | (e > hi)))
+    ratio = None
+    if g.shape[1] >= 2:
+        peak = np.max(np.abs(g - L.spacing_m), axis=0)
+        ratio = _f(peak[-1] / peak[0]) if peak[0] > 0 else None
+    return {"unsafe": unsafe, "collision": collision, "string_stability_ratio": ratio}
+
+
 # --------------------------------------------------------------------------- effort and jerk
 
 
@@ -185,6 +207,31 @@ def _latency_stats(lat: np.ndarray) -> dict[str, float | None]:
     return {"p50": _f(p50), "p99": _f(p99), "max": _f(np.max(lat))}
 
 
+def _id_name(frame_id: int) -> str:
+    return f"0x{frame_id:03X}" if frame_id <= 0x7FF else f"0x{frame_id:08X}"
+
+
+def _deadline_stats(frames: np.ndarray) -> dict[str, Any]:
+    """Max latency per frame ID, and frames whose latency exceeds their ID's period (median enqueue interval)."""
+    if len(frames) == 0:
+        return {"latency_max_by_id": {}, "deadline_misses": 0, "latency_to_period_max": None}
+    release = frames[:, 0] - frames[:, 2]  # enqueue time = end of transmission - latency
+    order = np.lexsort((release, frames[:, 1]))  # by ID, then by enqueue time
+    ids, lat, release = frames[order, 1].astype(np.int64), frames[order, 2], release[order]
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    bounds = np.r_[starts, len(ids)]
+    periods = np.array([np.median(np.diff(release[a:b])) if b - a >= 2 else np.nan for a, b in zip(bounds[:-1], bounds[1:])])
+    period = np.repeat(periods, np.diff(bounds))
+    ok = period > 0  # False for NaN (a single frame: no period)
+    ratio = lat[ok] / period[ok]
+    max_by_id = np.maximum.reduceat(lat, starts)
+    return {
+        "latency_max_by_id": {_id_name(int(i)): float(m) for i, m in zip(ids[starts], max_by_id)},
+        "deadline_misses": int(np.count_nonzero(ratio > 1.0)),
+        "latency_to_period_max": _max(ratio),
+    }
+
+
 def _one_bus(bus: BusLog) -> dict[str, Any]:
     load = bus.load.array[:, 1]
     lat = _latency_stats(bus.frames.array[:, 2])
@@ -196,6 +243,7 @@ def _one_bus(bus: BusLog) -> dict[str, Any]:
         "latency_p50_s": lat["p50"],
         "latency_p99_s": lat["p99"],
         "latency_max_s": lat["max"],
+        **_deadline_stats(bus.frames.array),
     }
 
 
@@ -203,6 +251,8 @@ def _bus_metrics(buses: list[BusLog]) -> dict[str, Any]:
     loads = np.concatenate([b.load.array[:, 1] for b in buses]) if buses else np.zeros(0)
     lat = np.concatenate([b.frames.array[:, 2] for b in buses]) if buses else np.zeros(0)
     stats = _latency_stats(lat)
+    per_bus = {b.name: _one_bus(b) for b in buses}
+    ratios = [p["latency_to_period_max"] for p in per_bus.values() if p["latency_to_period_max"] is not None]
     return {
         "frames_sent": int(sum(b.frames_sent for b in buses)),
         "frames_dropped": int(sum(b.frames_dropped for b in buses)),
@@ -211,7 +261,9 @@ def _bus_metrics(buses: list[BusLog]) -> dict[str, Any]:
         "frame_latency_p50_s": stats["p50"],
         "frame_latency_p99_s": stats["p99"],
         "frame_latency_max_s": stats["max"],
-        "per_bus": {b.name: _one_bus(b) for b in buses},
+        "deadline_misses": sum(p["deadline_misses"] for p in per_bus.values()),
+        "latency_to_period_max": max(ratios) if ratios else None,
+        "per_bus": per_bus,
     }
 
 

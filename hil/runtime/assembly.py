@@ -12,7 +12,6 @@ from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
 from hil.layout import TrainLayout
 from hil.plant import Plant
 from hil.reference import ReferenceProfile
-from hil.runtime.kernel import to_ns
 from hil.scenario.model import Scenario
 
 
@@ -48,19 +47,8 @@ def random_streams(seed: int) -> dict[str, np.random.Generator]:
     return {name: np.random.default_rng(child) for name, child in zip(names, children)}
 
 
-def check_periods(scenario: Scenario) -> None:
-    """Periods that the plant samples must be whole multiples of its step (errors name the field)."""
-    step = to_ns(scenario.plant.step_s)
-    for field, value in (("can.sensor_period_s", scenario.can.sensor_period_s),
-                         ("recording.period_s", scenario.recording.period_s),
-                         ("ecu.cycle_s", scenario.ecu.cycle_s)):
-        if to_ns(value) % step:
-            raise ValueError(f"{field} = {value} must be a whole multiple of plant.step_s = {scenario.plant.step_s}")
-
-
 def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     """Build layout, plant (at its initial state), reference and one controller per unit."""
-    check_periods(scenario)
     seed = scenario.seed if seed is None else seed
     streams = random_streams(seed)
     layout = TrainLayout.from_config(scenario.trains)

@@ -37,8 +37,9 @@ def resolve(name_or_path: str | Path) -> Path:
     raise ScenarioError(f"unknown scenario {str(name_or_path)!r}: not a file, and not a packaged scenario ({', '.join(known)})")
 
 
-def _format_errors(source: str, err: ValidationError) -> str:
-    lines = [f"{source}: invalid scenario ({err.error_count()} error{'s' if err.error_count() > 1 else ''})"]
+def format_validation_errors(source: str, err: ValidationError, what: str = "scenario") -> str:
+    """One line per pydantic error: the dotted field, the message and the bad value."""
+    lines = [f"{source}: invalid {what} ({err.error_count()} error{'s' if err.error_count() > 1 else ''})"]
     for e in err.errors():
         where = ".".join(str(part) for part in e["loc"]) or "(top level)"
         got = e.get("input")
@@ -58,7 +59,7 @@ def _validate_controller(source: str, scenario: Scenario) -> None:
     try:
         law.Params(**scenario.controller.params)
     except ValidationError as exc:
-        msg = _format_errors(source, exc).replace("\n  ", "\n  controller.params.")
+        msg = format_validation_errors(source, exc).replace("\n  ", "\n  controller.params.")
         raise ScenarioError(msg) from None
 
 
@@ -75,7 +76,7 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrid
     try:
         scenario = Scenario(**data)
     except ValidationError as exc:
-        raise ScenarioError(_format_errors(source, exc)) from None
+        raise ScenarioError(format_validation_errors(source, exc)) from None
     _validate_controller(source, scenario)
     return scenario
 

@@ -270,3 +270,13 @@ class Scenario(Section):
     can: CanConfig = CanConfig()
     radio: RadioConfig = RadioConfig()
     recording: RecordingConfig = RecordingConfig()
+
+    @model_validator(mode="after")
+    def _periods_fit_the_plant_step(self) -> "Scenario":
+        """Periods the plant samples at must be whole multiples of its step."""
+        step = round(self.plant.step_s * 1e9)
+        for field, value in (("can.sensor_period_s", self.can.sensor_period_s), ("recording.period_s", self.recording.period_s),
+                             ("ecu.cycle_s", self.ecu.cycle_s)):
+            if round(value * 1e9) % step:
+                raise ValueError(f"{field} = {value} must be a whole multiple of plant.step_s = {self.plant.step_s}")
+        return self
