@@ -111,11 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
     sc.set_defaults(func=_cmd_scenarios)
 
     from hil.can.cli import add_can_analysis_parser
+    from hil.realtime.cli import add_bus_server_parser
     from hil.sweep.cli import add_sweep_parser, add_sweeps_list_parser
 
     add_sweep_parser(sub)
     add_sweeps_list_parser(sub)
     add_can_analysis_parser(sub)
+    add_bus_server_parser(sub)
     return p
 
 

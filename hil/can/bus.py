@@ -19,6 +19,16 @@ from hil.record.runlog import BusLog
 from hil.runtime.kernel import Kernel
 
 RxCallback = Callable[[int, bytes, int], None]  # (frame_id, data, t_end_ns)
+# Queue entry: (arbitration key, seq, data, t_enqueue, node, frame_id, extended)
+_Item = tuple[int, int, bytes, int, "CanNode", int, bool]
+
+
+def arbitration_key(frame_id: int, extended: bool) -> int:
+    """A sort key in the order arbitration on the wire decides: base ID, then SRR and IDE (a standard
+    frame beats an extended one with the same base ID), then the 18-bit ID extension."""
+    if extended:
+        return ((frame_id >> 18) << 20) | (0b11 << 18) | (frame_id & 0x3FFFF)
+    return frame_id << 20
 
 
 @dataclass(slots=True)
@@ -31,6 +41,7 @@ class Transmission:
     t_enqueue: int
     t_start: int
     t_end: int
+    extended: bool = False
 
 
 class CanNode:
@@ -49,7 +60,7 @@ class CanNode:
         self.receive_own = receive_own
         self.depth = depth
         self.queued = 0
-        self.fifo: deque[tuple[int, int, bytes, int, "CanNode"]] = deque()
+        self.fifo: deque[_Item] = deque()
         self.sent = 0
         self.dropped = 0
 
@@ -72,10 +83,11 @@ class CanBusModel:
         self.log = log if log is not None else BusLog(name, bitrate)
         self.nodes: list[CanNode] = []
         self._priority = policy == "priority"
-        self._heap: list[tuple[int, int, bytes, int, CanNode]] = []  # (id, seq, data, t_enqueue, node)
+        self._heap: list[_Item] = []
         self._seq = 0
         self._listeners: dict[int, list[CanNode]] = {}  # frame id -> filtered receivers (built lazily)
         self._catch_all: list[CanNode] = []
+        self._detached_dropped = 0  # drops of nodes that left the bus
         self.busy_until = 0
         self.current: Transmission | None = None
         self._window_ns = int(load_window_s * 1e9)
@@ -92,6 +104,24 @@ class CanBusModel:
         self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
         return node
 
+    def detach(self, node: CanNode) -> int:
+        """Remove a node (it disconnected or crashed): its queued frames are dropped and counted, how many is
+        returned; a frame of it already on the wire completes."""
+        if node not in self.nodes:
+            raise ValueError(f"node {node.name!r} is not attached to bus {self.name}")
+        lost = node.queued
+        if self._priority and lost:
+            self._heap = [item for item in self._heap if item[4] is not node]
+            heapq.heapify(self._heap)
+        node.fifo.clear()
+        node.queued = 0
+        node.dropped += lost
+        self._detached_dropped += node.dropped
+        self.nodes.remove(node)
+        self._listeners.clear()
+        self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
+        return lost
+
     def _receivers(self, frame_id: int) -> list[CanNode]:
         found = self._listeners.get(frame_id)
         if found is None:
@@ -101,21 +131,24 @@ class CanBusModel:
         return found
 
     # ---- queues and arbitration
-    def enqueue(self, node: CanNode, frame_id: int, data: bytes, t: int) -> bool:
-        """Queue a frame in a node's TX queue at time t; False (and counted) when the queue is full."""
+    def enqueue(self, node: CanNode, frame_id: int, data: bytes, t: int, extended: bool | None = None) -> bool:
+        """Queue a frame in a node's TX queue at time t; False (and counted) when the queue is full.
+
+        ``extended`` picks the frame format of this frame (default: the bus's ``extended``)."""
         if node.queued >= node.depth:
             node.dropped += 1
             return False
         node.queued += 1
         self._seq += 1
-        item = (frame_id, self._seq, data, t, node)
+        ext = self.extended if extended is None else extended
+        item = (arbitration_key(frame_id, ext), self._seq, data, t, node, frame_id, ext)
         if self._priority:
             heapq.heappush(self._heap, item)
         else:
             node.fifo.append(item)
         return True
 
-    def _pop_winner(self) -> tuple[int, int, bytes, int, CanNode] | None:
+    def _pop_winner(self) -> _Item | None:
         if self._priority:
             return heapq.heappop(self._heap) if self._heap else None
         heads = [n for n in self.nodes if n.fifo]
@@ -130,10 +163,10 @@ class CanBusModel:
         won = self._pop_winner()
         if won is None:
             return None
-        frame_id, _, data, t_enq, node = won
+        _, _, data, t_enq, node, frame_id, ext = won
         node.queued -= 1
-        t_end = t + frame_bits(frame_id, data, self.extended) * self.bit_ns
-        self.current = Transmission(node, frame_id, data, t_enq, t, t_end)
+        t_end = t + frame_bits(frame_id, data, ext) * self.bit_ns
+        self.current = Transmission(node, frame_id, data, t_enq, t, t_end, ext)
         self.busy_until = t_end
         return self.current
 
@@ -174,7 +207,7 @@ class CanBusModel:
     def finish(self, t: int) -> None:
         """Close the load windows up to t and fold the nodes' drop counts into the log."""
         self._close_windows(t, inclusive=True)
-        self.log.frames_dropped = sum(n.dropped for n in self.nodes)
+        self.log.frames_dropped = sum(n.dropped for n in self.nodes) + self._detached_dropped
 
 
 class VirtualCanBus(CanBusModel):

@@ -1,0 +1,587 @@
+"""One emulated CAN bus in wall-clock time: a unix-socket server that drives the clock-agnostic ``CanBusModel``.
+
+Nodes (python-can ``TrainhilBus`` clients, see ``protocol``) connect to ``<run dir>/<bus>.sock``. One thread runs a
+selector loop: frames read from a node are queued in its TX queue at the current time (ns since the server
+started); when the bus is idle and frames wait, the model arbitrates; the loop sleeps until the transmission's
+end, completes it and hands the frame, stamped with that end time, to every node whose acceptance filters take
+it (filtering happens here, not in the nodes: DESIGN.md measured it doubles how many ECU processes keep their
+lateness low). When the server wakes late, frames that were waiting at an end time are arbitrated at that
+model time, so the bus schedule stays exact and only the delivery is late (``lateness`` in the statistics).
+
+Waits are precise: the timer slack of the serving thread is set to 1 ns, timeouts go through ``select`` on
+the epoll fd (epoll itself only takes milliseconds), and the last ``spin_us`` (200 us) before a
+transmission's end are spent polling (the sockets, so input is still read). Only the bus server spins; at
+1 Mbit/s and full load a frame is shorter than the spin window, so the server then keeps one core busy, and a
+rig with several buses has several spinners: lower ``spin_us`` (0 = sleep only) there. ``set_fifo_priority``
+(``--fifo``) runs the server under SCHED_FIFO where permitted, which cuts its p99 lateness on a loaded machine.
+
+Security: the socket lives in the 0o700 run directory and is chmod 0o600; nothing listens on TCP.
+"""
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import secrets
+import selectors
+import select
+import socket
+import stat
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from hil.can.bus import CanBusModel, CanNode, Transmission
+from hil.realtime.paths import socket_is_live, socket_path, validate_name
+from hil.realtime.protocol import (
+    FLAG_ECHO, FLAG_EXTENDED, FRAME, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO, PROTOCOL_VERSION,
+    RECORD_SIZE, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_welcome,
+    unpack_filter, unpack_filters_head, unpack_hello,
+)
+from hil.record.runlog import BusLog, SampleTable
+
+LOG = logging.getLogger(__name__)
+PR_SET_TIMERSLACK = 29
+DEFAULT_SPIN_US = 200
+READ_RECORDS = 32  # per node and loop turn: a babbling node cannot stall the loop, the rest waits in its socket
+OUT_CAP_BYTES = 1 << 20  # a node that stops reading loses frames beyond this backlog (counted as overruns)
+_RX_CACHE_MAX = 8192
+
+
+class BusServerError(RuntimeError):
+    """The server cannot start (socket taken, not a socket, ...)."""
+
+
+def set_timer_slack(ns: int = 1) -> bool:
+    """prctl(PR_SET_TIMERSLACK) for the calling thread so sleeps end on time; False where unavailable."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def set_fifo_priority(priority: int) -> bool:
+    """Run this process under SCHED_FIFO at ``priority`` (1..99) where permitted; False otherwise.
+
+    Wake-ups then preempt ordinary processes at once. Keep the spin window short with it: a real-time task that
+    spins most of the time runs into the kernel's RT throttling (by default 50 ms stalls once per second)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError, ValueError):
+        return False
+    return True
+
+
+if hasattr(selectors, "EpollSelector"):
+    class _PreciseSelector(selectors.EpollSelector):
+        """epoll with microsecond timeouts: block in select() on the epoll fd (readable when any registered
+        fd is), then collect the events without blocking. epoll_wait alone rounds up to whole milliseconds."""
+
+        def select(self, timeout: float | None = None):
+            if timeout is not None and timeout > 0:
+                ready, _, _ = select.select([self._selector.fileno()], [], [], timeout)
+                if not ready:
+                    return []
+                timeout = 0
+            return super().select(timeout)
+else:  # pragma: no cover - non-Linux
+    _PreciseSelector = selectors.SelectSelector  # type: ignore[misc,assignment]
+
+
+class _Histogram:
+    """Durations in log-linear bins: 1 us wide below 1.024 ms, then 1/512 of the value (<= 0.2 %) wide.
+
+    Bounded memory for endless runs, O(1) per sample; the maximum is kept exactly."""
+
+    _LINEAR = 1024
+    _SUB = 512
+
+    def __init__(self) -> None:
+        self.counts = [0] * (self._LINEAR + 40 * self._SUB)
+        self.n = 0
+        self.max_ns = 0
+
+    def add(self, ns: int) -> None:
+        us = max(ns, 0) // 1000
+        if us < self._LINEAR:
+            i = us
+        else:
+            e = us.bit_length() - 10
+            i = self._LINEAR + (e - 1) * self._SUB + (us >> e) - self._SUB
+        self.counts[min(i, len(self.counts) - 1)] += 1
+        self.n += 1
+        if ns > self.max_ns:
+            self.max_ns = ns
+
+    def _upper_us(self, i: int) -> int:
+        if i < self._LINEAR:
+            return i + 1
+        e, m = divmod(i - self._LINEAR, self._SUB)
+        return (m + self._SUB + 1) << (e + 1)
+
+    def quantile_s(self, q: float) -> float | None:
+        """Upper edge of the bin holding quantile q, capped at the maximum (None when empty)."""
+        if not self.n:
+            return None
+        rank, seen = q * self.n, 0
+        for i, c in enumerate(self.counts):
+            seen += c
+            if c and seen >= rank:
+                return min(self._upper_us(i) * 1e-6, self.max_ns * 1e-9)
+        return self.max_ns * 1e-9
+
+
+@dataclass
+class BusServerStats:
+    """What a bus server has carried so far."""
+
+    channel: str
+    bitrate: int
+    uptime_s: float
+    clients: int
+    frames: int  # transmissions completed
+    frames_per_s: float
+    load: float  # busy time / uptime
+    load_last_window: float | None  # the last closed window of the BusLog
+    frames_dropped: int  # TX queue full, or queued when the node disconnected
+    frames_rejected: int  # not a classical data frame (remote, error, FD, bad id)
+    rx_overruns: int  # deliveries lost because a node did not read
+    latency_p50_s: float | None  # enqueue -> end of transmission (queueing + transmission)
+    latency_p99_s: float | None
+    latency_max_s: float | None
+    lateness_p50_s: float | None  # frame handed to the nodes' sockets - its end time on the bus
+    lateness_p99_s: float | None
+    lateness_max_s: float | None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class _Client:
+    """One connected node: its socket, partial input, pending output, filters and counters."""
+
+    __slots__ = ("sock", "cid", "name", "node", "rx", "out", "writing", "closed", "receive_own", "filters",
+                 "pending", "pending_left", "pending_gen", "delivered", "overruns", "rejected")
+
+    def __init__(self, sock: socket.socket, cid: int) -> None:
+        self.sock = sock
+        self.cid = cid
+        self.name = f"#{cid}"
+        self.node: CanNode | None = None  # set by HELLO
+        self.rx = b""
+        self.out = bytearray()
+        self.writing = False
+        self.closed = False
+        self.receive_own = False
+        self.filters: tuple[Filter, ...] | None = None  # None = accept everything
+        self.pending: list[Filter] | None = None  # a FILTERS set being received
+        self.pending_left = 0
+        self.pending_gen = 0
+        self.delivered = 0
+        self.overruns = 0
+        self.rejected = 0
+
+
+class BusServer:
+    """One CAN bus served on ``<run dir>/<bus>.sock`` in wall-clock time (see the module docstring).
+
+    ``serve_forever()`` runs the loop in the calling thread, ``start()`` in a daemon thread; ``with BusServer(...)
+    as srv:`` serves in the background for the block. ``shutdown()`` is thread-safe (and safe from a signal
+    handler of the serving thread); ``close()`` removes the socket. The model's ``BusLog`` is ``log``.
+    """
+
+    def __init__(self, run: str, bus: str, bitrate: int, policy: str = "priority", depth: int = 64, *,
+                 path: Path | str | None = None, extended: bool = False, load_window_s: float = 0.1,
+                 spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None) -> None:
+        validate_name(run, "run")
+        validate_name(bus, "bus")
+        if spin_us < 0:
+            raise ValueError(f"spin_us={spin_us!r} must be >= 0")
+        self.model = CanBusModel(bus, bitrate, policy, depth, extended, log, load_window_s)
+        self.path = Path(path) if path is not None else socket_path(run, bus, create=True)
+        self.channel = f"{run}/{bus}" if path is None else str(self.path)
+        self._spin_ns = int(spin_us * 1000)
+        self._window_ns = int(load_window_s * 1e9)
+        self._keep_log = keep_log
+        self._listener = self._bind(self.path)
+        self._inode = os.lstat(self.path).st_ino
+        self._mono0 = time.monotonic_ns()
+        self._epoch0_ns = time.time_ns()
+        self._sel = _PreciseSelector()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._sel.register(self._listener, selectors.EVENT_READ, self._accept)
+        self._sel.register(self._wake_r, selectors.EVENT_READ, self._drain_wake)
+        self._clients: dict[int, _Client] = {}
+        self._by_node: dict[CanNode, _Client] = {}
+        self._rx_cache: dict[int, tuple[_Client, ...]] = {}
+        self._dirty: set[_Client] = set()
+        self._ended: list[int] = []  # end times completed in this loop turn (for the lateness histogram)
+        self._next_cid = 1
+        self._next_window = self._window_ns
+        self._busy_ns = 0
+        self._frames = 0
+        self._rejected = 0
+        self._overruns = 0
+        self._lateness = _Histogram()
+        self._latency = _Histogram()
+        self._lock = threading.Lock()
+        self._stop = False
+        self._closed = False
+        self._serving = threading.Event()
+        self._stopped = threading.Event()
+        self._stopped.set()
+        self._thread: threading.Thread | None = None
+        self._loop_ident: int | None = None
+
+    # ---- socket setup
+    @staticmethod
+    def _bind(path: Path) -> socket.socket:
+        """Listen on ``path``: bound under a temporary name, chmod 0o600, then linked into place atomically."""
+        if os.path.lexists(path):
+            if not stat.S_ISSOCK(os.lstat(path).st_mode):
+                raise BusServerError(f"{path} exists and is not a socket: refusing to replace it")
+            if socket_is_live(path):
+                raise BusServerError(f"a bus server is already running on {path}")
+            os.unlink(path)  # stale: its server died
+        tmp = path.with_name(f".{secrets.token_hex(4)}.tmp")
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            sock.bind(str(tmp))
+            try:
+                os.chmod(tmp, 0o600)
+                sock.listen(128)
+                os.link(tmp, path)
+            finally:
+                os.unlink(tmp)
+        except FileExistsError:
+            sock.close()
+            raise BusServerError(f"another bus server started on {path} at the same time") from None
+        except BaseException:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        return sock
+
+    # ---- time
+    def _now(self) -> int:
+        return time.monotonic_ns() - self._mono0
+
+    @property
+    def epoch0(self) -> float:
+        """Epoch seconds of the bus's time zero (BusLog times are relative to it)."""
+        return self._epoch0_ns * 1e-9
+
+    @property
+    def log(self) -> BusLog:
+        return self.model.log
+
+    # ---- running
+    def serve_forever(self) -> None:
+        """Run the loop in this thread until shutdown()."""
+        if self._closed:
+            raise RuntimeError(f"bus server {self.channel} is closed")
+        set_timer_slack(1)
+        self._loop_ident = threading.get_ident()
+        self._stopped.clear()
+        self._serving.set()
+        try:
+            while not self._stop:
+                self._turn()
+        finally:
+            self._serving.clear()
+            self._stopped.set()
+
+    def start(self) -> "BusServer":
+        """Serve in a daemon thread; returns once the loop runs."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self.serve_forever, name=f"bus-server {self.channel}", daemon=True)
+            self._thread.start()
+            self._serving.wait(5.0)
+        return self
+
+    def shutdown(self, wait: bool = True) -> None:
+        """Stop the loop (from any thread); waits for it unless called from the loop's own thread."""
+        self._stop = True
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass
+        if wait and threading.get_ident() != self._loop_ident:
+            self._stopped.wait()
+
+    def close(self) -> None:
+        """Stop, disconnect every node, close the load windows and remove the socket (if it is still ours)."""
+        if self._closed:
+            return
+        self.shutdown()
+        if self._thread is not None:
+            self._thread.join()
+        with self._lock:
+            for c in list(self._clients.values()):
+                self._drop(c, "server closing")
+            self._close_windows(self._now())
+            self._closed = True
+        for s in (self._listener, self._wake_r, self._wake_w):
+            s.close()
+        self._sel.close()
+        try:
+            if os.lstat(self.path).st_ino == self._inode:
+                os.unlink(self.path)
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self) -> "BusServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- the loop
+    def _turn(self) -> None:
+        """One loop turn: wait, complete what ended, read the nodes, start the next frame, send the output."""
+        tx = self.model.current
+        if tx is None:
+            timeout = self._window_ns * 1e-9  # wake up now and then to close load windows
+        else:
+            remaining = tx.t_end - self._now()
+            timeout = (remaining - self._spin_ns) * 1e-9 if remaining > self._spin_ns else 0
+        events = self._sel.select(timeout)
+        now = self._now()
+        with self._lock:
+            self._advance(now)  # before reading: frames read now must not join arbitrations of the past
+            if self._dirty:
+                self._flush()  # deliver first, read later
+            for key, mask in events:
+                target = key.data
+                if type(target) is _Client:
+                    if not target.closed and mask & selectors.EVENT_READ:
+                        self._read(target, now)
+                    if not target.closed and mask & selectors.EVENT_WRITE:
+                        self._send(target)
+                else:
+                    target(now)
+            if self.model.current is None:
+                self.model.arbitrate(now)
+            self._flush()
+            if now >= self._next_window:
+                self._close_windows(now)
+
+    def _advance(self, now: int) -> None:
+        """Complete every transmission that ended by ``now``; frames waiting at an end start right at it."""
+        m = self.model
+        tx = m.current
+        while tx is not None and tx.t_end <= now:
+            m.complete()
+            self._deliver(tx)
+            tx = m.arbitrate(tx.t_end)
+
+    def _deliver(self, tx: Transmission) -> None:
+        """Queue the frame record for every node whose filters take it (the sender only if it asked)."""
+        flags = FLAG_EXTENDED if tx.extended else 0
+        stamp = (self._epoch0_ns + tx.t_end) / 1e9
+        record = FRAME.pack(KIND_FRAME, flags, len(tx.data), tx.frame_id, stamp, tx.data)
+        sender = self._by_node.get(tx.node)
+        for c in self._receivers(tx.frame_id, tx.extended):
+            rec = record
+            if c is sender:
+                if not c.receive_own:
+                    continue
+                rec = FRAME.pack(KIND_FRAME, flags | FLAG_ECHO, len(tx.data), tx.frame_id, stamp, tx.data)
+            if len(c.out) >= OUT_CAP_BYTES:
+                c.overruns += 1
+                self._overruns += 1
+                continue
+            c.out += rec
+            c.delivered += 1
+            self._dirty.add(c)
+        self._frames += 1
+        self._busy_ns += tx.t_end - tx.t_start
+        self._latency.add(tx.t_end - tx.t_enqueue)
+        self._ended.append(tx.t_end)
+
+    def _receivers(self, frame_id: int, extended: bool) -> tuple[_Client, ...]:
+        key = (frame_id << 1) | extended
+        found = self._rx_cache.get(key)
+        if found is None:
+            if len(self._rx_cache) >= _RX_CACHE_MAX:
+                self._rx_cache.clear()
+            found = tuple(c for c in self._clients.values()
+                          if c.node is not None and filters_accept(c.filters, frame_id, extended))
+            self._rx_cache[key] = found
+        return found
+
+    def _flush(self) -> None:
+        """Send the pending output, then account the delivery lateness of the frames completed in this turn."""
+        for c in self._dirty:
+            if not c.closed:
+                self._send(c)
+        self._dirty.clear()
+        if self._ended:
+            t = self._now()
+            for t_end in self._ended:
+                self._lateness.add(t - t_end)
+            self._ended.clear()
+
+    def _send(self, c: _Client) -> None:
+        try:
+            n = c.sock.send(c.out)
+        except BlockingIOError:
+            n = 0
+        except OSError as exc:
+            self._drop(c, f"send failed: {exc}")
+            return
+        del c.out[:n]
+        want = bool(c.out)
+        if want != c.writing:
+            self._sel.modify(c.sock, selectors.EVENT_READ | (selectors.EVENT_WRITE if want else 0), c)
+            c.writing = want
+
+    def _close_windows(self, now: int) -> None:
+        """Close the BusLog's load windows up to now (a frame on the wire counts in the window it ends in)."""
+        m = self.model
+        t = now if m.current is None else min(now, m.current.t_end - 1)
+        m.finish(t)
+        self._next_window = (now // self._window_ns + 1) * self._window_ns
+        if not self._keep_log and len(m.log.frames) >= 1 << 16:
+            m.log.frames = SampleTable(m.log.frames.width)  # bounded memory: the histograms keep the stats
+
+    # ---- nodes
+    def _accept(self, now: int) -> None:
+        while True:
+            try:
+                sock, _ = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            sock.setblocking(False)
+            c = _Client(sock, self._next_cid)
+            self._next_cid += 1
+            self._clients[c.cid] = c
+            self._sel.register(sock, selectors.EVENT_READ, c)
+
+    def _drain_wake(self, now: int) -> None:
+        try:
+            while self._wake_r.recv(4096):
+                pass
+        except (BlockingIOError, InterruptedError):
+            pass
+
+    def _read(self, c: _Client, now: int) -> None:
+        """Take whole records off a node's socket (at most READ_RECORDS per turn), keep the partial tail."""
+        try:
+            chunk = c.sock.recv(READ_RECORDS * RECORD_SIZE)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            self._drop(c, f"receive failed: {exc}")
+            return
+        if not chunk:
+            self._drop(c, "disconnected")
+            return
+        buf = c.rx + chunk if c.rx else chunk
+        end = len(buf) - len(buf) % RECORD_SIZE
+        try:
+            for off in range(0, end, RECORD_SIZE):
+                self._record(c, buf, off, now)
+        except ProtocolError as exc:
+            self._drop(c, f"protocol error: {exc}")
+            return
+        c.rx = buf[end:]
+
+    def _record(self, c: _Client, buf: bytes, off: int, now: int) -> None:
+        kind = buf[off]
+        if kind == KIND_FRAME and c.node is not None:
+            _, flags, dlc, can_id, _, data = FRAME.unpack_from(buf, off)
+            why = frame_error(can_id, dlc, flags)
+            if why is None:
+                self.model.enqueue(c.node, can_id, data[:dlc], now, bool(flags & FLAG_EXTENDED))
+                return
+            c.rejected += 1
+            self._rejected += 1
+            if c.rejected == 1:
+                LOG.warning("bus %s: node %s sent a frame the bus cannot carry (%s); dropped and counted",
+                            self.channel, c.name, why)
+        elif kind == KIND_HELLO and c.node is None:
+            self._hello(c, buf, off)
+        elif kind == KIND_FILTERS and c.node is not None and c.pending is None:
+            count, c.pending_gen = unpack_filters_head(buf, off)
+            c.pending, c.pending_left = [], count
+            if count == 0:
+                self._apply_filters(c)
+        elif kind == KIND_FILTER and c.pending is not None:
+            c.pending.append(unpack_filter(buf, off))
+            c.pending_left -= 1
+            if c.pending_left == 0:
+                self._apply_filters(c)
+        else:
+            raise ProtocolError(f"unexpected record kind {kind} from node {c.name}")
+
+    def _hello(self, c: _Client, buf: bytes, off: int) -> None:
+        hello = unpack_hello(buf, off)
+        welcome = pack_welcome(self.model.bitrate, self.epoch0, c.cid)
+        if hello.version != PROTOCOL_VERSION:
+            try:
+                c.sock.send(welcome)  # tells the node our version before we hang up
+            except OSError:
+                pass
+            raise ProtocolError(f"node {hello.name} speaks protocol version {hello.version}, "
+                                f"this server {PROTOCOL_VERSION}")
+        c.name = hello.name
+        c.receive_own = hello.receive_own
+        c.node = self.model.attach(hello.name)
+        self._by_node[c.node] = c
+        self._rx_cache.clear()
+        c.out += welcome
+        self._dirty.add(c)
+        LOG.info("bus %s: node %s (#%d) joined", self.channel, c.name, c.cid)
+
+    def _apply_filters(self, c: _Client) -> None:
+        c.filters = tuple(c.pending) if c.pending else None
+        c.pending = None
+        self._rx_cache.clear()
+        c.out += pack_filters_ack(c.pending_gen)
+        self._dirty.add(c)
+
+    def _drop(self, c: _Client, why: str) -> None:
+        """Disconnect a node: its queued frames are dropped and counted; a frame of it on the wire completes."""
+        if c.closed:
+            return
+        c.closed = True
+        self._sel.unregister(c.sock)
+        c.sock.close()
+        del self._clients[c.cid]
+        self._rx_cache.clear()
+        if c.node is not None:
+            lost = self.model.detach(c.node)
+            del self._by_node[c.node]
+            LOG.info("bus %s: node %s (#%d) left (%s); %d queued frames dropped",
+                     self.channel, c.name, c.cid, why, lost)
+
+    # ---- statistics
+    @property
+    def stats(self) -> BusServerStats:
+        """A consistent snapshot (thread-safe)."""
+        with self._lock:
+            now = self._now()
+            self._close_windows(now)
+            up = max(now, 1) * 1e-9
+            load = self.model.log.load
+            return BusServerStats(
+                self.channel, self.model.bitrate, up, sum(c.node is not None for c in self._clients.values()),
+                self._frames, self._frames / up, self._busy_ns / max(now, 1),
+                load.last(1) if len(load) else None, self.model.log.frames_dropped, self._rejected, self._overruns,
+                self._latency.quantile_s(0.5), self._latency.quantile_s(0.99),
+                self._latency.max_ns * 1e-9 if self._latency.n else None,
+                self._lateness.quantile_s(0.5), self._lateness.quantile_s(0.99),
+                self._lateness.max_ns * 1e-9 if self._lateness.n else None)
+
+
+if __name__ == "__main__":
+    import sys
+
+    from hil.realtime.cli import bus_server_main
+
+    sys.exit(bus_server_main())

@@ -1,0 +1,92 @@
+"""Command line of the real-time rig's pieces: ``hil bus-server`` (also ``python -m hil.realtime.busserver``).
+
+``add_bus_server_parser(subparsers)`` registers the sub-command on the ``hil`` parser; ``bus_server_main`` is the
+standalone entry. The server runs until SIGINT/SIGTERM (or ``--duration``), then prints its statistics and,
+with ``--stats-json``, writes them. It prints ``ready <socket path>`` once nodes can connect.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError, set_fifo_priority
+
+DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
+               "can.Bus(interface='trainhil', channel='<run>/<bus>').")
+
+
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--run", required=True, help="run name: the socket is <runtime root>/<run>/<bus>.sock")
+    p.add_argument("--bus", required=True, help="bus name, e.g. bus1 (python-can channel \"<run>/<bus>\")")
+    p.add_argument("--bitrate", type=int, default=500_000, help="bit/s (default 500000)")
+    p.add_argument("--policy", choices=("priority", "fifo"), default="priority", help="TX queue policy per node")
+    p.add_argument("--depth", type=int, default=64, help="TX queue depth per node (default 64)")
+    p.add_argument("--spin-us", type=float, default=DEFAULT_SPIN_US,
+                   help=f"spin the last microseconds before a frame ends (default {DEFAULT_SPIN_US}; 0: never spin)")
+    p.add_argument("--fifo", type=int, metavar="PRIORITY",
+                   help="run under SCHED_FIFO at this priority (1-99) where permitted; use a short --spin-us with it")
+    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--stats-json", help="write the final statistics to this JSON file")
+    p.add_argument("--verbose", action="store_true", help="log nodes joining and leaving")
+
+
+def add_bus_server_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``hil bus-server`` on the ``hil`` parser's sub-parsers; returns the new parser."""
+    p = subparsers.add_parser("bus-server", help="serve one emulated CAN bus in real time (python-can: trainhil)",
+                              description=DESCRIPTION)
+    _add_arguments(p)
+    p.set_defaults(func=cmd_bus_server)
+    return p
+
+
+def _print_stats(stats: dict) -> None:
+    def fmt(v):
+        return "-" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v)
+
+    print(f"bus {stats['channel']} ({stats['bitrate']} bit/s): " + ", ".join(
+        f"{k}={fmt(v)}" for k, v in stats.items() if k not in ("channel", "bitrate")))
+
+
+def cmd_bus_server(args: argparse.Namespace) -> int:
+    """Serve until a signal or the duration; exit 2 with one message on bad arguments or a taken socket."""
+    if args.verbose:
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    try:
+        server = BusServer(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=args.spin_us,
+                           keep_log=False)
+    except (ValueError, OSError, BusServerError) as exc:
+        print(f"hil bus-server: error: {exc}", file=sys.stderr)
+        return 2
+    if args.fifo is not None and not set_fifo_priority(args.fifo):
+        print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here; running as a normal "
+              "process", file=sys.stderr)
+    previous = {s: signal.signal(s, lambda *_: server.shutdown(wait=False)) for s in (signal.SIGINT, signal.SIGTERM)}
+    timer = threading.Timer(args.duration, server.shutdown) if args.duration else None
+    try:
+        print(f"ready {server.path}", flush=True)
+        if timer:
+            timer.daemon = True
+            timer.start()
+        server.serve_forever()
+    finally:
+        if timer:
+            timer.cancel()
+        for s, h in previous.items():
+            signal.signal(s, h)
+        stats = server.stats.as_dict()
+        server.close()
+    _print_stats(stats)
+    if args.stats_json:
+        Path(args.stats_json).write_text(json.dumps(stats, indent=1))
+    return 0
+
+
+def bus_server_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m hil.realtime.busserver", description=DESCRIPTION)
+    _add_arguments(p)
+    return cmd_bus_server(p.parse_args(argv))

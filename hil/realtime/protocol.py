@@ -1,0 +1,225 @@
+"""Wire protocol between a bus server and its nodes: fixed-size 24-byte little-endian records over a unix stream socket.
+
+Every record is ``RECORD_SIZE`` = 24 bytes and starts with a kind byte; a reader takes whole records off the
+stream (keeping a partial tail for the next read). ``x`` is a zero pad byte.
+
+======  ===============  ========  ==================================================================
+kind    name             way       layout (struct, after the common "<")
+======  ===============  ========  ==================================================================
+1       FRAME            both      ``B B B x I d 8s``: kind, flags, dlc, -, can_id, timestamp, data
+2       HELLO            c -> s    ``B B B x 20s``: kind, version, options, -, node name (UTF-8, NUL-padded)
+3       WELCOME          s -> c    ``B B x x I d I 4x``: kind, version, -, -, bitrate, epoch0, client id, -
+4       FILTERS          c -> s    ``B x H I 16x``: kind, -, count, generation; ``count`` FILTER records follow
+5       FILTER           c -> s    ``B B x x I I 12x``: kind, match, -, -, can_id, can_mask
+6       FILTERS_ACK      s -> c    ``B x x x I 16x``: kind, generation
+======  ===============  ========  ==================================================================
+
+FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
+asked for its own messages; python-can ``is_rx=False``). ``data`` is always 8 bytes, the first ``dlc`` count.
+From a node, ``timestamp`` is ignored (the frame is queued when the server reads it); from the server it is
+the end of the frame's transmission (last bit of the intermission) in epoch seconds. Only classical data
+frames are emulated: a node must not send REMOTE, ERROR or ECHO (the server counts and drops them); ERROR
+frames are reserved for the server's fault hooks.
+
+Session: the node sends HELLO (protocol version, options bit 0 = receive own messages, its name); the server
+answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id).
+A node replaces its acceptance filters with FILTERS (``count`` = 0: accept everything, the initial state;
+``generation`` numbers the change) followed by ``count`` FILTER records; the server applies the set once
+complete and answers FILTERS_ACK with that generation. A FILTER matches a frame when
+``(frame_id ^ can_id) & can_mask == 0`` and the frame's format fits ``match`` (0 any, 1 standard only,
+2 extended only): python-can's filter semantics. Any other record, or a version mismatch, ends the session.
+"""
+from __future__ import annotations
+
+import struct
+from typing import NamedTuple
+
+PROTOCOL_VERSION = 1
+RECORD_SIZE = 24
+NAME_BYTES = 20
+MAX_DLC = 8
+MAX_FILTERS = 1024
+
+KIND_FRAME = 1
+KIND_HELLO = 2
+KIND_WELCOME = 3
+KIND_FILTERS = 4
+KIND_FILTER = 5
+KIND_FILTERS_ACK = 6
+
+FLAG_EXTENDED = 0x01
+FLAG_REMOTE = 0x02
+FLAG_ERROR = 0x04
+FLAG_ECHO = 0x08
+
+OPTION_RECEIVE_OWN = 0x01
+
+MATCH_ANY = 0
+MATCH_STANDARD = 1
+MATCH_EXTENDED = 2
+
+STD_ID_LIMIT = 1 << 11
+EXT_ID_LIMIT = 1 << 29
+
+FRAME = struct.Struct("<BBBxId8s")
+HELLO = struct.Struct("<BBBx20s")
+WELCOME = struct.Struct("<BBxxIdI4x")
+FILTERS = struct.Struct("<BxHI16x")
+FILTER = struct.Struct("<BBxxII12x")
+FILTERS_ACK = struct.Struct("<BxxxI16x")
+assert all(s.size == RECORD_SIZE for s in (FRAME, HELLO, WELCOME, FILTERS, FILTER, FILTERS_ACK))
+
+
+class ProtocolError(ValueError):
+    """A record that breaks the protocol (unknown kind, bad field): the session ends."""
+
+
+class Frame(NamedTuple):
+    can_id: int
+    data: bytes
+    flags: int = 0
+    timestamp: float = 0.0
+
+
+class Hello(NamedTuple):
+    name: str
+    receive_own: bool
+    version: int = PROTOCOL_VERSION
+
+
+class Welcome(NamedTuple):
+    bitrate: int
+    epoch0: float
+    client_id: int
+    version: int = PROTOCOL_VERSION
+
+
+class Filter(NamedTuple):
+    can_id: int
+    can_mask: int
+    match: int = MATCH_ANY
+
+
+def frame_error(can_id: int, dlc: int, flags: int) -> str | None:
+    """Why a frame from a node cannot go on the emulated bus (None if it can)."""
+    if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO):
+        return f"flags {flags:#04x}: only classical data frames can be sent (no remote, error or echo frames)"
+    if dlc > MAX_DLC:
+        return f"dlc {dlc} > {MAX_DLC} (CAN FD is not emulated)"
+    limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
+    if not 0 <= can_id < limit:
+        return f"can_id {can_id:#x} out of range for a {'29' if flags & FLAG_EXTENDED else '11'}-bit identifier"
+    return None
+
+
+def pack_frame(can_id: int, data: bytes, flags: int = 0, timestamp: float = 0.0) -> bytes:
+    """A FRAME record; ValueError naming the id if it or the data do not fit a classical CAN frame."""
+    if len(data) > MAX_DLC:
+        raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_DLC} (CAN FD is not emulated)")
+    limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
+    if not 0 <= can_id < limit:
+        raise ValueError(f"frame id {can_id:#x} out of range for a "
+                         f"{'29' if flags & FLAG_EXTENDED else '11'}-bit identifier (0..{limit - 1:#x})")
+    return FRAME.pack(KIND_FRAME, flags, len(data), can_id, timestamp, data)
+
+
+def unpack_frame(record: bytes | memoryview, offset: int = 0) -> Frame:
+    """The FRAME record at ``offset``; ProtocolError if it is another kind or its dlc exceeds 8."""
+    kind, flags, dlc, can_id, timestamp, data = FRAME.unpack_from(record, offset)
+    if kind != KIND_FRAME:
+        raise ProtocolError(f"record kind {kind} is not a FRAME ({KIND_FRAME})")
+    if dlc > MAX_DLC:
+        raise ProtocolError(f"frame {can_id:#x}: dlc {dlc} > {MAX_DLC}")
+    return Frame(can_id, data[:dlc], flags, timestamp)
+
+
+def pack_hello(name: str, receive_own: bool = False, version: int = PROTOCOL_VERSION) -> bytes:
+    raw = name.encode()
+    if not raw or len(raw) > NAME_BYTES or b"\0" in raw:
+        raise ValueError(f"node name {name!r}: must be 1-{NAME_BYTES} bytes of UTF-8 without NUL")
+    return HELLO.pack(KIND_HELLO, version, OPTION_RECEIVE_OWN if receive_own else 0, raw)
+
+
+def unpack_hello(record: bytes | memoryview, offset: int = 0) -> Hello:
+    kind, version, options, raw = HELLO.unpack_from(record, offset)
+    if kind != KIND_HELLO:
+        raise ProtocolError(f"record kind {kind} is not a HELLO ({KIND_HELLO})")
+    try:
+        name = raw.rstrip(b"\0").decode()
+    except UnicodeDecodeError as exc:
+        raise ProtocolError(f"HELLO: node name {raw!r} is not UTF-8") from exc
+    return Hello(name or "?", bool(options & OPTION_RECEIVE_OWN), version)
+
+
+def pack_welcome(bitrate: int, epoch0: float, client_id: int, version: int = PROTOCOL_VERSION) -> bytes:
+    return WELCOME.pack(KIND_WELCOME, version, bitrate, epoch0, client_id)
+
+
+def unpack_welcome(record: bytes | memoryview, offset: int = 0) -> Welcome:
+    kind, version, bitrate, epoch0, client_id = WELCOME.unpack_from(record, offset)
+    if kind != KIND_WELCOME:
+        raise ProtocolError(f"record kind {kind} is not a WELCOME ({KIND_WELCOME})")
+    return Welcome(bitrate, epoch0, client_id, version)
+
+
+def filter_from_python_can(f: dict, index: int = 0) -> Filter:
+    """A python-can filter dict {"can_id", "can_mask"[, "extended"]} -> Filter; ValueError naming the entry."""
+    try:
+        can_id, can_mask = int(f["can_id"]), int(f["can_mask"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"can_filters[{index}] = {f!r}: needs integer 'can_id' and 'can_mask'") from exc
+    if not (0 <= can_id < 1 << 32 and 0 <= can_mask < 1 << 32):
+        raise ValueError(f"can_filters[{index}] = {f!r}: can_id and can_mask must fit in 32 bits")
+    ext = f.get("extended")
+    match = MATCH_ANY if ext is None else (MATCH_EXTENDED if ext else MATCH_STANDARD)
+    return Filter(can_id, can_mask, match)
+
+
+def pack_filters(filters: list[Filter], generation: int) -> bytes:
+    """FILTERS plus one FILTER record per entry (an empty list accepts every frame)."""
+    if len(filters) > MAX_FILTERS:
+        raise ValueError(f"{len(filters)} acceptance filters > {MAX_FILTERS}")
+    head = FILTERS.pack(KIND_FILTERS, len(filters), generation & 0xFFFFFFFF)
+    return head + b"".join(FILTER.pack(KIND_FILTER, f.match, f.can_id, f.can_mask) for f in filters)
+
+
+def unpack_filters_head(record: bytes | memoryview, offset: int = 0) -> tuple[int, int]:
+    """(count, generation) of a FILTERS record."""
+    kind, count, generation = FILTERS.unpack_from(record, offset)
+    if kind != KIND_FILTERS:
+        raise ProtocolError(f"record kind {kind} is not FILTERS ({KIND_FILTERS})")
+    if count > MAX_FILTERS:
+        raise ProtocolError(f"FILTERS: {count} filters > {MAX_FILTERS}")
+    return count, generation
+
+
+def unpack_filter(record: bytes | memoryview, offset: int = 0) -> Filter:
+    kind, match, can_id, can_mask = FILTER.unpack_from(record, offset)
+    if kind != KIND_FILTER:
+        raise ProtocolError(f"record kind {kind} is not a FILTER ({KIND_FILTER})")
+    if match not in (MATCH_ANY, MATCH_STANDARD, MATCH_EXTENDED):
+        raise ProtocolError(f"FILTER: match {match} is not 0, 1 or 2")
+    return Filter(can_id, can_mask, match)
+
+
+def pack_filters_ack(generation: int) -> bytes:
+    return FILTERS_ACK.pack(KIND_FILTERS_ACK, generation & 0xFFFFFFFF)
+
+
+def unpack_filters_ack(record: bytes | memoryview, offset: int = 0) -> int:
+    kind, generation = FILTERS_ACK.unpack_from(record, offset)
+    if kind != KIND_FILTERS_ACK:
+        raise ProtocolError(f"record kind {kind} is not FILTERS_ACK ({KIND_FILTERS_ACK})")
+    return generation
+
+
+def filters_accept(filters: tuple[Filter, ...] | None, can_id: int, extended: bool) -> bool:
+    """python-can semantics: no filters accept everything, else any filter that matches the id and format."""
+    if not filters:
+        return True
+    for f in filters:
+        if f.match and (f.match == MATCH_EXTENDED) != extended:
+            continue
+        if (can_id ^ f.can_id) & f.can_mask == 0:
+            return True
+    return False
