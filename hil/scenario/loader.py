@@ -15,26 +15,32 @@ class ScenarioError(ValueError):
     """A user error in a scenario file: the message names the file, the field and the bad value."""
 
 
-def packaged_dir() -> Path:
-    return Path(str(resources.files("hil") / "scenarios"))
+def packaged_files(folder: str) -> dict[str, Path]:
+    """Packaged TOML files of ``hil/<folder>/`` by name (scenarios, sweeps)."""
+    return {p.stem: p for p in sorted(Path(str(resources.files("hil") / folder)).glob("*.toml"))}
+
+
+def resolve_packaged(name_or_path: str | Path, folder: str, kind: str, error: type[ValueError]) -> Path:
+    """A packaged name (``seed000``) or a path to a TOML file; ``error(...)`` names what was not found."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise error(f"{p}: no such {kind} file")
+        return p
+    known = packaged_files(folder)
+    if str(name_or_path) in known:
+        return known[str(name_or_path)]
+    raise error(f"unknown {kind} {str(name_or_path)!r}: not a file, and not a packaged {kind} ({', '.join(known)})")
 
 
 def packaged_scenarios() -> dict[str, Path]:
     """Packaged scenario name -> file."""
-    return {p.stem: p for p in sorted(packaged_dir().glob("*.toml"))}
+    return packaged_files("scenarios")
 
 
 def resolve(name_or_path: str | Path) -> Path:
     """A packaged scenario name (``seed000``) or a path to a TOML file."""
-    p = Path(name_or_path)
-    if p.suffix == ".toml" or p.exists():
-        if not p.is_file():
-            raise ScenarioError(f"{p}: no such scenario file")
-        return p
-    known = packaged_scenarios()
-    if str(name_or_path) in known:
-        return known[str(name_or_path)]
-    raise ScenarioError(f"unknown scenario {str(name_or_path)!r}: not a file, and not a packaged scenario ({', '.join(known)})")
+    return resolve_packaged(name_or_path, "scenarios", "scenario", ScenarioError)
 
 
 def format_validation_errors(source: str, err: ValidationError, what: str = "scenario") -> str:

@@ -36,13 +36,19 @@ import json
 import re
 import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field, PrivateAttr, ValidationError, field_validator
 
-from hil.scenario.loader import ScenarioError, format_validation_errors, resolve, scenario_from_dict
+from hil.scenario.loader import (
+    ScenarioError,
+    format_validation_errors,
+    packaged_files,
+    resolve,
+    resolve_packaged,
+    scenario_from_dict,
+)
 from hil.scenario.model import Scenario, Section
 
 _DOTTED = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
@@ -215,20 +221,12 @@ class SweepSpec(Section):
 
 def packaged_sweeps() -> dict[str, Path]:
     """Packaged sweep name -> file (hil/sweeps/*.toml)."""
-    return {p.stem: p for p in sorted(Path(str(resources.files("hil") / "sweeps")).glob("*.toml"))}
+    return packaged_files("sweeps")
 
 
 def resolve_sweep(name_or_path: str | Path) -> Path:
     """A packaged sweep name (``latency-loss``) or a path to a TOML file."""
-    p = Path(name_or_path)
-    if p.suffix == ".toml" or p.exists():
-        if not p.is_file():
-            raise SweepError(f"{p}: no such sweep file")
-        return p
-    known = packaged_sweeps()
-    if str(name_or_path) in known:
-        return known[str(name_or_path)]
-    raise SweepError(f"unknown sweep {str(name_or_path)!r}: not a file, and not a packaged sweep ({', '.join(known)})")
+    return resolve_packaged(name_or_path, "sweeps", "sweep", SweepError)
 
 
 def load_sweep(name_or_path: str | Path) -> SweepSpec:
