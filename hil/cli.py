@@ -44,6 +44,9 @@ SUMMARY_KEYS = [
     ("frames_lost", "frames lost"),
     ("bus_load_max", "max bus load"),
     ("frame_latency_p99_s", "frame latency p99 (s)"),
+    ("cycle_lateness_p99_s", "ECU cycle lateness p99 (s, real time)"),
+    ("cycle_deadline_misses", "ECU cycle deadline misses"),
+    ("e2e_latency_p99_s", "sensor-to-actuator latency p99 (s)"),
     ("sim_time_s", "simulated time (s)"),
     ("wall_time_s", "wall time (s)"),
     ("realtime_factor", "x real time"),
@@ -84,8 +87,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         overrides["seed"] = args.seed
     scenario = load_scenario(args.scenario, overrides)
     out = Path(args.out) if args.out else Path("runs") / scenario.name
-    result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
-                          record=not args.no_record, progress=not args.quiet)
+    if args.realtime:
+        from hil.realtime.cli import run_realtime_from_args
+
+        result = run_realtime_from_args(args, scenario, out)
+    else:
+        result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
+                              record=not args.no_record, progress=not args.quiet)
     print_summary(result.metrics, out)
     return 130 if result.log.interrupted else 0
 
@@ -105,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--ideal", action="store_true", help="run the ideal network-free reference loop instead")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    from hil.realtime.cli import add_realtime_arguments
+
+    add_realtime_arguments(run)
     run.set_defaults(func=_cmd_run)
 
     sc = sub.add_parser("scenarios", help="list the packaged scenarios")
@@ -131,6 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:  # a real-time node that failed to start (NodeError), named in the message
+        print(f"hil: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # before or after the run loop (the run loop itself stops cleanly on its own)
         print("hil: interrupted", file=sys.stderr)
         return 130

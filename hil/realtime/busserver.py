@@ -139,7 +139,7 @@ class BusServerStats:
 
     channel: str
     bitrate: int
-    uptime_s: float
+    uptime_s: float  # model seconds (wall seconds x pace), as are frames_per_s, load and the latencies
     clients: int
     frames: int  # transmissions completed
     frames_per_s: float
@@ -151,7 +151,7 @@ class BusServerStats:
     latency_p50_s: float | None  # enqueue -> end of transmission (queueing + transmission)
     latency_p99_s: float | None
     latency_max_s: float | None
-    lateness_p50_s: float | None  # frame handed to the nodes' sockets - its end time on the bus
+    lateness_p50_s: float | None  # frame handed to the nodes' sockets - its end time on the bus (wall seconds)
     lateness_p99_s: float | None
     lateness_max_s: float | None
 
@@ -194,11 +194,15 @@ class BusServer:
 
     def __init__(self, run: str, bus: str, bitrate: int, policy: str = "priority", depth: int = 64, *,
                  path: Path | str | None = None, extended: bool = False, load_window_s: float = 0.1,
-                 spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None) -> None:
+                 spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
+                 pace: float = 1.0) -> None:
         validate_name(run, "run")
         validate_name(bus, "bus")
         if spin_us < 0:
             raise ValueError(f"spin_us={spin_us!r} must be >= 0")
+        if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
+            raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
+        self._pace = float(pace)
         self.model = CanBusModel(bus, bitrate, policy, depth, extended, log, load_window_s)
         self.path = Path(path) if path is not None else socket_path(run, bus, create=True)
         self.channel = f"{run}/{bus}" if path is None else str(self.path)
@@ -268,11 +272,19 @@ class BusServer:
 
     # ---- time
     def _now(self) -> int:
-        return time.monotonic_ns() - self._mono0
+        """Model time (ns since start): wall time x pace, so a frame lasts duration / pace of wall time."""
+        if self._pace == 1.0:
+            return time.monotonic_ns() - self._mono0
+        return int((time.monotonic_ns() - self._mono0) * self._pace)
+
+    @property
+    def pace(self) -> float:
+        """Model seconds per wall second (1.0 = real time)."""
+        return self._pace
 
     @property
     def epoch0(self) -> float:
-        """Epoch seconds of the bus's time zero (BusLog times are relative to it)."""
+        """Epoch seconds of the bus's time zero: a BusLog time t happened at epoch0 + t / pace."""
         return self._epoch0_ns * 1e-9
 
     @property
@@ -345,9 +357,9 @@ class BusServer:
         """One loop turn: wait, complete what ended, read the nodes, start the next frame, send the output."""
         tx = self.model.current
         if tx is None:
-            timeout = self._window_ns * 1e-9  # wake up now and then to close load windows
+            timeout = self._window_ns * 1e-9 / self._pace  # wake up now and then to close load windows
         else:
-            remaining = tx.t_end - self._now()
+            remaining = (tx.t_end - self._now()) / self._pace  # wall ns
             timeout = (remaining - self._spin_ns) * 1e-9 if remaining > self._spin_ns else 0
         events = self._sel.select(timeout)
         now = self._now()
@@ -382,7 +394,7 @@ class BusServer:
     def _deliver(self, tx: Transmission) -> None:
         """Queue the frame record for every node whose filters take it (the sender only if it asked)."""
         flags = FLAG_EXTENDED if tx.extended else 0
-        stamp = (self._epoch0_ns + tx.t_end) / 1e9
+        stamp = (self._epoch0_ns + tx.t_end / self._pace) / 1e9
         record = FRAME.pack(KIND_FRAME, flags, len(tx.data), tx.frame_id, stamp, tx.data)
         sender = self._by_node.get(tx.node)
         for c in self._receivers(tx.frame_id, tx.extended):
@@ -423,7 +435,7 @@ class BusServer:
         if self._ended:
             t = self._now()
             for t_end in self._ended:
-                self._lateness.add(t - t_end)
+                self._lateness.add(int((t - t_end) / self._pace))  # wall ns
             self._ended.clear()
 
     def _send(self, c: _Client) -> None:

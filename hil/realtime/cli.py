@@ -30,6 +30,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"spin the last microseconds before a frame ends (default {DEFAULT_SPIN_US}; 0: never spin)")
     p.add_argument("--fifo", type=int, metavar="PRIORITY",
                    help="run under SCHED_FIFO at this priority (1-99) where permitted; use a short --spin-us with it")
+    p.add_argument("--pace", type=float, default=1.0,
+                   help="model seconds per wall second (default 1.0; 0.5: frames last twice as long in wall time)")
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--stats-json", help="write the final statistics to this JSON file")
     p.add_argument("--verbose", action="store_true", help="log nodes joining and leaving")
@@ -58,7 +60,7 @@ def cmd_bus_server(args: argparse.Namespace) -> int:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
         server = BusServer(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=args.spin_us,
-                           keep_log=False)
+                           keep_log=False, pace=args.pace)
     except (ValueError, OSError, BusServerError) as exc:
         print(f"hil bus-server: error: {exc}", file=sys.stderr)
         return 2
@@ -84,6 +86,37 @@ def cmd_bus_server(args: argparse.Namespace) -> int:
     if args.stats_json:
         Path(args.stats_json).write_text(json.dumps(stats, indent=1))
     return 0
+
+
+def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
+    """Add ``--realtime``, ``--pace`` and ``--ecus-per-process`` to the ``hil run`` parser."""
+    g = run.add_argument_group("real time (HIL)")
+    g.add_argument("--realtime", action="store_true",
+                   help="run on the real-time rig: bus servers, radio, plant and ECU processes paced to the wall clock")
+    g.add_argument("--pace", type=float, default=1.0,
+                   help="with --realtime: simulated seconds per wall second (1.0 = wall clock, 0.5 slower, 10 faster)")
+    g.add_argument("--ecus-per-process", type=int, default=1, metavar="N",
+                   help="with --realtime: host N ECUs per process (default 1: one process per ECU)")
+
+
+def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
+    """``hil run --realtime``: the RunResult of a real-time run; ScenarioError (``hil`` prints it, exit 2) naming an
+    option that does not combine with it."""
+    from hil.realtime.orchestrator import run_realtime
+    from hil.scenario import ScenarioError
+
+    if getattr(args, "ideal", False):
+        raise ScenarioError("--ideal cannot be combined with --realtime (the ideal loop has no network to run in real time)")
+    if getattr(args, "can_log", False):
+        raise ScenarioError("--can-log cannot be combined with --realtime yet: attach python-can's logger to the running "
+                            "rig instead (python -m can.logger -i trainhil -c <run>/bus1 -f bus1.asc; the run name is "
+                            "printed at the start)")
+    if not args.pace > 0:
+        raise ScenarioError(f"--pace {args.pace}: must be > 0")
+    if args.ecus_per_process < 1:
+        raise ScenarioError(f"--ecus-per-process {args.ecus_per_process}: must be >= 1")
+    return run_realtime(scenario, out, pace=args.pace, duration_s=args.duration, ecus_per_process=args.ecus_per_process,
+                        record=not args.no_record, progress=not args.quiet)
 
 
 def bus_server_main(argv: list[str] | None = None) -> int:

@@ -14,6 +14,7 @@ from ecu_sim.codec import TrainDb
 from ecu_sim.runtime import Ecu, NeighbourLink
 from ecu_sim.view import BrakeMode
 from hil.can.bus import CanNode, VirtualCanBus
+from hil.layout import TrainLayout
 from hil.radio.gateway import RadioGateway, build_links, standard_routes
 from hil.record.runlog import BusLog, RunLog
 from hil.runtime.assembly import Assembly, assemble
@@ -76,25 +77,9 @@ class VirtualRig:
 
         return self.buses[i].attach("Plant", on_rx, set(cmd_unit))
 
-    def _neighbour_links(self, u: int) -> list[NeighbourLink]:
-        db, L, fwd_aux = self.db, self.layout, self.sc.radio.forward_aux
-        links = []
-        for q, link, side in L.neighbours(u):
-            if link == "intra":
-                unit = L.train_unit(q)[1]
-                state, aux = db.agent_state(unit).frame_id, db.agent_aux(unit).frame_id
-            elif side == "ahead":
-                state, aux = db.radio_ahead_state.frame_id, db.radio_ahead_aux.frame_id if fwd_aux else None
-            else:
-                state, aux = db.radio_behind_state.frame_id, db.radio_behind_aux.frame_id if fwd_aux else None
-            links.append(NeighbourLink(state, aux, link, side, float(L.offset_m[q])))  # type: ignore[arg-type]
-        return links
-
     def _attach_ecu(self, u: int) -> None:
         train, unit = self.layout.train_unit(u)
-        name = f"train{train + 1}/unit{unit + 1}/ecu"
-        ecu = Ecu(name, self.layout.agent_info(u), self.parts.controllers[u], self.db, self._neighbour_links(u), self.sc.ecu,
-                  sample_period_s=self.sc.can.sensor_period_s)
+        ecu = build_ecu(self.parts, self.db, u)
         on_frame = ecu.on_frame
         node = self.buses[train].attach(f"ECU_U{unit + 1:02d}", lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
         self.ecus.append(ecu)
@@ -104,15 +89,7 @@ class VirtualRig:
         n = self.layout.n_trains
         if n < 2:
             return None, []
-        links = build_links(self.sc.radio, n, self.parts.streams["radio"])
-        routes = standard_routes(n, self.layout.units_per_train, self.sc.radio.forward_aux)
-        position_ids = {self.db.agent_state(k).frame_id for k in range(self.layout.units_per_train)}
-        db = self.db
-
-        def position_of(frame_id: int, data: bytes) -> float | None:
-            return db.by_id[frame_id].decode(data)[0] if frame_id in position_ids else None
-
-        gateway = RadioGateway(routes, links, position_of)
+        gateway = build_gateway(self.sc, self.db, self.parts.streams["radio"])
         nodes = []
         for i, bus in enumerate(self.buses):
             def on_rx(frame_id: int, data: bytes, t_ns: int, i: int = i) -> None:
@@ -222,6 +199,43 @@ class VirtualRig:
         log.e2e = {ecu.name: ecu.e2e_summary() for ecu in self.ecus}
         log.sim_time_s = now * 1e-9
         log.wall_time_s = wall_s
+
+
+# ---------------------------------------------------------------------- wiring shared with the real-time runtime
+def neighbour_links(db: TrainDb, layout: TrainLayout, forward_aux: bool, u: int) -> list[NeighbourLink]:
+    """Where unit u's neighbours' states arrive from: intra-train AgentState/AgentAux, or the radio IDs."""
+    links = []
+    for q, link, side in layout.neighbours(u):
+        if link == "intra":
+            unit = layout.train_unit(q)[1]
+            state, aux = db.agent_state(unit).frame_id, db.agent_aux(unit).frame_id
+        elif side == "ahead":
+            state, aux = db.radio_ahead_state.frame_id, db.radio_ahead_aux.frame_id if forward_aux else None
+        else:
+            state, aux = db.radio_behind_state.frame_id, db.radio_behind_aux.frame_id if forward_aux else None
+        links.append(NeighbourLink(state, aux, link, side, float(layout.offset_m[q])))  # type: ignore[arg-type]
+    return links
+
+
+def build_ecu(parts: Assembly, db: TrainDb, u: int) -> Ecu:
+    """The firmware of flat unit u, configured as in the scenario (both runtimes build it here)."""
+    sc, layout = parts.scenario, parts.layout
+    train, unit = layout.train_unit(u)
+    return Ecu(f"train{train + 1}/unit{unit + 1}/ecu", layout.agent_info(u), parts.controllers[u], db,
+               neighbour_links(db, layout, sc.radio.forward_aux, u), sc.ecu, sample_period_s=sc.can.sensor_period_s)
+
+
+def build_gateway(sc: Scenario, db: TrainDb, radio_rng) -> RadioGateway:
+    """The radio gateway of the scenario's trains (links, routing table, position decoder)."""
+    layout = TrainLayout.from_config(sc.trains)
+    links = build_links(sc.radio, layout.n_trains, radio_rng)
+    routes = standard_routes(layout.n_trains, layout.units_per_train, sc.radio.forward_aux)
+    position_ids = {db.agent_state(k).frame_id for k in range(layout.units_per_train)}
+
+    def position_of(frame_id: int, data: bytes) -> float | None:
+        return db.by_id[frame_id].decode(data)[0] if frame_id in position_ids else None
+
+    return RadioGateway(routes, links, position_of)
 
 
 def run_virtual(scenario: Scenario, duration_s: float | None = None, seed: int | None = None,

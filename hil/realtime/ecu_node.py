@@ -1,0 +1,102 @@
+"""ECU host process: one or several units' firmware (the same ``ecu_sim.runtime.Ecu`` as the virtual rig) on python-can.
+
+    python -m hil.realtime.ecu_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR --unit U [--unit U2 ...]
+
+``--unit`` is a flat unit index (front to back, 0-based). Each unit cycles at ``ecu.cycle_s`` with the phase
+``ecu.phase_s + unit_in_train * ecu.stagger_s`` as in virtual time. Between deadlines the process sleeps in
+``select`` on its buses (one per train it hosts, acceptance filters = the units' rx ids, applied by the server)
+and files every frame into the firmware's mailboxes stamped with its simulated arrival time; at a deadline the
+unit's ``cycle`` runs and its frames are sent. Never spins. A unit more than one cycle late counts a deadline
+miss and skips to its next future deadline. At exit it writes ``DIR/ecu_<train>_<unit>.json`` per unit.
+"""
+from __future__ import annotations
+
+import heapq
+import sys
+from pathlib import Path
+
+import can
+import numpy as np
+
+from ecu_sim.codec import TrainDb
+from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack, wait_until
+from hil.runtime.assembly import assemble
+from hil.runtime.virtual import build_ecu
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = node_parser("python -m hil.realtime.ecu_node", "Run ECU firmware on the real-time rig's buses.")
+    p.add_argument("--unit", type=int, action="append", required=True, help="flat unit index (repeatable)")
+    args = p.parse_args(argv)
+    stop = StopFlag()
+    set_timer_slack(1)
+    sc = load_scenario_json(args.scenario_json)
+    parts = assemble(sc, args.seed)
+    layout, db = parts.layout, TrainDb.load()
+    for u in args.unit:
+        if not 0 <= u < layout.n_units:
+            raise SystemExit(f"--unit {u}: out of range 0..{layout.n_units - 1}")
+    ecus = {u: build_ecu(parts, db, u) for u in args.unit}
+    trains = sorted({layout.train_unit(u)[0] for u in ecus})
+    buses, routes = [], []  # per bus: frame id -> the hosted ECUs that listen to it
+    for train in trains:
+        mine = [e for u, e in ecus.items() if layout.train_unit(u)[0] == train]
+        ids = set().union(*(e.rx_ids for e in mine))
+        first = min(layout.train_unit(u)[1] for u in ecus if layout.train_unit(u)[0] == train)
+        buses.append(open_bus(args.run, train, ids, sc.can.extended_ids, f"ECU_T{train + 1}_U{first + 1:02d}x{len(mine)}",
+                              receive_own=len(mine) > 1))
+        routes.append({i: [e for e in mine if i in e.rx_ids] for i in ids})
+    bus_of = {u: trains.index(layout.train_unit(u)[0]) for u in ecus}
+    try:
+        clock = SimClock(handshake(stop), args.pace)
+        stats = run(clock, sc, layout, ecus, buses, routes, bus_of, args.duration, stop)
+    finally:
+        for b in buses:
+            b.shutdown()
+    out = Path(args.out)
+    for u, ecu in ecus.items():
+        train, unit = layout.train_unit(u)
+        np.save(out / f"timing_ecu_{train + 1}_{unit + 1}.npy", stats[u].table())
+        write_json(out / f"ecu_{train + 1}_{unit + 1}.json", {
+            "name": ecu.name, "unit": u, **stats[u].summary(), "e2e": ecu.e2e_summary(),
+            "controller_errors": ecu.counters.controller_errors,
+            "events": [list(e) for e in ecu.events], "codec_saturations": db.total_saturations()})
+    return 0
+
+
+def run(clock: SimClock, sc, layout, ecus: dict, buses: list, routes: list, bus_of: dict, duration: float,
+        stop: StopFlag) -> dict[int, LatenessStats]:
+    """The paced loop: earliest deadline first over the hosted units."""
+    cycle = sc.ecu.cycle_s
+    stats = {u: LatenessStats(cycle, clock.pace) for u in ecus}
+    queue = [(sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s, u) for u in ecus]
+    heapq.heapify(queue)
+    extended = sc.can.extended_ids
+
+    def on_msg(i: int, msg: can.Message) -> None:
+        t = clock.from_epoch(msg.timestamp)
+        for ecu in routes[i].get(msg.arbitration_id, ()):
+            ecu.on_frame(msg.arbitration_id, bytes(msg.data), t)
+
+    while queue and not stop:
+        deadline, u = queue[0]
+        if deadline >= duration:
+            break
+        wait_until(clock, deadline, buses, on_msg)
+        if stop:
+            break
+        now = clock.now()
+        ecu = ecus[u]
+        for frame_id, data in ecu.cycle(now):
+            buses[bus_of[u]].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=extended))
+        overrun = stats[u].add(now - deadline, deadline)
+        stats[u].skipped += overrun
+        heapq.heapreplace(queue, (deadline + (1 + overrun) * cycle, u))
+    if not stop:
+        linger(clock)
+    return stats
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,53 @@
+"""What every real-time node process shares: its command line, the scenario it loads, and its python-can buses.
+
+A node is started by the orchestrator as ``python -m hil.realtime.<kind>_node --run RUN --scenario-json FILE
+--seed N --duration S --out DIR [...]``; it prints "ready" once its buses are open, waits for "go <T0>",
+runs until the simulated duration or "stop"/SIGTERM, then writes its results into DIR and exits 0.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any, Iterable
+
+import can
+
+from hil.scenario.model import Scenario
+
+
+def node_parser(prog: str, description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("--run", required=True, help="run name: buses are python-can channels <run>/bus<i>")
+    p.add_argument("--scenario-json", required=True, help="the validated scenario, as JSON (written by the orchestrator)")
+    p.add_argument("--seed", type=int, required=True)
+    p.add_argument("--duration", type=float, required=True, help="simulated seconds to run")
+    p.add_argument("--pace", type=float, default=1.0, help="simulated seconds per wall second")
+    p.add_argument("--out", required=True, help="directory for this node's results")
+    return p
+
+
+def load_scenario_json(path: str) -> Scenario:
+    return Scenario.model_validate_json(Path(path).read_text())
+
+
+def open_bus(run: str, train: int, ids: Iterable[int], extended: bool, name: str,
+             receive_own: bool = False) -> can.BusABC:
+    """A python-can node on train ``train``'s (0-based) bus accepting exactly ``ids`` (none: accepts nothing).
+
+    ``receive_own``: the server echoes this node's frames back (stamped with their end of transmission), which
+    a process hosting several ECUs of one bus needs so they hear each other as separate ECUs would."""
+    mask = 0x1FFFFFFF if extended else 0x7FF
+    ids = sorted(set(ids))
+    # an empty set would mean "accept everything" to python-can: match one id that no node sends instead
+    filters = [{"can_id": i, "can_mask": mask, "extended": extended} for i in ids] or \
+              [{"can_id": mask, "can_mask": mask, "extended": extended}]
+    return can.Bus(interface="trainhil", channel=f"{run}/bus{train + 1}", can_filters=filters, node_name=name,
+                   receive_own_messages=receive_own)
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write atomically (the orchestrator may read while a node is being killed)."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=1, allow_nan=False))
+    tmp.replace(path)

@@ -1,0 +1,473 @@
+"""The real-time (HIL) run: bus servers, radio bridge, plant and ECU processes, started, paced, stopped, merged.
+
+``run_realtime(scenario, out_dir, pace=...)`` is the real-time twin of ``hil.session.run_scenario``: it writes
+the same ``run.rrd`` and ``metrics.json`` (same keys, ``runtime = "realtime"``) plus the timing figures of the
+real-time rig. Steps:
+
+1. One ``BusServer`` per train bus, as threads of this process (sleep-only: ``spin_us = 0``, so several
+   servers do not fight over the GIL and the plant stays the rig's only spinner), paced by ``pace``.
+2. Node processes (same Python): the radio bridge, the plant + wayside, and the ECUs (``ecus_per_process``
+   units per process). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
+   node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
+3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
+   ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
+   Restarting it is not done (``ecu.restart_on_crash`` is not in the scenario schema yet). A plant or radio
+   process that dies ends the run early (recorded as an event).
+4. Ctrl-C / SIGTERM: every node is told "stop", finishes its loop and writes its results; stragglers are
+   terminated, then killed, after a grace period. What was recorded is written, ``interrupted`` is set.
+   Nodes run in their own sessions (a terminal's Ctrl-C reaches only the orchestrator), and a node whose stdin
+   closes (the orchestrator died, even by SIGKILL) stops by itself: no orphans either way.
+5. Merge: the plant's signals and events, the ECUs' events/E2E/lateness, the radio counters and the bus logs
+   (shifted to simulated time) into a ``RunLog``; ``compute_metrics`` as in virtual time, plus
+   ``cycle_lateness_p50/p99/max_s`` (worst ECU, wall seconds), ``cycle_deadline_misses`` (all ECUs),
+   ``plant_lateness_p99_s``, ``plant_deadline_misses`` and ``e2e_latency_p50/p99/max_s`` (simulated seconds,
+   see ``plant_node``). ``deadline_misses`` keeps its virtual-time meaning (CAN frames later than their period).
+"""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import re
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from hil.layout import TrainLayout
+from hil.realtime.busserver import BusServer
+from hil.realtime.paths import remove_run_dir
+from hil.record.metrics import compute_metrics
+from hil.record.rerun_writer import RerunWriter
+from hil.record.runlog import BusLog, Event, RunLog
+from hil.reference import ReferenceProfile
+from hil.scenario.model import Scenario
+
+READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a loaded 2-core machine is slow
+GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the message before sim time 0
+STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
+KILL_GRACE_S = 3.0
+TIMING_ROOT = "/timing"  # rerun entities of the real-time timing (lateness, e2e latency)
+
+
+class NodeError(RuntimeError):
+    """A node failed to start or to become ready."""
+
+
+@dataclass
+class Node:
+    """One node process and what it said."""
+
+    name: str
+    kind: str  # "plant" | "radio" | "ecu"
+    proc: subprocess.Popen
+    stderr_path: Path
+    lines: "queue.Queue[str]" = field(default_factory=queue.Queue)
+    ready: bool = False
+    reported: bool = False
+
+    def start_reader(self) -> None:
+        def read() -> None:
+            for line in self.proc.stdout:
+                self.lines.put(line.strip())
+
+        threading.Thread(target=read, name=f"stdout {self.name}", daemon=True).start()
+
+    def tell(self, text: str) -> None:
+        try:
+            self.proc.stdin.write(text + "\n")
+            self.proc.stdin.flush()
+        except (BrokenPipeError, OSError, ValueError):
+            pass
+
+    def stderr_tail(self, n: int = 800) -> str:
+        try:
+            return self.stderr_path.read_text(errors="replace")[-n:].strip()
+        except OSError:
+            return ""
+
+
+class _StopRequest:
+    """SIGINT/SIGTERM while running: remember it (the main loop polls) instead of raising mid-cleanup."""
+
+    def __init__(self) -> None:
+        self.requested: str | None = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "_StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def _handle(self, signum: int, _frame) -> None:
+        self.requested = signal.Signals(signum).name
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self._previous.items():
+            signal.signal(s, h)
+
+
+def run_name(scenario_name: str) -> str:
+    """A fresh run name (its directory holds the bus sockets): the scenario's name, the pid and a random tag."""
+    base = re.sub(r"[^A-Za-z0-9_.-]", "_", scenario_name).lstrip(".-")[:40] or "run"
+    return f"{base}-{os.getpid()}-{secrets.token_hex(2)}"
+
+
+def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]):
+    from hil.session import RunResult
+
+    return RunResult(log, metrics, out_dir, files)
+
+
+def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
+                 seed: int | None = None, ecus_per_process: int = 1, record: bool = True, progress: bool = False,
+                 plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None):
+    """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
+
+    ``plant_spin_us``: the plant polls this long before each step (0: sleep only). ``on_start(t0)`` is called
+    with the epoch time of simulated t = 0 once every node is ready (tools, tests)."""
+    if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
+        raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
+    if ecus_per_process < 1:
+        raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    duration = scenario.duration_s if duration_s is None else float(duration_s)
+    seed = scenario.seed if seed is None else seed
+    layout = TrainLayout.from_config(scenario.trains)
+    nodes_dir = out_dir / "nodes"
+    shutil.rmtree(nodes_dir, ignore_errors=True)
+    nodes_dir.mkdir()
+    (nodes_dir / "scenario.json").write_text(scenario.model_dump_json())
+    run = run_name(scenario.name)
+    sc_ = scenario.can
+    servers: list[BusServer] = []
+    nodes: list[Node] = []
+    events: list[Event] = []
+    wall0 = time.perf_counter()
+    t0 = None
+    run_wall = 0.0
+    stop_reason = None
+    try:
+        with _StopRequest() as stop:
+            for i in range(layout.n_trains):
+                servers.append(BusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
+                                         extended=sc_.extended_ids, spin_us=0, pace=pace,
+                                         log=BusLog(f"bus{i + 1}", sc_.bitrate)).start())
+            nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us)
+            if progress:
+                print(f"real-time rig {run}: python-can channels {run}/bus1 .. {run}/bus{layout.n_trains} "
+                      f"(interface trainhil), {len(nodes)} node processes, pace {pace:g}", file=sys.stderr)
+            _wait_ready(nodes, stop)
+            if not stop.requested:
+                t0 = time.time() + GO_MARGIN_S
+                for n in nodes:
+                    n.tell(f"go {t0!r}")
+                if on_start is not None:
+                    on_start(t0)
+                stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress)
+                run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
+            else:
+                stop_reason = stop.requested
+            _stop_nodes(nodes)
+    finally:
+        _kill_all(nodes)
+        server_stats = {s.log.name: s.stats.as_dict() for s in servers}
+        for s in servers:
+            s.close()
+        remove_run_dir(run)
+    wall = run_wall if t0 is not None else time.perf_counter() - wall0
+    log, extra = _merge(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason)
+    extra["realtime"]["bus_servers"] = server_stats
+    files = []
+    if record:
+        _write_rrd(scenario, layout, log, out_dir / "run.rrd", nodes_dir)
+        files.append(out_dir / "run.rrd")
+    metrics = compute_metrics(log, scenario.plant.coupler_band_m)
+    metrics.update(extra)
+    metrics["scenario"] = scenario.name
+    metrics["runtime"] = "realtime"
+    metrics["pace"] = float(pace)
+    metrics["interrupted"] = log.interrupted
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    files.append(out_dir / "metrics.json")
+    return _run_result(log, metrics, out_dir, files)
+
+
+# --------------------------------------------------------------------------- processes
+
+
+def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, duration: float, pace: float,
+                 per_process: int, spin_us: float) -> list[Node]:
+    common = ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
+              "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir)]
+    specs = [("plant", "plant", ["hil.realtime.plant_node", "--spin-us", repr(spin_us)])]
+    if layout.n_trains > 1:
+        specs.append(("radio", "radio", ["hil.realtime.radio_node"]))
+    units = list(range(layout.n_units))
+    for k in range(0, len(units), per_process):
+        group = units[k:k + per_process]
+        names = ",".join(_unit_name(layout, u) for u in group)
+        specs.append((names, "ecu", ["hil.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
+    nodes = []
+    for name, kind, argv in specs:
+        err = nodes_dir / f"{kind}_{len(nodes)}.stderr"
+        with open(err, "w") as fh:
+            proc = subprocess.Popen([sys.executable, "-m", argv[0], *common, *argv[1:]], stdin=subprocess.PIPE,
+                                    stdout=subprocess.PIPE, stderr=fh, text=True, bufsize=1,
+                                    start_new_session=True)  # a terminal's Ctrl-C reaches only us: we stop them
+        node = Node(name, kind, proc, err)
+        node.start_reader()
+        nodes.append(node)
+    return nodes
+
+
+def _unit_name(layout: TrainLayout, u: int) -> str:
+    train, unit = layout.train_unit(u)
+    return f"train{train + 1}/unit{unit + 1}"
+
+
+def _wait_ready(nodes: list[Node], stop: _StopRequest) -> None:
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    while not all(n.ready for n in nodes) and not stop.requested:
+        for n in nodes:
+            while not n.lines.empty():
+                if n.lines.get() == "ready":
+                    n.ready = True
+            if not n.ready and n.proc.poll() is not None:
+                if stop.requested:
+                    return
+                raise NodeError(f"{n.kind} node {n.name} exited with code {n.proc.returncode} before it was ready: "
+                                f"{n.stderr_tail()}")
+        if time.monotonic() > deadline:
+            late = ", ".join(f"{n.kind} {n.name}" for n in nodes if not n.ready)
+            raise NodeError(f"nodes not ready after {READY_TIMEOUT_S:.0f} s: {late}")
+        time.sleep(0.02)
+
+
+def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop: _StopRequest,
+               events: list[Event], progress: bool) -> str | None:
+    """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed)."""
+    end_wall = t0 + duration / pace
+    bar = _progress_bar(duration) if progress else None
+    try:
+        while True:
+            now = time.time()
+            sim_now = max((now - t0) * pace, 0.0)
+            if bar is not None:
+                bar.n = round(min(sim_now, duration), 1)
+                bar.refresh()
+            if stop.requested:
+                return stop.requested
+            for n in nodes:
+                code = n.proc.poll()
+                if code is not None and not n.reported and (code != 0 or now < end_wall - 0.5):
+                    n.reported = True
+                    level = "ERROR"
+                    text = f"{'ECU' if n.kind == 'ecu' else n.kind} process {n.name} exited with code {code}"
+                    tail = n.stderr_tail(300)
+                    events.append(Event(sim_now, level, "rig", text + (f": {tail}" if tail and code > 0 else "")))
+                    if n.kind != "ecu":
+                        return f"{n.kind} node exited"
+            if all(n.proc.poll() is not None for n in nodes):
+                return None
+            if now > end_wall + STOP_GRACE_S:
+                return "nodes did not finish"
+            time.sleep(0.05)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _stop_nodes(nodes: list[Node]) -> None:
+    """Ask every live node to stop and give it time to write its results."""
+    for n in nodes:
+        if n.proc.poll() is None:
+            n.tell("stop")
+    deadline = time.monotonic() + STOP_GRACE_S
+    for n in nodes:
+        try:
+            n.proc.wait(max(deadline - time.monotonic(), 0.01))
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def _kill_all(nodes: list[Node]) -> None:
+    """Terminate, then kill, whatever still runs; close the pipes. No orphans."""
+    live = [n for n in nodes if n.proc.poll() is None]
+    for n in live:
+        n.tell("stop")
+        n.proc.terminate()
+    deadline = time.monotonic() + KILL_GRACE_S
+    for n in live:
+        try:
+            n.proc.wait(max(deadline - time.monotonic(), 0.01))
+        except subprocess.TimeoutExpired:
+            n.proc.kill()
+            n.proc.wait()
+    for n in nodes:
+        for f in (n.proc.stdin, n.proc.stdout):
+            try:
+                f.close()
+            except (OSError, ValueError):
+                pass
+
+
+def _progress_bar(total: float):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="s", desc="real time (sim s)", bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}]")
+
+
+# --------------------------------------------------------------------------- merging
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _merge(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[BusServer], events: list[Event],
+           t0: float | None, pace: float, duration: float, wall: float, stop_reason: str | None):
+    log = RunLog(layout)
+    log.reference_change_times = ReferenceProfile.from_config(sc.reference).change_times
+    plant = _read_json(nodes_dir / "plant.json") or {}
+    sig = nodes_dir / "signals.npy"
+    if sig.exists():
+        for row in np.load(sig):
+            log.signals.append(row)
+    log.events.extend(Event(*e) for e in plant.get("events", []))
+    ecus = [d for p in sorted(nodes_dir.glob("ecu_*.json")) if (d := _read_json(p))]
+    for d in ecus:
+        log.events.extend(Event(t, level, d["name"], text) for t, level, text in d["events"])
+        log.e2e[d["name"]] = d["e2e"]
+    log.events.extend(events)
+    if stop_reason:
+        log.events.append(Event(float(plant.get("sim_time_s", 0.0)), "WARN", "rig", f"run stopped early: {stop_reason}"))
+    log.events.sort(key=lambda e: e.t)
+    radio = (_read_json(nodes_dir / "radio.json") or {}).get("links", {})
+    log.radio_stats = radio
+    for s in servers:
+        log.buses.append(s.log if t0 is None else _sim_bus_log(s, t0, pace, duration))
+    not_delivered = sum(v.get("offered", 0) - v.get("delivered", 0) for v in radio.values())
+    log.frames_lost = sum(b.frames_dropped for b in log.buses) + not_delivered
+    sat: dict[str, int] = {}
+    for d in [plant, *ecus]:
+        for k, v in d.get("codec_saturations", {}).items():
+            sat[k] = sat.get(k, 0) + v
+    log.codec_saturations = sat
+    log.sim_time_s = float(plant.get("sim_time_s", 0.0))
+    log.wall_time_s = float(plant.get("wall_time_s") or wall)  # the plant's: sim t = 0 to its last step
+    log.interrupted = bool(stop_reason) or bool(plant.get("interrupted", True))
+    return log, _timing_metrics(plant, ecus, servers)
+
+
+def _sim_bus_log(server: BusServer, t0: float, pace: float, duration: float) -> BusLog:
+    """The server's BusLog with its times moved to simulated time (model t -> t - (T0 - epoch0) * pace)."""
+    src, shift = server.log, (t0 - server.epoch0) * pace
+    out = BusLog(src.name, src.bitrate, frames_sent=src.frames_sent, frames_dropped=src.frames_dropped)
+    for table, dst in ((src.load.array, out.load), (src.frames.array, out.frames)):
+        if len(table):
+            rows = table.copy()
+            rows[:, 0] -= shift
+            rows = rows[(rows[:, 0] >= 0) & (rows[:, 0] <= duration + 1e-9)]
+            dst._buf.frombytes(np.ascontiguousarray(rows).tobytes())  # bulk append (SampleTable has no API for it)
+    return out
+
+
+def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> dict[str, Any]:
+    def worst(key: str, rows: list[dict]) -> float | None:
+        vals = [r[key] for r in rows if r.get(key) is not None]
+        return max(vals) if vals else None
+
+    return {
+        "cycle_lateness_p50_s": worst("lateness_p50_s", ecus),
+        "cycle_lateness_p99_s": worst("lateness_p99_s", ecus),
+        "cycle_lateness_max_s": worst("lateness_max_s", ecus),
+        "cycle_deadline_misses": sum(r.get("deadline_misses", 0) for r in ecus),
+        "plant_lateness_p99_s": plant.get("lateness_p99_s"),
+        "plant_lateness_max_s": plant.get("lateness_max_s"),
+        "plant_deadline_misses": plant.get("deadline_misses"),
+        "e2e_latency_p50_s": plant.get("e2e_latency_p50_s"),
+        "e2e_latency_p99_s": plant.get("e2e_latency_p99_s"),
+        "e2e_latency_max_s": plant.get("e2e_latency_max_s"),
+        "realtime": {
+            "ecus": {r["name"]: {k: v for k, v in r.items() if k not in ("events", "e2e", "codec_saturations", "name")}
+                     for r in ecus},
+            "plant": {k: v for k, v in plant.items() if k not in ("events", "codec_saturations")},
+        },
+    }
+
+
+def _write_rrd(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path) -> None:
+    with RerunWriter(path, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m,
+                     sc.trains.emergency_gap_m) as w:
+        if len(log.signals):
+            w.write_signals(log, 0, len(log.signals))
+        for bus in log.buses:
+            w.write_bus(bus, 0, 0)
+        if log.events:
+            w.write_events(log.events)
+        _write_timing(w.rec, nodes_dir)
+        w.flush()
+
+
+def _timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:
+    """(entity path, .npy of (sim time, value s)) of every timing series the nodes left."""
+    out = [(TIMING_ROOT + "/plant/lateness_ms", nodes_dir / "timing_plant.npy"),
+           (TIMING_ROOT + "/e2e_latency_ms", nodes_dir / "timing_e2e.npy")]
+    for f in sorted(nodes_dir.glob("timing_ecu_*_*.npy")):
+        train, unit = f.stem.split("_")[-2:]
+        out.append((f"{TIMING_ROOT}/train{train}/unit{unit}/ecu_lateness_ms", f))
+    return [(entity, f) for entity, f in out if f.exists()]
+
+
+def _write_timing(rec, nodes_dir: Path) -> None:
+    """Cycle lateness per node and the sensor-to-actuator latency, in ms on the simulated-time timeline."""
+    import rerun as rr
+
+    from hil.record.rerun_writer import TIMELINE
+
+    for entity, f in _timing_series(nodes_dir):
+        data = np.load(f)
+        if len(data):
+            rec.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=data[:, 0])],
+                             columns=rr.Scalars.columns(scalars=data[:, 1] * 1e3))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m hil.realtime.orchestrator SCENARIO --out DIR [--pace F] [--duration S]`` (until the lead wires
+    ``hil run --realtime``)."""
+    import argparse
+
+    from hil.scenario import load_scenario
+
+    p = argparse.ArgumentParser(prog="python -m hil.realtime.orchestrator", description="Run a scenario in real time.")
+    p.add_argument("scenario")
+    p.add_argument("--out", required=True)
+    p.add_argument("--pace", type=float, default=1.0)
+    p.add_argument("--duration", type=float)
+    p.add_argument("--ecus-per-process", type=int, default=1)
+    p.add_argument("--no-record", action="store_true")
+    args = p.parse_args(argv)
+    result = run_realtime(load_scenario(args.scenario), Path(args.out), pace=args.pace, duration_s=args.duration,
+                          ecus_per_process=args.ecus_per_process, record=not args.no_record)
+    m = result.metrics
+    print(f"sim {m['sim_time_s']} s, interrupted={m['interrupted']}, cycle lateness p99 {m['cycle_lateness_p99_s']}, "
+          f"e2e p99 {m['e2e_latency_p99_s']}")
+    return 130 if m["interrupted"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

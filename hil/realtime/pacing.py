@@ -1,0 +1,152 @@
+"""Wall-clock pacing of the real-time nodes: the shared simulated-time mapping, deadline waits, lateness statistics.
+
+Every process of a rig maps wall time to simulated time the same way: ``sim_t = (wall_epoch - T0) * pace``, with
+``T0`` chosen by the orchestrator once every node is ready. Frame timestamps from the bus servers (epoch seconds
+of the end of transmission) convert with the same mapping. Waits sleep to absolute deadlines with the timer
+slack at 1 ns (DESIGN.md: asyncio-style sleeps are 0.3-2 ms late); only the plant spins, for the last
+``spin_s`` before a deadline, so at most one process per rig burns a core.
+"""
+from __future__ import annotations
+
+import math
+import select
+import signal
+import sys
+import threading
+import time
+from array import array
+from typing import Callable, Sequence
+
+import numpy as np
+
+from hil.realtime.busserver import set_timer_slack
+
+__all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "handshake", "linger", "wait_until", "set_timer_slack"]
+
+
+class SimClock:
+    """sim_t = (wall_epoch - t0_epoch) * pace, read through the monotonic clock (immune to clock steps)."""
+
+    def __init__(self, t0_epoch: float, pace: float = 1.0) -> None:
+        if not (math.isfinite(pace) and pace > 0):
+            raise ValueError(f"pace={pace!r} must be a positive number")
+        self.t0 = float(t0_epoch)
+        self.pace = float(pace)
+        self._mono0 = time.monotonic() - (time.time() - self.t0)  # monotonic instant of sim t = 0
+
+    def now(self) -> float:
+        """Simulated seconds now."""
+        return (time.monotonic() - self._mono0) * self.pace
+
+    def from_epoch(self, stamp: float) -> float:
+        """A bus timestamp (epoch s) in simulated seconds."""
+        return (stamp - self.t0) * self.pace
+
+    def wall_until(self, sim_t: float) -> float:
+        """Wall seconds from now until simulated time ``sim_t`` (negative once passed)."""
+        return (sim_t - self.now()) / self.pace
+
+
+class LatenessStats:
+    """Per-cycle lateness (actual start - deadline, wall seconds) and deadline misses of one periodic task.
+
+    A miss is a cycle that starts after the next cycle's deadline (lateness > one period)."""
+
+    def __init__(self, period_s: float, pace: float) -> None:
+        self.period_sim_s = period_s
+        self.pace = pace
+        self.samples = array("d")
+        self.deadlines = array("d")  # simulated time of each cycle's deadline
+        self.misses = 0
+        self.skipped = 0  # cycles not run at all because the task was more than a period late
+
+    def add(self, lateness_sim_s: float, deadline: float = math.nan) -> int:
+        """Record one cycle's lateness (given in simulated seconds); returns how many whole periods it overran."""
+        self.samples.append(lateness_sim_s / self.pace)
+        self.deadlines.append(deadline)
+        if lateness_sim_s > self.period_sim_s:
+            self.misses += 1
+            return int(lateness_sim_s // self.period_sim_s)
+        return 0
+
+    def table(self) -> np.ndarray:
+        """(n, 2): deadline (simulated s), lateness (wall s) per cycle, for the recording."""
+        return np.column_stack((np.frombuffer(self.deadlines, dtype=float), np.frombuffer(self.samples, dtype=float))) \
+            if self.samples else np.zeros((0, 2))
+
+    def summary(self) -> dict[str, float | int | None]:
+        lat = np.frombuffer(self.samples, dtype=float) if self.samples else np.zeros(0)
+        q = np.percentile(lat, [50, 99]) if lat.size else (None, None)
+        return {"cycles": int(lat.size), "lateness_p50_s": _f(q[0]), "lateness_p99_s": _f(q[1]),
+                "lateness_max_s": _f(lat.max()) if lat.size else None, "deadline_misses": self.misses,
+                "cycles_skipped": self.skipped}
+
+
+def _f(x) -> float | None:
+    return None if x is None else float(x)
+
+
+class StopFlag:
+    """Set by "stop" (or EOF) on stdin, SIGTERM, or the node itself; SIGINT is ignored (the orchestrator owns
+    Ctrl-C and tells every node to stop)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        signal.signal(signal.SIGTERM, lambda *_: self.event.set())
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch_stdin(self) -> None:
+        """Read further stdin lines in a daemon thread: "stop" or EOF sets the flag."""
+        def reader() -> None:
+            for line in sys.stdin:
+                if line.strip() == "stop":
+                    break
+            self.event.set()
+
+        threading.Thread(target=reader, name="stdin-watch", daemon=True).start()
+
+    def __bool__(self) -> bool:
+        return self.event.is_set()
+
+
+def handshake(stop: StopFlag) -> float:
+    """Print "ready", wait for "go <T0 epoch>" on stdin, return T0 (exit quietly on "stop" or EOF)."""
+    print("ready", flush=True)
+    while True:
+        line = sys.stdin.readline()
+        if not line or line.strip() == "stop":
+            raise SystemExit(0)
+        parts = line.split()
+        if len(parts) == 2 and parts[0] == "go":
+            stop.watch_stdin()
+            return float(parts[1])
+
+
+def linger(clock: SimClock, sim_s: float = 0.02, max_wall_s: float = 0.2) -> None:
+    """Stay connected a little after the last send so frames still queued on the bus go out (a node that
+    disconnects drops its TX queue, which the server counts as lost frames)."""
+    time.sleep(min(sim_s / clock.pace, max_wall_s))
+
+
+def drain(buses: Sequence, on_msg: Callable[[int, object], None], timeout_s: float) -> None:
+    """Wait up to ``timeout_s`` wall seconds for any bus to have a frame, then hand every waiting frame to
+    ``on_msg(bus_index, msg)`` (bus_index is the position in ``buses``)."""
+    ready = select.select(buses, [], [], max(timeout_s, 0.0))[0]  # one syscall, also when polling (timeout 0)
+    for b in ready:
+        i = buses.index(b)
+        while (msg := b.recv(0)) is not None:
+            on_msg(i, msg)
+
+
+def wait_until(clock: SimClock, sim_t: float, buses: Sequence, on_msg: Callable[[int, object], None],
+               spin_s: float = 0.0, max_wait_s: float = 0.05) -> None:
+    """Receive frames until simulated time ``sim_t``: select-sleep to ``spin_s`` before it, then poll (spin).
+
+    Sleeps are at most ``max_wait_s`` each so a stop request is noticed."""
+    while True:
+        rem = clock.wall_until(sim_t)
+        if rem <= spin_s:
+            break
+        drain(buses, on_msg, min(rem - spin_s, max_wait_s))
+    while clock.wall_until(sim_t) > 0:
+        drain(buses, on_msg, 0.0)

@@ -1,0 +1,214 @@
+"""Plant host process: the train-group Plant (sensor and actuator nodes) and the wayside, paced to the wall clock.
+
+    python -m hil.realtime.plant_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR [--spin-us US]
+
+Per train bus it joins as "Plant" (receives TractionCmd and AgentState of its units) and as "Wayside" (sends
+Reference/ReferenceAux, receives nothing). Each plant step k at simulated time k*step, in the order of the
+virtual rig: publish Sensor frames (every ``can.sensor_period_s``), Reference frames (every
+``reference.period_s``), record a sample (every ``recording.period_s``), integrate to the next step. Between
+steps it sleeps on its buses and applies each TractionCmd (CRC and mode checked) at its simulated arrival
+time; the last ``--spin-us`` before a step it polls (the one spinning process of a rig). Late steps run back
+to back (the integration never skips). If commands stop, the Plant's own fail-safe acts and logs it.
+
+Sensor-to-actuator latency (``e2e``): the ECU sends its AgentState numbered with the Sensor sample k it used,
+in the same cycle as its TractionCmd (which has the lower ID, so it is on the bus first). When AgentState k of
+unit u arrives, the latency is the arrival time of u's last TractionCmd minus the publication time of Sensor
+sample k: sensor sampled -> command at the plant (applied at the next plant step, within ``plant.step_s``).
+
+At the end, and every ``SAVE_EVERY_WALL_S`` of wall time during the run: ``DIR/signals.npy`` (the RunLog signal
+table) and ``DIR/plant.json`` (events, e2e latencies, lateness, counters).
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from array import array
+from pathlib import Path
+from typing import Callable
+
+import can
+import numpy as np
+
+from ecu_sim.codec import TrainDb
+from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, drain, handshake, linger, set_timer_slack, wait_until
+from hil.record.runlog import RunLog
+from hil.runtime.assembly import assemble
+from hil.runtime.virtual import VALID_MODES
+
+SAVE_EVERY_WALL_S = 5.0  # the plant's data so far is saved this often (a plant killed mid-run leaves it)
+
+
+class PlantNode:
+    """The plant and wayside of every train, driven by a SimClock."""
+
+    def __init__(self, sc, seed: int, db: TrainDb, buses: list, wayside: list) -> None:
+        self.sc, self.db = sc, db
+        self.parts = assemble(sc, seed)
+        self.plant, self.layout = self.parts.plant, self.parts.layout
+        self.buses, self.wayside = buses, wayside
+        self.log = RunLog(self.layout)
+        L = self.layout
+        self.cmd_unit = [{db.traction_cmd(L.train_unit(u)[1]).frame_id: u for u in self.train_units(i)}
+                         for i in range(L.n_trains)]
+        self.state_unit = [{db.agent_state(L.train_unit(u)[1]).frame_id: u for u in self.train_units(i)}
+                           for i in range(L.n_trains)]
+        self.sensor_counter = [0] * L.n_units
+        self.sensor_pub = np.full((L.n_units, 16), -math.inf)  # publication time by unit and sample counter
+        self.last_cmd_t = np.full(L.n_units, -math.inf)
+        self.e2e = array("d")  # sensor-to-actuator latencies (s) ...
+        self.e2e_t = array("d")  # ... and the command arrival times they end at
+        self.ref_counter = 0
+        self.e2e_errors = 0
+        self.extended = sc.can.extended_ids
+        self.clock: SimClock | None = None
+
+    def train_units(self, i: int) -> range:
+        first = self.layout.index(i, 0)
+        return range(first, first + self.layout.units_per_train)
+
+    def rx_ids(self, i: int) -> set[int]:
+        return set(self.cmd_unit[i]) | set(self.state_unit[i])
+
+    # ---- receiving
+    def on_msg(self, i: int, msg: can.Message) -> None:
+        t = self.clock.from_epoch(msg.timestamp)
+        fid, data = msg.arbitration_id, bytes(msg.data)
+        u = self.cmd_unit[i].get(fid)
+        if u is not None:
+            self._command(i, u, fid, data, t)
+            return
+        u = self.state_unit[i].get(fid)
+        if u is not None and self.last_cmd_t[u] >= (pub := self.sensor_pub[u, data[1] & 0xF]):
+            self.e2e.append(self.last_cmd_t[u] - pub)
+            self.e2e_t.append(self.last_cmd_t[u])
+
+    def _command(self, i: int, u: int, fid: int, data: bytes, t: float) -> None:
+        codec = self.db.by_id[fid]
+        if not codec.crc_ok(data):
+            self.e2e_errors += 1
+            self.log.event(t, "WARN", f"bus{i + 1}/plant", f"{codec.name}: CRC error, frame ignored")
+            return
+        mode, force = codec.decode(data)
+        if mode not in VALID_MODES:
+            self.log.event(t, "WARN", f"bus{i + 1}/plant", f"{codec.name}: unknown Mode {mode:g}, frame ignored")
+            return
+        self.plant.command(u, force, int(mode), t)
+        self.last_cmd_t[u] = t
+
+    # ---- sending
+    def publish_sensors(self, t: float) -> None:
+        xs, vs = self.plant.measure()
+        L, db = self.layout, self.db
+        for u in range(L.n_units):
+            train, unit = L.train_unit(u)
+            codec = db.sensor(unit)
+            self.sensor_counter[u] = c = (self.sensor_counter[u] + 1) & 0xF
+            self.sensor_pub[u, c] = t
+            self._send(self.buses[train], codec.frame_id, codec.encode((xs[u], vs[u]), c))
+
+    def publish_reference(self, t: float) -> None:
+        x_r, v_r = self.parts.reference.at(t)
+        self.ref_counter = c = (self.ref_counter + 1) & 0xF
+        ref, aux = self.db.reference.encode((x_r, v_r), c), self.db.reference_aux.encode((0.0,), c)
+        for bus in self.wayside:
+            self._send(bus, self.db.reference.frame_id, ref)
+            self._send(bus, self.db.reference_aux.frame_id, aux)
+
+    def _send(self, bus, frame_id: int, data: bytes) -> None:
+        bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended))
+
+    # ---- the paced loop
+    def run(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float,
+            save: Callable[[LatenessStats], None] | None = None) -> LatenessStats:
+        """Step to ``duration``; ``save(stats)`` every SAVE_EVERY_WALL_S so a killed plant leaves its data so far."""
+        self.clock = clock
+        sc, plant, log = self.sc, self.plant, self.log
+        step = sc.plant.step_s
+        every = {name: max(1, round(period / step)) for name, period in
+                 (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
+        stats = LatenessStats(step, clock.pace)
+        n_steps = int(round(duration / step))
+        tick = 0
+        next_save = time.monotonic() + SAVE_EVERY_WALL_S
+        while tick < n_steps and not stop:
+            t = tick * step
+            wait_until(clock, t, self.buses, self.on_msg, spin_s)
+            stats.add(clock.now() - t, t)
+            drain(self.buses, self.on_msg, 0.0)
+            if tick % every["sensor"] == 0:
+                self.publish_sensors(t)
+            if tick % every["ref"] == 0:
+                self.publish_reference(t)
+            if tick % every["record"] == 0:
+                x_r, v_r = self.parts.reference.at(t)
+                log.add_sample(t, x_r, v_r, plant.x, plant.v, plant.a, plant.force_cmd, plant.force_applied)
+                if save is not None and time.monotonic() > next_save:
+                    log.sim_time_s, log.interrupted = t, True  # as of this save
+                    log.wall_time_s = time.time() - clock.t0
+                    save(stats)
+                    next_save = time.monotonic() + SAVE_EVERY_WALL_S
+            plant.step()
+            if plant.events:
+                for te, level, text in plant.events:
+                    log.event(te, level, "plant", text)
+                plant.events.clear()
+            tick += 1
+        log.sim_time_s = tick * step
+        log.interrupted = tick < n_steps
+        log.wall_time_s = time.time() - clock.t0
+        if not stop:
+            linger(clock)
+        return stats
+
+    def results(self, stats: LatenessStats) -> dict:
+        e2e = np.frombuffer(self.e2e, dtype=float) if self.e2e else np.zeros(0)
+        q = np.percentile(e2e, [50, 99]).tolist() if e2e.size else [None, None]
+        return {"sim_time_s": self.log.sim_time_s, "wall_time_s": self.log.wall_time_s,
+                "interrupted": self.log.interrupted, **stats.summary(),
+                "e2e_latency_n": int(e2e.size), "e2e_latency_p50_s": q[0], "e2e_latency_p99_s": q[1],
+                "e2e_latency_max_s": float(e2e.max()) if e2e.size else None, "e2e_crc_errors": self.e2e_errors,
+                "events": [[e.t, e.level, e.source, e.text] for e in self.log.events],
+                "codec_saturations": self.db.total_saturations()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = node_parser("python -m hil.realtime.plant_node", "Run the plant and the wayside on the real-time rig's buses.")
+    p.add_argument("--spin-us", type=float, default=200.0, help="poll the last microseconds before a step (0: sleep only)")
+    args = p.parse_args(argv)
+    stop = StopFlag()
+    set_timer_slack(1)
+    sc, db = load_scenario_json(args.scenario_json), TrainDb.load()
+    n = sc.trains.count
+    node = PlantNode(sc, args.seed, db, [], [])
+    try:
+        for i in range(n):
+            node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can.extended_ids, "Plant"))
+            node.wayside.append(open_bus(args.run, i, (), sc.can.extended_ids, "Wayside"))
+        clock = SimClock(handshake(stop), args.pace)
+        stats = LatenessStats(sc.plant.step_s, args.pace)
+        out = Path(args.out)
+
+        def save(st: LatenessStats) -> None:
+            tmp = out / "signals.tmp.npy"
+            np.save(tmp, node.log.signals.array)
+            tmp.replace(out / "signals.npy")
+            np.save(out / "timing_plant.npy", st.table())
+            e2e = np.column_stack((np.frombuffer(node.e2e_t, dtype=float), np.frombuffer(node.e2e, dtype=float))) \
+                if node.e2e else np.zeros((0, 2))
+            np.save(out / "timing_e2e.npy", e2e)
+            write_json(out / "plant.json", node.results(st))
+
+        try:
+            stats = node.run(clock, args.duration, stop, args.spin_us * 1e-6, save)
+        finally:
+            save(stats)
+    finally:
+        for b in node.buses + node.wayside:
+            b.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
