@@ -33,9 +33,9 @@ import numpy as np
 from ecu_sim.codec import TrainDb
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
 from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, drain, handshake, linger, set_timer_slack, wait_until
+from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
-from hil.runtime.virtual import VALID_MODES
 
 SAVE_EVERY_WALL_S = 5.0  # the plant's data so far is saved this often (a plant killed mid-run leaves it)
 
@@ -49,18 +49,14 @@ class PlantNode:
         self.plant, self.layout = self.parts.plant, self.parts.layout
         self.buses, self.wayside = buses, wayside
         self.log = RunLog(self.layout)
+        self.io = PlantCanNode(db, self.layout, self.plant, self.parts.reference, self.log)
         L = self.layout
-        self.cmd_unit = [{db.traction_cmd(L.train_unit(u)[1]).frame_id: u for u in self.train_units(i)}
-                         for i in range(L.n_trains)]
         self.state_unit = [{db.agent_state(L.train_unit(u)[1]).frame_id: u for u in self.train_units(i)}
                            for i in range(L.n_trains)]
-        self.sensor_counter = [0] * L.n_units
         self.sensor_pub = np.full((L.n_units, 16), -math.inf)  # publication time by unit and sample counter
         self.last_cmd_t = np.full(L.n_units, -math.inf)
         self.e2e = array("d")  # sensor-to-actuator latencies (s) ...
         self.e2e_t = array("d")  # ... and the command arrival times they end at
-        self.ref_counter = 0
-        self.e2e_errors = 0
         self.extended = sc.can.extended_ids
         self.clock: SimClock | None = None
 
@@ -69,52 +65,33 @@ class PlantNode:
         return range(first, first + self.layout.units_per_train)
 
     def rx_ids(self, i: int) -> set[int]:
-        return set(self.cmd_unit[i]) | set(self.state_unit[i])
+        return set(self.io.cmd_unit[i]) | set(self.state_unit[i])
 
     # ---- receiving
     def on_msg(self, i: int, msg: can.Message) -> None:
         t = self.clock.from_epoch(msg.timestamp)
         fid, data = msg.arbitration_id, bytes(msg.data)
-        u = self.cmd_unit[i].get(fid)
-        if u is not None:
-            self._command(i, u, fid, data, t)
+        if fid in self.io.cmd_unit[i]:
+            u = self.io.command(i, fid, data, t)
+            if u is not None:
+                self.last_cmd_t[u] = t
             return
         u = self.state_unit[i].get(fid)
         if u is not None and self.last_cmd_t[u] >= (pub := self.sensor_pub[u, data[1] & 0xF]):
             self.e2e.append(self.last_cmd_t[u] - pub)
             self.e2e_t.append(self.last_cmd_t[u])
 
-    def _command(self, i: int, u: int, fid: int, data: bytes, t: float) -> None:
-        codec = self.db.by_id[fid]
-        if not codec.crc_ok(data):
-            self.e2e_errors += 1
-            self.log.event(t, "WARN", f"bus{i + 1}/plant", f"{codec.name}: CRC error, frame ignored")
-            return
-        mode, force = codec.decode(data)
-        if mode not in VALID_MODES:
-            self.log.event(t, "WARN", f"bus{i + 1}/plant", f"{codec.name}: unknown Mode {mode:g}, frame ignored")
-            return
-        self.plant.command(u, force, int(mode), t)
-        self.last_cmd_t[u] = t
-
     # ---- sending
     def publish_sensors(self, t: float) -> None:
-        xs, vs = self.plant.measure()
-        L, db = self.layout, self.db
-        for u in range(L.n_units):
-            train, unit = L.train_unit(u)
-            codec = db.sensor(unit)
-            self.sensor_counter[u] = c = (self.sensor_counter[u] + 1) & 0xF
-            self.sensor_pub[u, c] = t
-            self._send(self.buses[train], codec.frame_id, codec.encode((xs[u], vs[u]), c))
+        for train, u, frame_id, data in self.io.sensor_frames():
+            self.sensor_pub[u, data[1] & 0xF] = t
+            self._send(self.buses[train], frame_id, data)
 
     def publish_reference(self, t: float) -> None:
-        x_r, v_r = self.parts.reference.at(t)
-        self.ref_counter = c = (self.ref_counter + 1) & 0xF
-        ref, aux = self.db.reference.encode((x_r, v_r), c), self.db.reference_aux.encode((0.0,), c)
+        frames = self.io.reference_frames(t)
         for bus in self.wayside:
-            self._send(bus, self.db.reference.frame_id, ref)
-            self._send(bus, self.db.reference_aux.frame_id, aux)
+            for frame_id, data in frames:
+                self._send(bus, frame_id, data)
 
     def _send(self, bus, frame_id: int, data: bytes) -> None:
         bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended))
@@ -168,7 +145,7 @@ class PlantNode:
         return {"sim_time_s": self.log.sim_time_s, "wall_time_s": self.log.wall_time_s,
                 "interrupted": self.log.interrupted, **stats.summary(),
                 "e2e_latency_n": int(e2e.size), "e2e_latency_p50_s": q[0], "e2e_latency_p99_s": q[1],
-                "e2e_latency_max_s": float(e2e.max()) if e2e.size else None, "e2e_crc_errors": self.e2e_errors,
+                "e2e_latency_max_s": float(e2e.max()) if e2e.size else None, "e2e_crc_errors": self.io.e2e_errors,
                 "events": [[e.t, e.level, e.source, e.text] for e in self.log.events],
                 "codec_saturations": self.db.total_saturations()}
 

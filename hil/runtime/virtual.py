@@ -12,16 +12,15 @@ from typing import Callable
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.runtime import Ecu, NeighbourLink
-from ecu_sim.view import BrakeMode
 from hil.can.bus import CanNode, VirtualCanBus
 from hil.layout import TrainLayout
 from hil.radio.gateway import RadioGateway, build_links, standard_routes
+from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.runtime.assembly import Assembly, assemble
 from hil.runtime.kernel import Kernel, to_ns
 from hil.scenario.model import Scenario
 
-VALID_MODES = frozenset(float(m) for m in BrakeMode)
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
 
 
@@ -40,6 +39,7 @@ class VirtualRig:
         self.log = RunLog(self.layout)
         self.log.reference_change_times = self.parts.reference.change_times
         self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
+        self.plant_io = PlantCanNode(self.db, self.layout, self.plant, self.parts.reference, self.log)
         self._plant_nodes = [self._attach_plant(i) for i in range(self.layout.n_trains)]
         self._wayside_nodes = [bus.attach("Wayside") for bus in self.buses]
         self.ecus: list[Ecu] = []
@@ -47,9 +47,6 @@ class VirtualRig:
         for u in range(self.layout.n_units):
             self._attach_ecu(u)
         self.gateway, self._gw_nodes = self._attach_radio()
-        self.e2e_errors = 0
-        self._sensor_counter = [0] * self.layout.n_units  # alive counters of the plant's Sensor frames
-        self._ref_counter = 0  # alive counter of the wayside's Reference frames
         self._schedule()
 
     # ------------------------------------------------------------------ wiring
@@ -60,22 +57,12 @@ class VirtualRig:
         return VirtualCanBus(self.kernel, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log=log)
 
     def _attach_plant(self, i: int) -> CanNode:
-        units = range(self.layout.index(i, 0), self.layout.index(i, 0) + self.layout.units_per_train)
-        cmd_unit = {self.db.traction_cmd(self.layout.train_unit(u)[1]).frame_id: u for u in units}
+        command = self.plant_io.command
 
         def on_rx(frame_id: int, data: bytes, t_ns: int) -> None:
-            codec = self.db.by_id[frame_id]
-            if not codec.crc_ok(data):
-                self.e2e_errors += 1
-                self.log.event(t_ns * 1e-9, "WARN", f"bus{i + 1}/plant", f"{codec.name}: CRC error, frame ignored")
-                return
-            mode, force = codec.decode(data)
-            if mode not in VALID_MODES:  # CRC-valid but meaningless: a firmware fault, not a command
-                self.log.event(t_ns * 1e-9, "WARN", f"bus{i + 1}/plant", f"{codec.name}: unknown Mode {mode:g}, frame ignored")
-                return
-            self.plant.command(cmd_unit[frame_id], force, int(mode), t_ns * 1e-9)
+            command(i, frame_id, data, t_ns * 1e-9)
 
-        return self.buses[i].attach("Plant", on_rx, set(cmd_unit))
+        return self.buses[i].attach("Plant", on_rx, set(self.plant_io.cmd_unit[i]))
 
     def _attach_ecu(self, u: int) -> None:
         train, unit = self.layout.train_unit(u)
@@ -134,22 +121,14 @@ class VirtualRig:
             plant.events.clear()
 
     def _publish_sensors(self) -> None:
-        xs, vs = self.plant.measure()
-        L, db = self.layout, self.db
-        for u in range(L.n_units):
-            train, unit = L.train_unit(u)
-            codec = db.sensor(unit)
-            self._sensor_counter[u] = c = (self._sensor_counter[u] + 1) & 0xF
-            self.buses[train].send(self._plant_nodes[train], codec.frame_id, codec.encode((xs[u], vs[u]), c))
+        for train, _, frame_id, data in self.plant_io.sensor_frames():
+            self.buses[train].send(self._plant_nodes[train], frame_id, data)
 
     def _wayside_tick(self, t_ns: int) -> None:
-        x_r, v_r = self.parts.reference.at(t_ns * 1e-9)
-        self._ref_counter = c = (self._ref_counter + 1) & 0xF
-        ref = self.db.reference.encode((x_r, v_r), c)
-        aux = self.db.reference_aux.encode((0.0,), c)
+        frames = self.plant_io.reference_frames(t_ns * 1e-9)
         for bus, node in zip(self.buses, self._wayside_nodes):
-            bus.send(node, self.db.reference.frame_id, ref)
-            bus.send(node, self.db.reference_aux.frame_id, aux)
+            for frame_id, data in frames:
+                bus.send(node, frame_id, data)
 
     def _ecu_tick(self, u: int, t_ns: int) -> None:
         ecu = self.ecus[u]

@@ -1,0 +1,63 @@
+"""The plant's and the wayside's side of the train buses, shared by the virtual and the real-time runtime.
+
+Sensor frames out (one per unit, numbered by sample), Reference/ReferenceAux frames out, TractionCmd
+frames in (CRC and Mode checked, then applied to the plant as a zero-order hold). It has no transport:
+callers send the frames it returns and hand it the frames they receive, as the ECU runtime does.
+"""
+from __future__ import annotations
+
+from ecu_sim.codec import TrainDb
+from ecu_sim.view import BrakeMode
+from hil.layout import TrainLayout
+from hil.plant.dynamics import Plant
+from hil.record.runlog import RunLog
+from hil.reference import ReferenceProfile
+
+VALID_MODES = frozenset(float(m) for m in BrakeMode)
+
+
+class PlantCanNode:
+    """Encodes what the plant and the wayside publish; decodes and applies the commands they receive."""
+
+    def __init__(self, db: TrainDb, layout: TrainLayout, plant: Plant, reference: ReferenceProfile, log: RunLog) -> None:
+        self.db, self.layout, self.plant, self.reference, self.log = db, layout, plant, reference, log
+        per_train = [range(layout.index(i, 0), layout.index(i, 0) + layout.units_per_train) for i in range(layout.n_trains)]
+        #: per train bus: TractionCmd frame id -> flat unit index (the plant's acceptance filter)
+        self.cmd_unit = [{db.traction_cmd(layout.train_unit(u)[1]).frame_id: u for u in units} for units in per_train]
+        self.sensor_counter = [0] * layout.n_units  # alive counter = sample number of each unit's Sensor frames
+        self.ref_counter = 0
+        self.e2e_errors = 0
+
+    def command(self, train: int, frame_id: int, data: bytes, t: float) -> int | None:
+        """Apply a TractionCmd received on a train's bus at time t; the unit it drove, or None if rejected (logged)."""
+        codec = self.db.by_id[frame_id]
+        source = f"bus{train + 1}/plant"
+        if not codec.crc_ok(data):
+            self.e2e_errors += 1
+            self.log.event(t, "WARN", source, f"{codec.name}: CRC error, frame ignored")
+            return None
+        mode, force = codec.decode(data)
+        if mode not in VALID_MODES:  # CRC-valid but meaningless: a firmware fault, not a command
+            self.log.event(t, "WARN", source, f"{codec.name}: unknown Mode {mode:g}, frame ignored")
+            return None
+        u = self.cmd_unit[train][frame_id]
+        self.plant.command(u, force, int(mode), t)
+        return u
+
+    def sensor_frames(self) -> list[tuple[int, int, int, bytes]]:
+        """Sample every unit now: (train, unit index, frame id, data) per unit, numbered by sample."""
+        xs, vs = self.plant.measure()
+        L, db, out = self.layout, self.db, []
+        for u in range(L.n_units):
+            train, unit = L.train_unit(u)
+            codec = db.sensor(unit)
+            self.sensor_counter[u] = c = (self.sensor_counter[u] + 1) & 0xF
+            out.append((train, u, codec.frame_id, codec.encode((xs[u], vs[u]), c)))
+        return out
+
+    def reference_frames(self, t: float) -> list[tuple[int, bytes]]:
+        """The wayside's Reference and ReferenceAux at time t (the same pair goes on every train bus)."""
+        x_r, v_r = self.reference.at(t)
+        self.ref_counter = c = (self.ref_counter + 1) & 0xF
+        ref, aux = self.db.reference, self.db.reference_aux
+        return [(ref.frame_id, ref.encode((x_r, v_r), c)), (aux.frame_id, aux.encode((0.0,), c))]
