@@ -87,13 +87,17 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrid
     return scenario
 
 
+def read_toml(path: Path, error: type[ValueError]) -> dict[str, Any]:
+    """Parse a TOML file; unreadable or malformed files raise ``error`` naming the file."""
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read: {exc.strerror}") from None
+
+
 def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
     """Read, parse and validate a scenario; every failure is a ScenarioError naming the file."""
     path = resolve(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{path}: not valid TOML: {exc}") from None
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from None
-    return scenario_from_dict(data, str(path), overrides)
+    return scenario_from_dict(read_toml(path, ScenarioError), str(path), overrides)

@@ -45,6 +45,7 @@ from hil.scenario.loader import (
     ScenarioError,
     format_validation_errors,
     packaged_files,
+    read_toml,
     resolve,
     resolve_packaged,
     scenario_from_dict,
@@ -232,13 +233,7 @@ def resolve_sweep(name_or_path: str | Path) -> Path:
 def load_sweep(name_or_path: str | Path) -> SweepSpec:
     """Read, parse and validate a sweep file and its whole grid; every failure is a SweepError naming the file."""
     path = resolve_sweep(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise SweepError(f"{path}: not valid TOML: {exc}") from None
-    except OSError as exc:
-        raise SweepError(f"{path}: cannot read: {exc.strerror}") from None
-    return sweep_from_dict(data, str(path), path.parent)
+    return sweep_from_dict(read_toml(path, SweepError), str(path), path.parent)
 
 
 def sweep_from_dict(data: dict[str, Any], source: str = "<sweep>", base_dir: Path | None = None) -> SweepSpec:
