@@ -5,6 +5,7 @@ User errors (a bad scenario file, an unknown name) print one clear message and e
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tomllib
 from pathlib import Path
@@ -145,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as exc:  # a real-time node that failed to start (NodeError), named in the message
         print(f"hil: error: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # `hil ... | head`: the reader left; stop quietly (Python docs' recipe)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:  # before or after the run loop (the run loop itself stops cleanly on its own)
         print("hil: interrupted", file=sys.stderr)
         return 130

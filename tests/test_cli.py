@@ -110,3 +110,9 @@ def test_sigint_before_the_run_loop_exits_cleanly(tmp_path):
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130 and "Traceback" not in stderr
+
+
+def test_output_piped_into_head_ends_quietly():
+    proc = subprocess.run(f"{sys.executable} -m hil.cli can-analysis --bitrate 500000 | head -n 1", shell=True,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() and "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr
