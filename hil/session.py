@@ -64,7 +64,7 @@ def _can_loggers(rig: VirtualRig, out_dir: Path) -> list[can.ASCWriter]:
 
         def listener(tx: Transmission, w: can.ASCWriter = w, channel: int = i) -> None:
             w.on_message_received(can.Message(timestamp=tx.t_end * 1e-9, arbitration_id=tx.frame_id, data=tx.data,
-                                              is_extended_id=bus.extended, is_rx=True, channel=channel))
+                                              is_extended_id=tx.extended, is_rx=True, channel=channel))
 
         bus.frame_listeners.append(listener)
         writers.append(w)
