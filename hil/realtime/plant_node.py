@@ -3,12 +3,16 @@
     python -m hil.realtime.plant_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR [--spin-us US]
 
 Per train bus it joins as "Plant" (receives TractionCmd and AgentState of its units) and as "Wayside" (sends
-Reference/ReferenceAux, receives nothing). Each plant step k at simulated time k*step, in the order of the
-virtual rig: publish Sensor frames (every ``can.sensor_period_s``), Reference frames (every
-``reference.period_s``), record a sample (every ``recording.period_s``), integrate to the next step. Between
-steps it sleeps on its buses and applies each TractionCmd (CRC and mode checked) at its simulated arrival
-time; the last ``--spin-us`` before a step it polls (the one spinning process of a rig). Late steps run back
-to back (the integration never skips). If commands stop, the Plant's own fail-safe acts and logs it.
+Reference/ReferenceAux, receives nothing). Only what other nodes can observe is paced: the plant sleeps on its
+buses until the next Sensor (every ``can.sensor_period_s``) or Reference (every ``reference.period_s``)
+publication, the last ``--spin-us`` before it polling (the one spinning process of a rig), and integrates lazily:
+before each publication, and before applying each TractionCmd (CRC and mode checked) it integrates up to the
+command's simulated arrival time (the bus timestamp), so the command acts from the first step starting at or
+after it, exactly as in the virtual rig, and the plant costs its steps instead of one wake-up per step (a 1 ms
+step at pace 10 would need 10,000 wake-ups per second). Recording samples (every ``recording.period_s``) are
+taken during integration. A command that reaches the plant after it already integrated past the command's
+arrival (the plant was late) is applied at once and counted (``late_commands``). The integration never skips.
+If commands stop, the Plant's own fail-safe acts and logs it.
 
 Sensor-to-actuator latency (``e2e``): the ECU sends its AgentState numbered with the Sensor sample k it used,
 in the same cycle as its TractionCmd (which has the lower ID, so it is on the bus first). When AgentState k of
@@ -59,6 +63,11 @@ class PlantNode:
         self.e2e_t = array("d")  # ... and the command arrival times they end at
         self.extended = sc.can.extended_ids
         self.clock: SimClock | None = None
+        self.tick = 0  # the plant's state is at simulated time tick * plant.step_s
+        self.target = 0  # tick of the next publication
+        self.every = {"record": max(1, round(sc.recording.period_s / sc.plant.step_s))}
+        self.late_commands = 0  # commands that reached the plant after it had integrated past their arrival time
+        self.late_command_max_s = 0.0
 
     def train_units(self, i: int) -> range:
         first = self.layout.index(i, 0)
@@ -72,6 +81,13 @@ class PlantNode:
         t = self.clock.from_epoch(msg.timestamp)
         fid, data = msg.arbitration_id, bytes(msg.data)
         if fid in self.io.cmd_unit[i]:
+            # first step starting at or after the arrival; never past a pending publication (its sample must be
+            # taken at its own time: only a lagging plant receives commands stamped beyond it)
+            k = min(math.ceil(t / self.sc.plant.step_s - 1e-9), self.target)
+            if k < self.tick:
+                self.late_commands += 1
+                self.late_command_max_s = max(self.late_command_max_s, (self.tick - k) * self.sc.plant.step_s)
+            self.advance_to(k)
             u = self.io.command(i, fid, data, t)
             if u is not None:
                 self.last_cmd_t[u] = t
@@ -99,45 +115,65 @@ class PlantNode:
     # ---- the paced loop
     def run(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float,
             save: Callable[[LatenessStats], None] | None = None) -> LatenessStats:
-        """Step to ``duration``; ``save(stats)`` every SAVE_EVERY_WALL_S so a killed plant leaves its data so far."""
+        """Run to ``duration``; ``save(stats)`` every SAVE_EVERY_WALL_S so a killed plant leaves its data so far.
+
+        Only publications are paced: the loop sleeps to the next Sensor/Reference tick and integrates lazily in
+        between (see :meth:`advance_to`), so the plant costs its steps and no per-step wake-ups."""
         self.clock = clock
-        sc, plant, log = self.sc, self.plant, self.log
+        sc = self.sc
         step = sc.plant.step_s
-        every = {name: max(1, round(period / step)) for name, period in
-                 (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
-        stats = LatenessStats(step, clock.pace)
+        self.every = {name: max(1, round(period / step)) for name, period in
+                      (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
+        publish_every = math.gcd(self.every["sensor"], self.every["ref"])
+        stats = LatenessStats(publish_every * step, clock.pace)
         n_steps = int(round(duration / step))
-        tick = 0
         next_save = time.monotonic() + SAVE_EVERY_WALL_S
-        while tick < n_steps and not stop:
-            t = tick * step
+        target = self.target = 0
+        while target < n_steps and not stop:
+            t = target * step
             wait_until(clock, t, self.buses, self.on_msg, spin_s)
-            stats.add(clock.now() - t, t)
             drain(self.buses, self.on_msg, 0.0)
-            if tick % every["sensor"] == 0:
+            self.advance_to(target)
+            stats.add(clock.now() - t, t)
+            if target % self.every["sensor"] == 0:
                 self.publish_sensors(t)
-            if tick % every["ref"] == 0:
+            if target % self.every["ref"] == 0:
                 self.publish_reference(t)
-            if tick % every["record"] == 0:
+            if save is not None and time.monotonic() > next_save:
+                self.log.sim_time_s, self.log.interrupted = t, True  # as of this save
+                self.log.wall_time_s = time.time() - clock.t0
+                save(stats)
+                next_save = time.monotonic() + SAVE_EVERY_WALL_S
+            target = self.target = target + publish_every
+        self.target = n_steps
+        if not stop:
+            wait_until(clock, n_steps * step, self.buses, self.on_msg, spin_s)
+            drain(self.buses, self.on_msg, 0.0)
+            self.advance_to(n_steps)
+        self.log.sim_time_s = self.tick * step
+        self.log.interrupted = self.tick < n_steps
+        self.log.wall_time_s = time.time() - clock.t0
+        if not stop:
+            linger(clock)
+        return stats
+
+    def advance_to(self, k: int) -> None:
+        """Integrate steps tick..k-1 (a recording sample before each step that falls on the recording period).
+
+        Called before each publication and before each command is applied, so a command that arrived (bus
+        timestamp) at t acts from the first step starting at or after t, as in the virtual rig."""
+        plant, log, every_record, step = self.plant, self.log, self.every["record"], self.sc.plant.step_s
+        while self.tick < k:
+            if self.tick % every_record == 0:
+                t = self.tick * step
                 x_r, v_r = self.parts.reference.at(t)
                 log.add_sample(t, x_r, v_r, plant.x, plant.v, plant.a, plant.force_cmd, plant.force_applied)
-                if save is not None and time.monotonic() > next_save:
-                    log.sim_time_s, log.interrupted = t, True  # as of this save
-                    log.wall_time_s = time.time() - clock.t0
-                    save(stats)
-                    next_save = time.monotonic() + SAVE_EVERY_WALL_S
             plant.step()
             if plant.events:
                 for te, level, text in plant.events:
                     log.event(te, level, "plant", text)
                 plant.events.clear()
-            tick += 1
-        log.sim_time_s = tick * step
-        log.interrupted = tick < n_steps
-        log.wall_time_s = time.time() - clock.t0
-        if not stop:
-            linger(clock)
-        return stats
+            self.tick += 1
 
     def results(self, stats: LatenessStats) -> dict:
         e2e = np.frombuffer(self.e2e, dtype=float) if self.e2e else np.zeros(0)
@@ -146,6 +182,7 @@ class PlantNode:
                 "interrupted": self.log.interrupted, **stats.summary(),
                 "e2e_latency_n": int(e2e.size), "e2e_latency_p50_s": q[0], "e2e_latency_p99_s": q[1],
                 "e2e_latency_max_s": float(e2e.max()) if e2e.size else None, "e2e_crc_errors": self.io.e2e_errors,
+                "late_commands": self.late_commands, "late_command_max_s": self.late_command_max_s,
                 "events": [[e.t, e.level, e.source, e.text] for e in self.log.events],
                 "codec_saturations": self.db.total_saturations()}
 
