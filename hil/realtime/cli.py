@@ -107,16 +107,12 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
 
     if getattr(args, "ideal", False):
         raise ScenarioError("--ideal cannot be combined with --realtime (the ideal loop has no network to run in real time)")
-    if getattr(args, "can_log", False):
-        raise ScenarioError("--can-log cannot be combined with --realtime yet: attach python-can's logger to the running "
-                            "rig instead (python -m can.logger -i trainhil -c <run>/bus1 -f bus1.asc; the run name is "
-                            "printed at the start)")
     if not args.pace > 0:
         raise ScenarioError(f"--pace {args.pace}: must be > 0")
     if args.ecus_per_process < 1:
         raise ScenarioError(f"--ecus-per-process {args.ecus_per_process}: must be >= 1")
     return run_realtime(scenario, out, pace=args.pace, duration_s=args.duration, ecus_per_process=args.ecus_per_process,
-                        record=not args.no_record, progress=not args.quiet)
+                        record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False))
 
 
 def bus_server_main(argv: list[str] | None = None) -> int:

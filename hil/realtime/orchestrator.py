@@ -26,6 +26,7 @@ real-time rig. Steps:
 from __future__ import annotations
 
 import json
+import math
 import os
 import queue
 import re
@@ -45,6 +46,7 @@ import numpy as np
 from hil.layout import TrainLayout
 from hil.realtime.busserver import BusServer
 from hil.realtime.paths import remove_run_dir
+from hil.record.canlog import asc_listener, open_asc
 from hil.record.metrics import compute_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
@@ -130,11 +132,12 @@ def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]):
 
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
                  seed: int | None = None, ecus_per_process: int = 1, record: bool = True, progress: bool = False,
-                 plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None):
+                 plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None, can_log: bool = False):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
-    ``plant_spin_us``: the plant polls this long before each step (0: sleep only). ``on_start(t0)`` is called
-    with the epoch time of simulated t = 0 once every node is ready (tools, tests)."""
+    ``plant_spin_us``: the plant polls this long before each publication (0: sleep only). ``on_start(t0)`` is
+    called with the epoch time of simulated t = 0 once every node is ready (tools, tests). ``can_log``: write
+    ``<bus>.asc`` per bus, frames stamped in simulated seconds as in a virtual-time run."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process < 1:
@@ -157,19 +160,23 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     t0 = None
     run_wall = 0.0
     stop_reason = None
+    clock = {"t0": math.inf}  # epoch of simulated t = 0, once known (the CAN logs' time origin)
+    asc: list = []
     try:
         with _StopRequest() as stop:
             for i in range(layout.n_trains):
-                servers.append(BusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
-                                         extended=sc_.extended_ids, spin_us=0, pace=pace,
-                                         log=BusLog(f"bus{i + 1}", sc_.bitrate)).start())
+                server = BusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
+                                   extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate))
+                if can_log:
+                    asc.append(_attach_can_log(server, i, out_dir, clock, pace))
+                servers.append(server.start())
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us)
             if progress:
                 print(f"real-time rig {run}: python-can channels {run}/bus1 .. {run}/bus{layout.n_trains} "
                       f"(interface trainhil), {len(nodes)} node processes, pace {pace:g}", file=sys.stderr)
             _wait_ready(nodes, stop)
             if not stop.requested:
-                t0 = time.time() + GO_MARGIN_S
+                t0 = clock["t0"] = time.time() + GO_MARGIN_S
                 for n in nodes:
                     n.tell(f"go {t0!r}")
                 if on_start is not None:
@@ -184,11 +191,13 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         server_stats = {s.log.name: s.stats.as_dict() for s in servers}
         for s in servers:
             s.close()
+        for w in asc:
+            w.stop()
         remove_run_dir(run)
     wall = run_wall if t0 is not None else time.perf_counter() - wall0
     log, extra = _merge(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason)
     extra["realtime"]["bus_servers"] = server_stats
-    files = []
+    files = [out_dir / f"bus{i + 1}.asc" for i in range(len(asc))]
     if record:
         _write_rrd(scenario, layout, log, out_dir / "run.rrd", nodes_dir)
         files.append(out_dir / "run.rrd")
@@ -201,6 +210,18 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     files.append(out_dir / "metrics.json")
     return _run_result(log, metrics, out_dir, files)
+
+
+def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace: float):
+    """Log every frame of ``server`` to ``bus<i+1>.asc`` in simulated seconds (written by the server's thread)."""
+    epoch0 = server.epoch0
+
+    def to_seconds(t_end_ns: int) -> float:  # the server stamps epoch0 + t_end / pace; sim t = (stamp - t0) * pace
+        return (epoch0 + t_end_ns * 1e-9 / pace - clock["t0"]) * pace
+
+    writer = open_asc(out_dir / f"bus{i + 1}.asc", i, "real time")
+    server.model.frame_listeners.append(asc_listener(writer, i, to_seconds))
+    return writer
 
 
 # --------------------------------------------------------------------------- processes
