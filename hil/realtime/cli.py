@@ -103,6 +103,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
     """``hil run --realtime``: the RunResult of a real-time run; ScenarioError (``hil`` prints it, exit 2) naming an
     option that does not combine with it."""
     from hil.realtime.orchestrator import run_realtime
+    from hil.realtime.socketcan import SocketCanUnavailable, check_channels
     from hil.scenario import ScenarioError
 
     if getattr(args, "ideal", False):
@@ -111,6 +112,13 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
         raise ScenarioError(f"--pace {args.pace}: must be > 0")
     if args.ecus_per_process < 1:
         raise ScenarioError(f"--ecus-per-process {args.ecus_per_process}: must be >= 1")
+    if scenario.can.transport == "socketcan":
+        if getattr(args, "can_log", False):
+            raise ScenarioError("--can-log needs can.transport = 'emulated' (on SocketCAN: python -m can.logger -i socketcan)")
+        try:
+            check_channels(scenario.can.socketcan_channels, scenario.trains.count)
+        except SocketCanUnavailable as exc:
+            raise ScenarioError(str(exc)) from None
     return run_realtime(scenario, out, pace=args.pace, duration_s=args.duration, ecus_per_process=args.ecus_per_process,
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False))
 

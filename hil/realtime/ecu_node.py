@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
         mine = [e for u, e in ecus.items() if layout.train_unit(u)[0] == train]
         ids = set().union(*(e.rx_ids for e in mine))
         first = min(layout.train_unit(u)[1] for u in ecus if layout.train_unit(u)[0] == train)
-        buses.append(open_bus(args.run, train, ids, sc.can.extended_ids, f"ECU_T{train + 1}_U{first + 1:02d}x{len(mine)}",
+        buses.append(open_bus(args.run, train, ids, sc.can, f"ECU_T{train + 1}_U{first + 1:02d}x{len(mine)}",
                               receive_own=len(mine) > 1))
         routes.append({i: [e for e in mine if i in e.rx_ids] for i in ids})
     bus_of = {u: trains.index(layout.train_unit(u)[0]) for u in ecus}

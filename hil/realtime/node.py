@@ -13,7 +13,7 @@ from typing import Any, Iterable
 
 import can
 
-from hil.scenario.model import Scenario
+from hil.scenario.model import CanConfig, Scenario
 
 
 def node_parser(prog: str, description: str) -> argparse.ArgumentParser:
@@ -31,17 +31,23 @@ def load_scenario_json(path: str) -> Scenario:
     return Scenario.model_validate_json(Path(path).read_text())
 
 
-def open_bus(run: str, train: int, ids: Iterable[int], extended: bool, name: str,
+def open_bus(run: str, train: int, ids: Iterable[int], can_cfg: CanConfig, name: str,
              receive_own: bool = False) -> can.BusABC:
     """A python-can node on train ``train``'s (0-based) bus accepting exactly ``ids`` (none: accepts nothing).
 
-    ``receive_own``: the server echoes this node's frames back (stamped with their end of transmission), which
-    a process hosting several ECUs of one bus needs so they hear each other as separate ECUs would."""
+    The bus is the rig's emulated one (``trainhil`` interface, channel ``<run>/bus<i>``) or, with
+    ``can.transport = "socketcan"``, the host's SocketCAN interface ``can.socketcan_channels[train]`` (vcan).
+    ``receive_own``: the node hears its own frames back (stamped with their end of transmission), which a process
+    hosting several ECUs of one bus needs so they hear each other as separate ECUs would."""
+    extended = can_cfg.extended_ids
     mask = 0x1FFFFFFF if extended else 0x7FF
     ids = sorted(set(ids))
     # an empty set would mean "accept everything" to python-can: match one id that no node sends instead
     filters = [{"can_id": i, "can_mask": mask, "extended": extended} for i in ids] or \
               [{"can_id": mask, "can_mask": mask, "extended": extended}]
+    if can_cfg.transport == "socketcan":
+        return can.Bus(interface="socketcan", channel=can_cfg.socketcan_channels[train], can_filters=filters,
+                       receive_own_messages=receive_own)
     return can.Bus(interface="trainhil", channel=f"{run}/bus{train + 1}", can_filters=filters, node_name=name,
                    receive_own_messages=receive_own)
 

@@ -46,6 +46,7 @@ import numpy as np
 from hil.layout import TrainLayout
 from hil.realtime.busserver import BusServer
 from hil.realtime.paths import remove_run_dir
+from hil.realtime.socketcan import check_channels
 from hil.record.canlog import asc_listener, open_asc
 from hil.record.metrics import compute_metrics
 from hil.record.rerun_writer import RerunWriter
@@ -142,6 +143,11 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process < 1:
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
+    socketcan = scenario.can.transport == "socketcan"
+    if socketcan:  # configuration only: every node opens the host's interfaces; no bus servers
+        check_channels(scenario.can.socketcan_channels, scenario.trains.count)
+        if can_log:
+            raise ValueError("can_log needs the emulated transport (with socketcan, use python -m can.logger -i socketcan)")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     duration = scenario.duration_s if duration_s is None else float(duration_s)
@@ -164,7 +170,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     asc: list = []
     try:
         with _StopRequest() as stop:
-            for i in range(layout.n_trains):
+            for i in range(0 if socketcan else layout.n_trains):
                 server = BusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                    extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate))
                 if can_log:

@@ -198,8 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     node = PlantNode(sc, args.seed, db, [], [])
     try:
         for i in range(n):
-            node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can.extended_ids, "Plant"))
-            node.wayside.append(open_bus(args.run, i, (), sc.can.extended_ids, "Wayside"))
+            node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can, "Plant"))
+            node.wayside.append(open_bus(args.run, i, (), sc.can, "Wayside"))
         clock = SimClock(handshake(stop), args.pace)
         stats = LatenessStats(sc.plant.step_s, args.pace)
         out = Path(args.out)

@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     buses = []
     try:
         for i in range(sc.trains.count):
-            buses.append(open_bus(args.run, i, gateway.ids_for_bus(i), ext, "RadioGW"))
+            buses.append(open_bus(args.run, i, gateway.ids_for_bus(i), sc.can, "RadioGW"))
         clock = SimClock(handshake(stop), args.pace)
         queue: list[tuple[int, int, int, int, bytes]] = []  # (deliver_ns, seq, bus, id, data)
         seq = itertools.count()

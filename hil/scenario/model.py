@@ -217,6 +217,15 @@ class CanConfig(Section):
     queue_policy: Literal["priority", "fifo"] = "priority"
     tx_queue_depth: int = Field(default=64, ge=1, description="frames per node TX queue; overflow drops and counts")
     extended_ids: bool = False
+    transport: Literal["emulated", "socketcan"] = Field(
+        default="emulated", description="real-time runs only: the rig's emulated buses, or the host's SocketCAN (vcan) interfaces")
+    socketcan_channels: list[str] = Field(default=[], description="with transport = socketcan: one interface per train, e.g. vcan0")
+
+    @model_validator(mode="after")
+    def _check_transport(self) -> "CanConfig":
+        if self.transport == "socketcan" and not self.socketcan_channels:
+            raise ValueError("transport = 'socketcan' needs socketcan_channels (one interface per train, e.g. ['vcan0'])")
+        return self
 
 
 class LossModel(Section):
