@@ -1,11 +1,13 @@
 """One run from start to files: build the rig, run it with a progress bar, record, write metrics.
 
 Recording is incremental (every few simulated seconds) so a run stopped with Ctrl-C still leaves a
-readable ``run.rrd`` and ``metrics.json`` covering everything up to the stop.
+readable ``run.rrd`` and ``metrics.json`` covering everything up to the stop. SIGTERM and SIGHUP stop it the
+same way; metrics.json is a "running" stub (atomic writes, ``hil.record.integrity``) until the run ends, and a
+plant that diverges ends the run with an ERROR event, the files written, then the error raised.
 """
 from __future__ import annotations
 
-import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,7 +15,9 @@ from typing import Any
 
 import can
 
-from hil.can.bus import Transmission
+from hil.record.canlog import asc_listener, open_asc
+from hil.plant.dynamics import PlantDiverged
+from hil.record.integrity import StopSignals, mark_running, write_json_atomic
 from hil.record.metrics import compute_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog
@@ -40,6 +44,7 @@ class IncrementalRecorder:
         self._signals = 0
         self._events = 0
         self._bus_offsets: dict[str, tuple[int, int]] = {}
+        self.frames = None  # a hil.record.frames.FrameRecorder when [recording] frames = true
 
     def __call__(self, log: RunLog) -> None:
         n = len(log.signals)
@@ -52,6 +57,8 @@ class IncrementalRecorder:
         if len(log.events) > self._events:
             self.writer.write_events(log.events[self._events:])
             self._events = len(log.events)
+        if self.frames is not None:
+            self.frames.write(self.writer)
         self.writer.flush()
 
 
@@ -59,14 +66,8 @@ def _can_loggers(rig: VirtualRig, out_dir: Path) -> list[can.ASCWriter]:
     """One ASC log per bus, each frame stamped with the end of its transmission (simulated seconds)."""
     writers = []
     for i, bus in enumerate(rig.buses):
-        w = can.ASCWriter(out_dir / f"{bus.name}.asc", channel=i + 1)
-        w.log_event("trainhil virtual time: timestamps are simulated seconds", 0.0)  # pins the time origin at t = 0
-
-        def listener(tx: Transmission, w: can.ASCWriter = w, channel: int = i) -> None:
-            w.on_message_received(can.Message(timestamp=tx.t_end * 1e-9, arbitration_id=tx.frame_id, data=tx.data,
-                                              is_extended_id=tx.extended, is_rx=True, channel=channel))
-
-        bus.frame_listeners.append(listener)
+        w = open_asc(out_dir / f"{bus.name}.asc", i, "virtual time")
+        bus.frame_listeners.append(asc_listener(w, i, lambda t_ns: t_ns * 1e-9))
         writers.append(w)
     return writers
 
@@ -77,43 +78,82 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir."""
     out_dir.mkdir(parents=True, exist_ok=True)
     duration = scenario.duration_s if duration_s is None else duration_s
+    runtime = "ideal" if ideal else "virtual"
+    stop = StopSignals().install()  # a stop signal during set-up is remembered, raised once the run starts
+    mark_running(out_dir / "metrics.json", scenario.name, runtime)  # never a stale or half-written result
     files: list[Path] = []
     writer = None
     if record:
         writer = RerunWriter(out_dir / "run.rrd", _layout(scenario), scenario.name, scenario.plant.coupler_band_m,
-                             scenario.trains.spacing_m, scenario.trains.emergency_gap_m)
+                             scenario.trains.spacing_m, scenario.trains.emergency_gap_m,
+                             frames=scenario.recording.frames and not ideal)
         files.append(out_dir / "run.rrd")
     recorder = IncrementalRecorder(writer) if writer else None
     bar = _progress_bar(duration, scenario.name) if progress else None
     loggers: list[can.ASCWriter] = []
+    rig, failure = None, None
     try:
+        stop.arm()  # from here SIGTERM/SIGHUP stop the run like Ctrl-C (the run loop returns what it has)
         if ideal:
             log = IdealLoop(scenario, seed).run(duration)
             if recorder:
                 recorder(log)
         else:
             rig = VirtualRig(scenario, seed)
+            if recorder and scenario.recording.frames:
+                from hil.record.frames import FrameRecorder
+
+                recorder.frames = FrameRecorder(rig.buses, rig.db)
             if can_log:
                 loggers = _can_loggers(rig, out_dir)
                 files += [out_dir / f"{b.name}.asc" for b in rig.buses]
             log = rig.run(duration, progress=(lambda t: bar.update(round(t - bar.n, 3))) if bar else None,
-                          on_chunk=_every(recorder, chunk_s, min_flush_wall_s) if recorder else None)
+                          on_chunk=_every(_marking(recorder, out_dir, scenario.name, runtime), chunk_s,
+                                          min_flush_wall_s) if recorder else None)
             if recorder:
                 recorder(log)
+    except PlantDiverged as exc:  # non-finite plant state: record what led to it, then report the error
+        if rig is None:
+            raise
+        stop.defer()
+        failure, log = exc, rig.log
+        log.interrupted = True
+        log.event(log.sim_time_s, "ERROR", "plant", f"run stopped: {exc}")
+        if recorder:
+            recorder(log)
     finally:
+        stop.defer()  # from here on a stop signal is remembered: the files below are written whole
+        if sys.exc_info()[0] is not None and failure is None:
+            stop.restore()  # an unexpected error propagates: leave the process's handlers as they were
         if bar:
             bar.close()
         for w in loggers:
             w.stop()
         if writer:
             writer.close()
-    metrics = compute_metrics(log, scenario.plant.coupler_band_m)
-    metrics["scenario"] = scenario.name
-    metrics["runtime"] = "ideal" if ideal else "virtual"
-    metrics["interrupted"] = log.interrupted
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    try:
+        metrics = compute_metrics(log, scenario.plant.coupler_band_m)
+        metrics["scenario"] = scenario.name
+        metrics["runtime"] = runtime
+        metrics["interrupted"] = log.interrupted
+        if failure is not None:
+            metrics["error"] = f"{type(failure).__name__}: {failure}"
+        write_json_atomic(out_dir / "metrics.json", metrics)
+    finally:
+        stop.restore()
     files.append(out_dir / "metrics.json")
+    if failure is not None:
+        raise failure
     return RunResult(log, metrics, out_dir, files)
+
+
+def _marking(recorder, out_dir: Path, scenario: str, runtime: str):
+    """The recorder, then the metrics.json stub moved on to the time recorded (a killed run says how far it got)."""
+    def flush(log: RunLog) -> None:
+        recorder(log)
+        mark_running(out_dir / "metrics.json", scenario, runtime, log.signals.last(0) if len(log.signals) else 0.0)
+
+    return flush
 
 
 def _every(fn, chunk_s: float, min_wall_s: float):

@@ -3,6 +3,12 @@
 The writer owns its RecordingStream (never the global one), so several runs can record in one process.
 It is incremental: the runtime calls write_* every few simulated seconds with the rows not yet written,
 then `flush()`; whatever was flushed stays readable even if the process dies before `close()`.
+
+What is written (paths in :mod:`hil.record.paths`, values in :mod:`hil.record.series`): every scalar signal on the
+``sim_time`` timeline, the 2D track (unit boxes, gaps coloured by safety margin, the trains' slots), bus load and
+frame latency, events as text logs, and optionally every CAN frame as a text row (:meth:`write_frames`). Real-time
+runs pass ``wall_clock=(T0 epoch s, pace)``: every row then also carries a ``wall_time`` timestamp,
+T0 + sim_time / pace (the mapping every real-time node uses), so the recording has both timelines.
 """
 from __future__ import annotations
 
@@ -15,31 +21,42 @@ import rerun as rr
 from hil.layout import TrainLayout
 from hil.record import blueprint as bp
 from hil.record.runlog import BusLog, Event, RunLog
+from hil.record.series import MPS_TO_KMH, limit_values, margin_colors, signal_columns, track_geometry
 
 APPLICATION_ID = "trainhil"
 TIMELINE = "sim_time"
-MPS_TO_KMH = 3.6
+WALL_TIMELINE = "wall_time"
 SCALARS = rr.Scalars.descriptor_scalars()
+TRAIN_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194),
+                (127, 127, 127), (188, 189, 34), (23, 190, 207)]
+__all__ = ["APPLICATION_ID", "MPS_TO_KMH", "TIMELINE", "WALL_TIMELINE", "RerunWriter", "event_path"]
 
 
 class RerunWriter:
-    """Streams a RunLog (signals, buses, events) into an .rrd with a default blueprint."""
+    """Streams a RunLog (signals, track, buses, events, optional frames) into an .rrd with a default blueprint.
+
+    ``frames``: the recording will hold per-frame text rows (adds the Frames tab); ``wall_clock``: (T0, pace) of a
+    real-time run (adds the ``wall_time`` timeline and the Timing tab); ``realtime`` adds the Timing tab alone."""
 
     def __init__(self, path: Path, layout: TrainLayout, scenario_name: str, coupler_band: tuple[float, float],
-                 spacing_m: float, emergency_gap_m: float, bus_names: list[str] | None = None) -> None:
+                 spacing_m: float, emergency_gap_m: float, bus_names: list[str] | None = None, *,
+                 frames: bool = False, realtime: bool = False, wall_clock: tuple[float, float] | None = None) -> None:
         self.path = Path(path)
         self.layout = layout
-        self._limits = {bp.LIMIT_COUPLER_MIN: float(coupler_band[0]), bp.LIMIT_COUPLER_MAX: float(coupler_band[1]),
-                        bp.LIMIT_SPACING: float(spacing_m), bp.LIMIT_EMERGENCY: float(emergency_gap_m)}
+        self._limits = limit_values(coupler_band, spacing_m, emergency_gap_m)
         self._pairs = layout.coupler_pairs()
-        self._tails, self._heads = layout.tails(), layout.heads()
         self._closed = False
+        if wall_clock is not None and not wall_clock[1] > 0:
+            raise ValueError(f"wall_clock pace must be > 0, got {wall_clock[1]!r}")
+        self.wall_clock = wall_clock
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream(APPLICATION_ID, make_default=False, make_thread_default=False)
         self.rec.save(self.path)
         self.rec.send_recording_name(scenario_name)
-        self.rec.send_blueprint(bp.default_blueprint(layout, bus_names), make_active=True, make_default=True)
+        blueprint = bp.default_blueprint(layout, bus_names, frames=frames, realtime=realtime or wall_clock is not None)
+        self.rec.send_blueprint(blueprint, make_active=True, make_default=True)
         self._log_series_styles()
+        self._log_track_statics()
 
     # ---------------------------------------------------------------- static styling
 
@@ -67,62 +84,71 @@ class RerunWriter:
                                   (bp.LIMIT_SPACING, "l_s", (0, 150, 0)), (bp.LIMIT_EMERGENCY, "l_e", (200, 0, 0))):
             self._style(path, name, color)
 
+    def _log_track_statics(self) -> None:
+        """What does not change along the run: unit box sizes, colours (one per train) and labels; gap line width."""
+        L = self.layout
+        half = np.column_stack((0.5 * L.length_m, 0.25 * L.length_m))
+        colors = [TRAIN_COLORS[L.train_unit(u)[0] % len(TRAIN_COLORS)] for u in range(L.n_units)]
+        labels = [f"T{i + 1}U{j + 1}" for i, j in map(L.train_unit, range(L.n_units))]
+        self.rec.log(bp.TRACK_UNITS, rr.Boxes2D.from_fields(half_sizes=half, colors=colors, labels=labels,
+                                                            radii=-1.5, show_labels=False), static=True)
+        self.rec.log(bp.TRACK_SLOTS, rr.Points2D.from_fields(colors=[(128, 128, 128)] * L.n_trains, radii=-4.0,
+                                                             labels=[f"slot T{i + 1}" for i in range(L.n_trains)],
+                                                             show_labels=False), static=True)
+        if L.n_trains > 1:
+            self.rec.log(bp.TRACK_GAPS, rr.LineStrips2D.from_fields(radii=-3.0), static=True)
+
     # ---------------------------------------------------------------- writing
 
-    def _send(self, path: str, times: rr.TimeColumn, values: np.ndarray) -> None:
+    def _indexes(self, t: np.ndarray) -> list[rr.TimeColumn]:
+        """sim_time, and wall_time = T0 + t / pace in real-time runs."""
+        out = [rr.TimeColumn(TIMELINE, duration=t)]
+        if self.wall_clock is not None:
+            t0, pace = self.wall_clock
+            out.append(rr.TimeColumn(WALL_TIMELINE, timestamp=t0 + np.asarray(t, dtype=float) / pace))
+        return out
+
+    def _send(self, path: str, times: list[rr.TimeColumn], values: np.ndarray) -> None:
         """One Scalars column (same on disk as rr.Scalars.columns, about 40 % less Python overhead)."""
         batch = rr.components.ScalarBatch(np.ascontiguousarray(values, dtype=np.float64))
-        self.rec.send_columns(path, indexes=[times], columns=[rr.ComponentColumn(SCALARS, batch)])
+        self.rec.send_columns(path, indexes=times, columns=[rr.ComponentColumn(SCALARS, batch)])
 
     def _check_open(self) -> None:
         if self._closed:
             raise RuntimeError(f"RerunWriter for {self.path} is closed")
 
     def write_signals(self, log: RunLog, start: int, stop: int) -> None:
-        """Send sample rows [start, stop) of every sampled signal, one batched call per entity."""
+        """Send sample rows [start, stop) of every sampled signal and of the track, one batched call per entity."""
         self._check_open()
         if not 0 <= start <= stop <= len(log.signals):
             raise ValueError(f"write_signals rows [{start}, {stop}) outside the log's {len(log.signals)} samples")
         if start == stop:
             return
-        L, n = self.layout, self.layout.n_units
         rows = log.signals.array[start:stop]
-        t, x_r, v_r = rows[:, 0], rows[:, 1], rows[:, 2]
-        x, v = rows[:, 3 : 3 + n], rows[:, 3 + n : 3 + 2 * n]
-        f_cmd, f_app = rows[:, 3 + 3 * n : 3 + 4 * n], rows[:, 3 + 4 * n : 3 + 5 * n]
-        per_unit = {
-            "speed_kmh": v * MPS_TO_KMH,
-            "speed_error_kmh": (v - v_r[:, None]) * MPS_TO_KMH,
-            "position_error_m": x - (x_r[:, None] - L.offset_m[None, :]),
-            "traction_kn": f_cmd / 1000.0,
-            "applied_kn": f_app / 1000.0,
-        }
-        times = rr.TimeColumn(TIMELINE, duration=t)
-        for u in range(n):
-            i, j = L.train_unit(u)
-            for signal, values in per_unit.items():
-                self._send(bp.unit_path(i, j, signal), times, values[:, u])
-        self._write_couplers_and_gaps(times, x)
-        self._send(bp.REF_SPEED, times, v_r * MPS_TO_KMH)
-        self._send(bp.REF_POSITION, times, x_r / 1000.0)
-        self._write_limits(t)
+        times = self._indexes(rows[:, 0])
+        for path, values in signal_columns(self.layout, rows).items():
+            self._send(path, times, values)
+        self._write_track(times, rows)
+        self._write_limits(rows[:, 0])
 
-    def _write_couplers_and_gaps(self, times: rr.TimeColumn, x: np.ndarray) -> None:
-        L, p = self.layout, self._pairs
-        if len(p):
-            e = x[:, p[:, 0]] - x[:, p[:, 1]] - L.length_m[p[:, 0]][None, :]
-            for c, front in enumerate(p[:, 0]):
-                i, j = L.train_unit(int(front))
-                self._send(bp.coupler_path(i, j), times, e[:, c])
-        tails, heads = self._tails, self._heads
-        gaps = (x[:, tails[:-1]] - L.length_m[tails[:-1]][None, :]) - x[:, heads[1:]]
-        for k in range(L.n_trains - 1):
-            self._send(bp.gap_path(k + 1), times, gaps[:, k])
+    def _write_track(self, times: list[rr.TimeColumn], rows: np.ndarray) -> None:
+        L, k = self.layout, len(rows)
+        geo = track_geometry(L, rows)
+        cols = rr.Boxes2D.columns(centers=geo.unit_centers.reshape(-1, 2)).partition([L.n_units] * k)
+        self.rec.send_columns(bp.TRACK_UNITS, indexes=times, columns=cols)
+        cols = rr.Points2D.columns(positions=geo.slots.reshape(-1, 2)).partition([L.n_trains] * k)
+        self.rec.send_columns(bp.TRACK_SLOTS, indexes=times, columns=cols)
+        g = L.n_trains - 1
+        if g:
+            labels = [f"{s:.0f} m" for s in geo.gap_m.ravel()]
+            cols = rr.LineStrips2D.columns(strips=geo.gap_strips.reshape(-1, 2, 2), labels=labels,
+                                           colors=margin_colors(geo.gap_margin).reshape(-1, 4)).partition([g] * k)
+            self.rec.send_columns(bp.TRACK_GAPS, indexes=times, columns=cols)
 
     def _write_limits(self, t: np.ndarray) -> None:
         """Constant reference lines: one point at each end of the written range."""
         ends = np.unique(t[[0, -1]])
-        times = rr.TimeColumn(TIMELINE, duration=ends)
+        times = self._indexes(ends)
         for path, value in self._limits.items():
             self._send(path, times, np.full(len(ends), value))
 
@@ -131,10 +157,9 @@ class RerunWriter:
         self._check_open()
         load, frames = bus.load.array[start_load:], bus.frames.array[start_frames:]
         if len(load):
-            self._send(bp.bus_path(bus.name, "load"), rr.TimeColumn(TIMELINE, duration=load[:, 0]), load[:, 1])
+            self._send(bp.bus_path(bus.name, "load"), self._indexes(load[:, 0]), load[:, 1])
         if len(frames):
-            self._send(bp.bus_path(bus.name, "frame_latency_ms"), rr.TimeColumn(TIMELINE, duration=frames[:, 0]),
-                       frames[:, 2] * 1000.0)
+            self._send(bp.bus_path(bus.name, "frame_latency_ms"), self._indexes(frames[:, 0]), frames[:, 2] * 1000.0)
         return start_load + len(load), start_frames + len(frames)
 
     def write_events(self, events: list[Event]) -> None:
@@ -144,9 +169,22 @@ class RerunWriter:
         for ev in events:
             by_source[ev.source].append(ev)
         for source, evs in by_source.items():
-            times = rr.TimeColumn(TIMELINE, duration=[ev.t for ev in evs])
+            times = self._indexes(np.array([ev.t for ev in evs], dtype=float))
             columns = rr.TextLog.columns(text=[ev.text for ev in evs], level=[ev.level for ev in evs])
-            self.rec.send_columns(event_path(source), indexes=[times], columns=columns)
+            self.rec.send_columns(event_path(source), indexes=times, columns=columns)
+
+    def write_scalars(self, path: str, t: np.ndarray, values: np.ndarray) -> None:
+        """Any other scalar series (e.g. the real-time timing under /timing) on the run's timelines."""
+        self._check_open()
+        if len(t):
+            self._send(path, self._indexes(np.asarray(t, dtype=float)), values)
+
+    def write_text_rows(self, path: str, t: np.ndarray, text: list[str], level: list[str]) -> None:
+        """Text rows on one entity (per-frame entries: see hil.record.frames)."""
+        self._check_open()
+        if len(text):
+            self.rec.send_columns(path, indexes=self._indexes(np.asarray(t, dtype=float)),
+                                  columns=rr.TextLog.columns(text=text, level=level))
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -174,3 +212,26 @@ def event_path(source: str) -> str:
     """/events/{source}, each '/'-separated part of the source escaped for rerun."""
     parts = [rr.escape_entity_path_part(p) for p in source.split("/") if p]
     return "/events/" + ("/".join(parts) if parts else "unknown")
+
+
+def write_runlog(path: Path, log: RunLog, scenario, *, wall_clock: tuple[float, float] | None = None,
+                 realtime: bool = False, frames=None,
+                 extra_series: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Path:
+    """Write a finished RunLog to ``path`` in one go (tests keep failing runs this way; real-time runs too).
+
+    ``frames``: a :class:`hil.record.frames.FrameRecorder` whose rows are written as well; ``extra_series``:
+    entity path -> (t, values) of further scalars (the real-time timing series)."""
+    with RerunWriter(path, log.layout, scenario.name, scenario.plant.coupler_band_m, scenario.trains.spacing_m,
+                     scenario.trains.emergency_gap_m, [b.name for b in log.buses] or None,
+                     frames=frames is not None, realtime=realtime, wall_clock=wall_clock) as w:
+        if len(log.signals):
+            w.write_signals(log, 0, len(log.signals))
+        for bus in log.buses:
+            w.write_bus(bus, 0, 0)
+        if log.events:
+            w.write_events(log.events)
+        if frames is not None:
+            frames.write(w)
+        for entity, (t, values) in (extra_series or {}).items():
+            w.write_scalars(entity, t, values)
+    return Path(path)
