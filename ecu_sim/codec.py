@@ -3,6 +3,8 @@
 cantools parses and models the DBC (``TrainDb.database``); each message is then compiled into a
 ``MessageCodec`` of precomputed shifts, masks and raw limits, so the per-frame path never calls
 cantools. Encoding saturates out-of-range values (counted per signal) and fills the E2E header.
+A DBC that does not fit the firmware (missing or unknown messages, two messages on one ID, a signal too
+short or too coarse for ``SIGNAL_NEEDS``, a bad E2E header or data ID) is a DbcMismatchError at load.
 """
 from __future__ import annotations
 
@@ -36,6 +38,19 @@ SINGLE_MESSAGES: dict[str, tuple[str, ...]] = {
     "RadioAheadAux": ("Accel", "Force"),
     "RadioBehindState": ("Position", "Speed"),
     "RadioBehindAux": ("Accel", "Force"),
+}
+
+
+# What each payload signal must carry for the firmware and the rig to work (a DBC that cannot is refused at load):
+# name -> (physical range it must cover, largest LSB). Position: a 1000 km line at 1 mm (1 % of the 0.1 m
+# coupler band); Speed: +-110 m/s (396 km/h, above every paper's speeds) at 0.5 mm/s; Accel: +-20 m/s^2 at
+# 0.01 m/s^2; Force: +-500 kN (above the 300 kN actuator envelope) at 10 N; Mode: the BrakeMode values 0..2.
+SIGNAL_NEEDS: dict[str, tuple[float, float, float]] = {
+    "Position": (0.0, 1_000_000.0, 0.001),
+    "Speed": (-110.0, 110.0, 0.0005),
+    "Accel": (-20.0, 20.0, 0.01),
+    "Force": (-500_000.0, 500_000.0, 10.0),
+    "Mode": (0.0, 2.0, 1.0),
 }
 
 
@@ -206,6 +221,21 @@ def _check_header(message, where: str) -> None:
             )
 
 
+def _check_needs(signal, raw_lo: int, raw_hi: int, where: str) -> None:
+    """The signal's range and resolution against SIGNAL_NEEDS (a too-short signal would saturate all the time)."""
+    need = SIGNAL_NEEDS.get(signal.name)
+    if need is None:
+        return
+    lo_needed, hi_needed, lsb_needed = need
+    ends = sorted((raw_lo * signal.scale + signal.offset, raw_hi * signal.scale + signal.offset))
+    eps = 1e-9 * max(1.0, abs(lo_needed), abs(hi_needed))
+    if ends[0] > lo_needed + eps or ends[1] < hi_needed - eps or abs(signal.scale) > lsb_needed * (1 + 1e-9):
+        raise DbcMismatchError(
+            f"{where}: signal {signal.name} ({signal.length} bits, scale {signal.scale}) carries [{ends[0]:g}, {ends[1]:g}] "
+            f"in steps of {abs(signal.scale):g}; the firmware needs at least [{lo_needed:g}, {hi_needed:g}] "
+            f"in steps of {lsb_needed:g} or finer")
+
+
 def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
     """Check one cantools message against what the code expects and build its codec."""
     if message.is_extended_frame or message.is_fd or message.length > MAX_CLASSIC_DLC:
@@ -214,6 +244,8 @@ def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
     attr = message.dbc.attributes.get(DATA_ID_ATTRIBUTE) if message.dbc else None
     if attr is None:
         raise DbcMismatchError(f"{where}: no {DATA_ID_ATTRIBUTE} attribute")
+    if not isinstance(attr.value, int) or not 0 <= attr.value <= 0xFF:
+        raise DbcMismatchError(f"{where}: {DATA_ID_ATTRIBUTE} {attr.value!r} is not in 0..255 (one byte of the E2E CRC)")
     if message.cycle_time is None:
         raise DbcMismatchError(f"{where}: no GenMsgCycleTime attribute")
     payload = sorted((s for s in message.signals if s.name not in E2E_HEADER), key=lambda s: s.start)
@@ -225,6 +257,7 @@ def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
         if s.byte_order != "little_endian" or s.is_float or s.is_multiplexer or s.multiplexer_ids:
             raise DbcMismatchError(f"{where}: signal {s.name} must be a plain Intel integer signal")
         lo, hi = _raw_limits(s, where)
+        _check_needs(s, lo, hi, where)
         mask = (1 << s.length) - 1
         sign_bit = 1 << (s.length - 1) if s.is_signed else 0
         specs.append(_SignalSpec(s.name, s.start, mask, sign_bit, float(s.scale), float(s.offset), lo, hi))
@@ -265,6 +298,7 @@ class TrainDb:
         extra = [name for name in by_name if name not in expected]
         if extra:
             raise DbcMismatchError(f"DBC {path}: message(s) the code does not know: {', '.join(extra)}")
+        _check_unique_ids(by_name, path)
         codecs = [_compile(by_name[n], sig, f"DBC {path}: message {n}") for n, sig in expected.items()]
         return cls(path, database, codecs, max_units)
 
@@ -321,6 +355,15 @@ class TrainDb:
         """Zero the saturation counts of every codec."""
         for codec in self.by_name.values():
             codec.reset_saturations()
+
+
+def _check_unique_ids(by_name: dict, path: Path) -> None:
+    """Two messages on one frame ID cannot be told apart by any receiver (cantools only warns)."""
+    seen: dict[int, str] = {}
+    for name, message in by_name.items():
+        other = seen.setdefault(message.frame_id, name)
+        if other != name:
+            raise DbcMismatchError(f"DBC {path}: messages {other} and {name} share the frame ID 0x{message.frame_id:03X}")
 
 
 def _count_unit_slots(by_name: dict, path: Path) -> int:

@@ -15,11 +15,22 @@ transmission's end are spent polling (the sockets, so input is still read). Only
 rig with several buses has several spinners: lower ``spin_us`` (0 = sleep only) there. ``set_fifo_priority``
 (``--fifo``) runs the server under SCHED_FIFO where permitted, which cuts its p99 lateness on a loaded machine.
 
-Security: the socket lives in the 0o700 run directory and is chmod 0o600; nothing listens on TCP.
+Security (local only): the socket lives in the 0o700 run directory and is chmod 0o600. With ``tcp=True`` the
+server also listens on a loopback address (127.0.0.1 or ::1; any other host is refused) and writes host, port
+and a fresh 128-bit token to ``<run dir>/<bus>.tcp`` (mode 0o600): a TCP client must send that token (AUTH) as
+its first record, else it is refused, counted (``auth_failures``) and logged. A peer that is not loopback, or
+a connection beyond ``max_clients``, is refused and counted (``clients_refused``).
+
+Bad input from a node never stops the server or disturbs the other nodes: a frame the bus cannot carry is
+dropped and counted (``frames_rejected``); a record that breaks the protocol (unknown kind, garbage, a frame
+before HELLO, bad filters, ...) disconnects that node and is counted (``protocol_errors``); a connection that
+ends inside a record is counted (``truncated_records``); a connection that does not complete HELLO within
+``hello_timeout_s`` is dropped (counted as a protocol error). Each is logged (the first few per kind).
 """
 from __future__ import annotations
 
 import ctypes
+import hmac
 import logging
 import os
 import secrets
@@ -33,11 +44,11 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from hil.can.bus import CanBusModel, CanNode, Transmission
-from hil.realtime.paths import socket_is_live, socket_path, validate_name
+from hil.realtime.paths import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
 from hil.realtime.protocol import (
-    FLAG_ECHO, FLAG_EXTENDED, FRAME, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO, PROTOCOL_VERSION,
-    RECORD_SIZE, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_welcome,
-    unpack_filter, unpack_filters_head, unpack_hello,
+    FLAG_ECHO, FLAG_EXTENDED, FRAME, KIND_AUTH, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO, PROTOCOL_VERSION,
+    RECORD_SIZE, TOKEN_BYTES, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_welcome,
+    unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
 from hil.record.runlog import BusLog, SampleTable
 
@@ -47,10 +58,17 @@ DEFAULT_SPIN_US = 200
 READ_RECORDS = 32  # per node and loop turn: a babbling node cannot stall the loop, the rest waits in its socket
 OUT_CAP_BYTES = 1 << 20  # a node that stops reading loses frames beyond this backlog (counted as overruns)
 _RX_CACHE_MAX = 8192
+MAX_CLIENTS = 256  # connections beyond this are refused and counted
+HELLO_TIMEOUT_S = 5.0  # wall seconds a connection may take to complete its handshake (AUTH, HELLO)
+LOG_FIRST = 10  # bad-input warnings logged per kind; the counters keep counting
 
 
 class BusServerError(RuntimeError):
     """The server cannot start (socket taken, not a socket, ...)."""
+
+
+class _Refused(Exception):
+    """A connection that failed authentication: dropped and counted as an auth failure, not a protocol error."""
 
 
 def set_timer_slack(ns: int = 1) -> bool:
@@ -154,6 +172,11 @@ class BusServerStats:
     lateness_p50_s: float | None  # frame handed to the nodes' sockets - its end time on the bus (wall seconds)
     lateness_p99_s: float | None
     lateness_max_s: float | None
+    protocol_errors: int = 0  # nodes disconnected for breaking the protocol (garbage, unknown kinds, no HELLO)
+    truncated_records: int = 0  # connections that ended inside a record (the partial record is discarded)
+    auth_failures: int = 0  # TCP connections refused for a missing or wrong token
+    clients_refused: int = 0  # connections refused: not loopback, or more than max_clients
+    tcp_port: int | None = None  # the loopback TCP port, when listening on TCP
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -163,11 +186,15 @@ class _Client:
     """One connected node: its socket, partial input, pending output, filters and counters."""
 
     __slots__ = ("sock", "cid", "name", "node", "rx", "out", "writing", "closed", "receive_own", "filters",
-                 "pending", "pending_left", "pending_gen", "delivered", "overruns", "rejected")
+                 "pending", "pending_left", "pending_gen", "delivered", "overruns", "rejected", "tcp", "authed",
+                 "t_open")
 
-    def __init__(self, sock: socket.socket, cid: int) -> None:
+    def __init__(self, sock: socket.socket, cid: int, tcp: bool = False) -> None:
         self.sock = sock
         self.cid = cid
+        self.tcp = tcp  # a TCP client must authenticate (AUTH) before anything else
+        self.authed = not tcp
+        self.t_open = time.monotonic()
         self.name = f"#{cid}"
         self.node: CanNode | None = None  # set by HELLO
         self.rx = b""
@@ -195,9 +222,12 @@ class BusServer:
     def __init__(self, run: str, bus: str, bitrate: int, policy: str = "priority", depth: int = 64, *,
                  path: Path | str | None = None, extended: bool = False, load_window_s: float = 0.1,
                  spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
-                 pace: float = 1.0) -> None:
+                 pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
+                 max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S) -> None:
         validate_name(run, "run")
         validate_name(bus, "bus")
+        if tcp:
+            check_loopback(tcp_host)  # before anything is created
         if spin_us < 0:
             raise ValueError(f"spin_us={spin_us!r} must be >= 0")
         if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
@@ -218,6 +248,15 @@ class BusServer:
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._sel.register(self._listener, selectors.EVENT_READ, self._accept)
+        self._max_clients = max_clients
+        self._hello_timeout_s = hello_timeout_s
+        self._bad: dict[str, int] = {"protocol_errors": 0, "truncated_records": 0, "auth_failures": 0,
+                                     "clients_refused": 0}
+        self._tcp_listener: socket.socket | None = None
+        self.token: bytes | None = None  # the per-run TCP token (None without TCP)
+        self.token_file: Path | None = None
+        if tcp:
+            self._listen_tcp(tcp_host, tcp_port)
         self._sel.register(self._wake_r, selectors.EVENT_READ, self._drain_wake)
         self._clients: dict[int, _Client] = {}
         self._by_node: dict[CanNode, _Client] = {}
@@ -269,6 +308,28 @@ class BusServer:
             raise
         sock.setblocking(False)
         return sock
+
+    def _listen_tcp(self, host: str, port: int) -> None:
+        """Listen on loopback ``host``:``port`` (0: any free port) and publish host, port and token (mode 0o600)."""
+        check_loopback(host)
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((host, port))
+            sock.listen(128)
+            sock.setblocking(False)
+            self.token = secrets.token_bytes(TOKEN_BYTES)
+            self.tcp_address = (host, sock.getsockname()[1])
+            self.token_file = token_path(self.path)
+            write_token_file(self.token_file, host, self.tcp_address[1], self.token)
+        except BaseException:
+            sock.close()
+            self._listener.close()
+            os.unlink(self.path)
+            raise
+        self._tcp_listener = sock
+        self._sel.register(sock, selectors.EVENT_READ, self._accept_tcp)
 
     # ---- time
     def _now(self) -> int:
@@ -337,9 +398,15 @@ class BusServer:
                 self._drop(c, "server closing")
             self._close_windows(self._now())
             self._closed = True
-        for s in (self._listener, self._wake_r, self._wake_w):
-            s.close()
+        for s in (self._listener, self._wake_r, self._wake_w, self._tcp_listener):
+            if s is not None:
+                s.close()
         self._sel.close()
+        if self.token_file is not None:
+            try:
+                os.unlink(self.token_file)
+            except FileNotFoundError:
+                pass
         try:
             if os.lstat(self.path).st_ino == self._inode:
                 os.unlink(self.path)
@@ -381,6 +448,7 @@ class BusServer:
             self._flush()
             if now >= self._next_window:
                 self._close_windows(now)
+                self._expire_handshakes()
 
     def _advance(self, now: int) -> None:
         """Complete every transmission that ended by ``now``; frames waiting at an end start right at it."""
@@ -388,7 +456,8 @@ class BusServer:
         tx = m.current
         while tx is not None and tx.t_end <= now:
             m.complete()
-            self._deliver(tx)
+            if tx.error is None:  # a frame destroyed by an error frame (hil.can.errors) is not delivered
+                self._deliver(tx)
             tx = m.arbitrate(tx.t_end)
 
     def _deliver(self, tx: Transmission) -> None:
@@ -463,16 +532,59 @@ class BusServer:
 
     # ---- nodes
     def _accept(self, now: int) -> None:
+        self._accept_from(self._listener, tcp=False)
+
+    def _accept_tcp(self, now: int) -> None:
+        self._accept_from(self._tcp_listener, tcp=True)
+
+    def _accept_from(self, listener: socket.socket, tcp: bool) -> None:
         while True:
             try:
-                sock, _ = self._listener.accept()
+                sock, addr = listener.accept()
             except (BlockingIOError, InterruptedError):
                 return
+            except OSError as exc:  # e.g. out of file descriptors: refuse this one, keep serving
+                self._bad_input("clients_refused", f"accept failed: {exc}")
+                return
+            why = None
+            if tcp and addr[0] not in ("127.0.0.1", "::1", "::ffff:127.0.0.1"):
+                why = f"TCP peer {addr[0]} is not loopback"
+            elif len(self._clients) >= self._max_clients:
+                why = f"more than {self._max_clients} connections"
+            if why is not None:
+                sock.close()
+                self._bad_input("clients_refused", f"connection refused: {why}")
+                continue
             sock.setblocking(False)
-            c = _Client(sock, self._next_cid)
+            if tcp:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            c = _Client(sock, self._next_cid, tcp)
             self._next_cid += 1
             self._clients[c.cid] = c
             self._sel.register(sock, selectors.EVENT_READ, c)
+
+    def _bad_input(self, kind: str, text: str) -> None:
+        """Count one piece of bad input of ``kind``; log the first LOG_FIRST of each kind, then every 1000th."""
+        self._bad[kind] += 1
+        n = self._bad[kind]
+        if n <= LOG_FIRST or n % 1000 == 0:
+            LOG.warning("bus %s: %s (%s #%d)", self.channel, text, kind, n)
+
+    def _expire_handshakes(self) -> None:
+        """Drop connections that did not complete AUTH/HELLO within hello_timeout_s (they hold a slot)."""
+        limit = time.monotonic() - self._hello_timeout_s
+        for c in [c for c in self._clients.values() if c.node is None and c.t_open < limit]:
+            self._bad_input("protocol_errors", f"connection #{c.cid} sent no HELLO within {self._hello_timeout_s:g} s")
+            self._drop(c, "handshake timeout")
+
+    def _auth(self, c: _Client, buf: bytes, off: int) -> None:
+        """The first record of a TCP client: AUTH with this bus's token, or the connection is refused."""
+        token = unpack_auth(buf, off) if buf[off] == KIND_AUTH else None
+        if token is None or self.token is None or not hmac.compare_digest(token, self.token):
+            why = "no token" if token is None else "a wrong token"
+            self._bad_input("auth_failures", f"TCP connection #{c.cid} refused: {why}")
+            raise _Refused(why)
+        c.authed = True
 
     def _drain_wake(self, now: int) -> None:
         try:
@@ -491,6 +603,9 @@ class BusServer:
             self._drop(c, f"receive failed: {exc}")
             return
         if not chunk:
+            if c.rx:
+                self._bad_input("truncated_records", f"node {c.name} (#{c.cid}) disconnected inside a record "
+                                f"({len(c.rx)} of {RECORD_SIZE} bytes, discarded)")
             self._drop(c, "disconnected")
             return
         buf = c.rx + chunk if c.rx else chunk
@@ -499,12 +614,19 @@ class BusServer:
             for off in range(0, end, RECORD_SIZE):
                 self._record(c, buf, off, now)
         except ProtocolError as exc:
+            self._bad_input("protocol_errors", f"node {c.name} (#{c.cid}) dropped: {exc}")
             self._drop(c, f"protocol error: {exc}")
+            return
+        except _Refused as exc:
+            self._drop(c, f"refused: {exc}")
             return
         c.rx = buf[end:]
 
     def _record(self, c: _Client, buf: bytes, off: int, now: int) -> None:
         kind = buf[off]
+        if not c.authed:
+            self._auth(c, buf, off)
+            return
         if kind == KIND_FRAME and c.node is not None:
             _, flags, dlc, can_id, _, data = FRAME.unpack_from(buf, off)
             why = frame_error(can_id, dlc, flags)
@@ -572,6 +694,16 @@ class BusServer:
             LOG.info("bus %s: node %s (#%d) left (%s); %d queued frames dropped",
                      self.channel, c.name, c.cid, why, lost)
 
+    def apply(self, fn):
+        """Run ``fn(model, now_ns)`` under the server's lock and wake the loop (fault injection, hil/faults)."""
+        with self._lock:
+            result = fn(self.model, self._now())
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass
+        return result
+
     # ---- statistics
     @property
     def stats(self) -> BusServerStats:
@@ -588,7 +720,8 @@ class BusServer:
                 self._latency.quantile_s(0.5), self._latency.quantile_s(0.99),
                 self._latency.max_ns * 1e-9 if self._latency.n else None,
                 self._lateness.quantile_s(0.5), self._lateness.quantile_s(0.99),
-                self._lateness.max_ns * 1e-9 if self._lateness.n else None)
+                self._lateness.max_ns * 1e-9 if self._lateness.n else None,
+                tcp_port=self.tcp_address[1] if self._tcp_listener is not None else None, **self._bad)
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ from hil.realtime.busserver import BusServer
 from hil.realtime.paths import remove_run_dir
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import asc_listener, open_asc
+from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.metrics import compute_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
@@ -99,7 +100,7 @@ class Node:
 
 
 class _StopRequest:
-    """SIGINT/SIGTERM while running: remember it (the main loop polls) instead of raising mid-cleanup."""
+    """SIGINT/SIGTERM/SIGHUP while running: remember it (the main loop polls) instead of raising mid-cleanup."""
 
     def __init__(self) -> None:
         self.requested: str | None = None
@@ -107,7 +108,7 @@ class _StopRequest:
 
     def __enter__(self) -> "_StopRequest":
         if threading.current_thread() is threading.main_thread():
-            for s in (signal.SIGINT, signal.SIGTERM):
+            for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 self._previous[s] = signal.signal(s, self._handle)
         return self
 
@@ -157,6 +158,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     shutil.rmtree(nodes_dir, ignore_errors=True)
     nodes_dir.mkdir()
     (nodes_dir / "scenario.json").write_text(scenario.model_dump_json())
+    mark_running(out_dir / "metrics.json", scenario.name, "realtime")  # replaced by the metrics when the run ends
     run = run_name(scenario.name)
     sc_ = scenario.can
     servers: list[BusServer] = []
@@ -167,6 +169,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     run_wall = 0.0
     stop_reason = None
     clock = {"t0": math.inf}  # epoch of simulated t = 0, once known (the CAN logs' time origin)
+    faults = None  # hil.faults.realtime.RealtimeFaults when the scenario has faults or a restart policy
     asc: list = []
     try:
         with _StopRequest() as stop:
@@ -176,7 +179,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 if can_log:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace))
                 servers.append(server.start())
-            nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us)
+            faults = _faults(scenario, layout, servers, seed)
+            nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us,
+                                 faults.solo_units if faults else ())
             if progress:
                 print(f"real-time rig {run}: python-can channels {run}/bus1 .. {run}/bus{layout.n_trains} "
                       f"(interface trainhil), {len(nodes)} node processes, pace {pace:g}", file=sys.stderr)
@@ -187,10 +192,15 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     n.tell(f"go {t0!r}")
                 if on_start is not None:
                     on_start(t0)
-                stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress)
+                if faults is not None:
+                    faults.go(t0, pace, nodes, _respawn(run, nodes_dir, seed, duration, pace, layout))
+                stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
+                                         faults.tick if faults is not None else None)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
             else:
                 stop_reason = stop.requested
+            if faults is not None:
+                faults.release()
             _stop_nodes(nodes)
     finally:
         _kill_all(nodes)
@@ -202,10 +212,12 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         remove_run_dir(run)
     wall = run_wall if t0 is not None else time.perf_counter() - wall0
     log, extra = _merge(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason)
+    if faults is not None:
+        faults.finish(log, t0, pace)
     extra["realtime"]["bus_servers"] = server_stats
     files = [out_dir / f"bus{i + 1}.asc" for i in range(len(asc))]
     if record:
-        _write_rrd(scenario, layout, log, out_dir / "run.rrd", nodes_dir)
+        _write_rrd(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
         files.append(out_dir / "run.rrd")
     metrics = compute_metrics(log, scenario.plant.coupler_band_m)
     metrics.update(extra)
@@ -213,7 +225,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     metrics["runtime"] = "realtime"
     metrics["pace"] = float(pace)
     metrics["interrupted"] = log.interrupted
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    write_json_atomic(out_dir / "metrics.json", metrics)
     files.append(out_dir / "metrics.json")
     return _run_result(log, metrics, out_dir, files)
 
@@ -233,16 +245,39 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 # --------------------------------------------------------------------------- processes
 
 
+def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int):
+    """The run's fault machinery (hil/faults/realtime.py), or None without faults and restart policy."""
+    from hil.faults.realtime import RealtimeFaults, wanted
+
+    if not wanted(scenario):
+        return None
+    if not servers and any(f.train for f in scenario.faults if f.kind in ("babbling_node", "bus_corruption",
+                                                                         "bus_error_frames", "frame_drop")):
+        raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
+    from ecu_sim.codec import TrainDb
+
+    periods = {fid: codec.cycle_time_s for fid, codec in TrainDb.load().by_id.items()}
+    return RealtimeFaults(scenario, layout, servers, seed, periods)
+
+
+def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout):
+    """spawn(unit): a late-joining ECU process for a restarted unit."""
+    from hil.faults.realtime import spawn_ecu
+
+    serial = iter(range(1, 1 << 30))
+    return lambda u: spawn_ecu(Node, run, nodes_dir, seed, duration, pace, u, _unit_name(layout, u), next(serial))
+
+
 def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, duration: float, pace: float,
-                 per_process: int, spin_us: float) -> list[Node]:
+                 per_process: int, spin_us: float, solo=()) -> list[Node]:
     common = ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
               "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir)]
     specs = [("plant", "plant", ["hil.realtime.plant_node", "--spin-us", repr(spin_us)])]
     if layout.n_trains > 1:
         specs.append(("radio", "radio", ["hil.realtime.radio_node"]))
-    units = list(range(layout.n_units))
-    for k in range(0, len(units), per_process):
-        group = units[k:k + per_process]
+    units = [u for u in range(layout.n_units) if u not in solo]  # units with an ECU fault get a process each
+    groups = [units[k:k + per_process] for k in range(0, len(units), per_process)] + [[u] for u in sorted(solo)]
+    for group in groups:
         names = ",".join(_unit_name(layout, u) for u in group)
         specs.append((names, "ecu", ["hil.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
     nodes = []
@@ -282,8 +317,9 @@ def _wait_ready(nodes: list[Node], stop: _StopRequest) -> None:
 
 
 def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop: _StopRequest,
-               events: list[Event], progress: bool) -> str | None:
-    """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed)."""
+               events: list[Event], progress: bool, on_tick: Callable[[float], None] | None = None) -> str | None:
+    """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed).
+    ``on_tick(sim_now)`` runs every loop turn (fault injection: every 10 ms instead of 50)."""
     end_wall = t0 + duration / pace
     bar = _progress_bar(duration) if progress else None
     try:
@@ -307,9 +343,11 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                         return f"{n.kind} node exited"
             if all(n.proc.poll() is not None for n in nodes):
                 return None
+            if on_tick is not None:
+                on_tick(sim_now)
             if now > end_wall + STOP_GRACE_S:
                 return "nodes did not finish"
-            time.sleep(0.05)
+            time.sleep(0.05 if on_tick is None else 0.01)
     finally:
         if bar is not None:
             bar.close()
@@ -437,16 +475,22 @@ def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> 
     }
 
 
-def _write_rrd(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path) -> None:
+def _write_rrd(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path,
+               wall_clock: tuple[float, float] | None) -> None:
+    """The recording of a real-time run: signals, buses, events and timing on sim time, plus the wall-clock
+    timeline (``wall_clock`` = (T0 epoch s, pace)) when the run got as far as its start."""
     with RerunWriter(path, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m,
-                     sc.trains.emergency_gap_m) as w:
+                     sc.trains.emergency_gap_m, realtime=True, wall_clock=wall_clock) as w:
         if len(log.signals):
             w.write_signals(log, 0, len(log.signals))
         for bus in log.buses:
             w.write_bus(bus, 0, 0)
         if log.events:
             w.write_events(log.events)
-        _write_timing(w.rec, nodes_dir)
+        for entity, f in _timing_series(nodes_dir):  # cycle lateness per node, sensor-to-actuator latency, in ms
+            data = np.load(f)
+            if len(data):
+                w.write_scalars(entity, data[:, 0], data[:, 1] * 1e3)
         w.flush()
 
 
@@ -458,19 +502,6 @@ def _timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:
         train, unit = f.stem.split("_")[-2:]
         out.append((f"{TIMING_ROOT}/train{train}/unit{unit}/ecu_lateness_ms", f))
     return [(entity, f) for entity, f in out if f.exists()]
-
-
-def _write_timing(rec, nodes_dir: Path) -> None:
-    """Cycle lateness per node and the sensor-to-actuator latency, in ms on the simulated-time timeline."""
-    import rerun as rr
-
-    from hil.record.rerun_writer import TIMELINE
-
-    for entity, f in _timing_series(nodes_dir):
-        data = np.load(f)
-        if len(data):
-            rec.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=data[:, 0])],
-                             columns=rr.Scalars.columns(scalars=data[:, 1] * 1e3))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,9 +6,16 @@ and owned by the user; one that is not (a symlink, another owner, group or world
 because anyone who can reach a socket can read and inject frames on that bus.
 
 A python-can channel is ``"<run>/<bus>"`` (e.g. ``"seed000/bus1"``) or an absolute path to a ``.sock`` file.
+
+Loopback TCP (a bus server started with ``tcp=True``): the server writes ``<run dir>/<bus>.tcp`` (mode 0o600:
+host, port and the per-run token), and a client names the bus ``"tcp:<run>/<bus>"``, which finds all three
+there, so only the user who owns the run directory can connect; or ``"tcp://127.0.0.1:<port>"`` with the
+token given explicitly. Servers bind loopback addresses only (``LOOPBACK_HOSTS``).
 """
 from __future__ import annotations
 
+import ipaddress
+import json
 import os
 import re
 import socket
@@ -21,6 +28,9 @@ SOCKET_SUFFIX = ".sock"
 MAX_SOCKET_PATH_BYTES = 107  # sizeof(sockaddr_un.sun_path) - 1 on Linux
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 CHANNEL_SYNTAX = '"<run>/<bus>" (e.g. "seed000/bus1") or an absolute path to a .sock file'
+TOKEN_SUFFIX = ".tcp"
+LOOPBACK_HOSTS = ("127.0.0.1", "::1")
+TCP_CHANNEL_SYNTAX = '"tcp:<run>/<bus>" (host, port and token read from the run directory) or "tcp://127.0.0.1:<port>"'
 
 
 class InsecureRunDirError(PermissionError):
@@ -151,3 +161,74 @@ def socket_is_live(path: Path, timeout: float = 0.5) -> bool:
         except OSError:
             return False
     return True
+
+
+# --------------------------------------------------------------------------- local-only checks and loopback TCP
+
+
+def check_private_socket(path: Path) -> None:
+    """Raise InsecureRunDirError unless ``path`` is a unix socket owned by us that group/others cannot use
+    (a socket planted by someone else would let them feed this node frames)."""
+    st = os.lstat(path)
+    if not stat.S_ISSOCK(st.st_mode):
+        raise InsecureRunDirError(f"{path} is not a unix socket: refusing to use it")
+    if st.st_uid != os.getuid():
+        raise InsecureRunDirError(f"{path} is owned by uid {st.st_uid}, not by you (uid {os.getuid()}): refusing to use it")
+    if st.st_mode & 0o077:
+        raise InsecureRunDirError(f"{path} has mode {stat.S_IMODE(st.st_mode):#o}: group/others can use it, refusing it")
+
+
+def check_loopback(host: str) -> str:
+    """``host`` if it is a loopback address a bus server may bind (127.0.0.1 or ::1), else ValueError naming it."""
+    try:
+        ok = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        ok = False
+    if not ok or host not in LOOPBACK_HOSTS:
+        raise ValueError(f"TCP host {host!r} is refused: a bus server listens on loopback only ({', '.join(LOOPBACK_HOSTS)})")
+    return host
+
+
+def token_path(socket_file: Path) -> Path:
+    """Where a bus server's TCP endpoint and token are written: beside its socket, ``<bus>.tcp``."""
+    return socket_file.with_suffix(TOKEN_SUFFIX)
+
+
+def write_token_file(path: Path, host: str, port: int, token: bytes) -> None:
+    """Write host, port and token to ``path`` with mode 0o600 from the start (never readable by others)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        json.dump({"host": host, "port": port, "token": token.hex()}, fh)
+    os.replace(tmp, path)
+
+
+def read_token_file(path: Path) -> tuple[str, int, bytes]:
+    """(host, port, token) from a token file; InsecureRunDirError if it is not ours or others can read it."""
+    st = os.lstat(path)
+    if not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+        raise InsecureRunDirError(f"{path}: a token file must be a regular file of yours with mode 0o600 "
+                                  f"(is mode {stat.S_IMODE(st.st_mode):#o}, uid {st.st_uid}): refusing it")
+    try:
+        data = json.loads(path.read_text())
+        return check_loopback(str(data["host"])), int(data["port"]), bytes.fromhex(data["token"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: malformed token file ({exc})") from None
+
+
+def parse_tcp_channel(channel: object) -> tuple[str, Path | None, str | None, int | None]:
+    """``"tcp:<run>/<bus>"`` -> (text, token file, None, None); ``"tcp://host:port"`` -> (text, None, host, port).
+    ValueError naming the channel if it is malformed or not loopback."""
+    text = str(channel)
+    if text.startswith("tcp://"):
+        host, sep, port = text[len("tcp://"):].rpartition(":")
+        host = host.strip("[]")
+        if not sep or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"channel {text!r} is malformed: use {TCP_CHANNEL_SYNTAX}")
+        return text, None, check_loopback(host), int(port)
+    if not text.startswith("tcp:"):
+        raise ValueError(f"channel {text!r} is not a TCP channel: use {TCP_CHANNEL_SYNTAX}")
+    _, sock = parse_channel(text[len("tcp:"):])
+    if os.path.isabs(text[len("tcp:"):]):
+        raise ValueError(f"channel {text!r}: use {TCP_CHANNEL_SYNTAX}")
+    return text, token_path(sock), None, None

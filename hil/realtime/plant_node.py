@@ -67,6 +67,11 @@ class PlantNode:
         self.target = 0  # tick of the next publication
         self.every = {"record": max(1, round(sc.recording.period_s / sc.plant.step_s))}
         self.late_commands = 0  # commands that reached the plant after it had integrated past their arrival time
+        self.faults = None  # the fault schedule's clock and the plant-side faults (hil/faults/realtime.py)
+        if sc.faults:
+            from hil.faults.realtime import PlantFaults
+
+            self.faults = PlantFaults(sc, self.plant, self.layout, seed, self.log)
         self.late_command_max_s = 0.0
 
     def train_units(self, i: int) -> range:
@@ -135,6 +140,8 @@ class PlantNode:
             drain(self.buses, self.on_msg, 0.0)
             self.advance_to(target)
             stats.add(clock.now() - t, t)
+            if self.faults is not None:
+                self.faults.poll(t, self.plant.x)
             if target % self.every["sensor"] == 0:
                 self.publish_sensors(t)
             if target % self.every["ref"] == 0:
@@ -183,6 +190,7 @@ class PlantNode:
                 "e2e_latency_n": int(e2e.size), "e2e_latency_p50_s": q[0], "e2e_latency_p99_s": q[1],
                 "e2e_latency_max_s": float(e2e.max()) if e2e.size else None, "e2e_crc_errors": self.io.e2e_errors,
                 "late_commands": self.late_commands, "late_command_max_s": self.late_command_max_s,
+                "malformed_frames": self.io.malformed_frames,
                 "events": [[e.t, e.level, e.source, e.text] for e in self.log.events],
                 "codec_saturations": self.db.total_saturations()}
 

@@ -12,6 +12,7 @@ kind    name             way       layout (struct, after the common "<")
 4       FILTERS          c -> s    ``B x H I 16x``: kind, -, count, generation; ``count`` FILTER records follow
 5       FILTER           c -> s    ``B B x x I I 12x``: kind, match, -, -, can_id, can_mask
 6       FILTERS_ACK      s -> c    ``B x x x I 16x``: kind, generation
+7       AUTH             c -> s    ``B x x x 16s 4x``: kind, -, the run's token (16 bytes); TCP only, first record
 ======  ===============  ========  ==================================================================
 
 FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
@@ -28,6 +29,13 @@ A node replaces its acceptance filters with FILTERS (``count`` = 0: accept every
 complete and answers FILTERS_ACK with that generation. A FILTER matches a frame when
 ``(frame_id ^ can_id) & can_mask == 0`` and the frame's format fits ``match`` (0 any, 1 standard only,
 2 extended only): python-can's filter semantics. Any other record, or a version mismatch, ends the session.
+
+Loopback TCP (optional, see ``busserver``): a TCP client must send AUTH with the bus's per-run token as its
+very first record, before HELLO; a missing or wrong token ends the connection at once. Unix-socket clients are
+authenticated by the file system (owner-only run directory and socket) and never send AUTH.
+
+``decode_record`` turns any 24 bytes into one typed record or a ProtocolError naming what is wrong: the
+server's parser and the property tests rely on it never raising anything else.
 """
 from __future__ import annotations
 
@@ -46,6 +54,8 @@ KIND_WELCOME = 3
 KIND_FILTERS = 4
 KIND_FILTER = 5
 KIND_FILTERS_ACK = 6
+KIND_AUTH = 7
+TOKEN_BYTES = 16
 
 FLAG_EXTENDED = 0x01
 FLAG_REMOTE = 0x02
@@ -67,7 +77,8 @@ WELCOME = struct.Struct("<BBxxIdI4x")
 FILTERS = struct.Struct("<BxHI16x")
 FILTER = struct.Struct("<BBxxII12x")
 FILTERS_ACK = struct.Struct("<BxxxI16x")
-assert all(s.size == RECORD_SIZE for s in (FRAME, HELLO, WELCOME, FILTERS, FILTER, FILTERS_ACK))
+AUTH = struct.Struct("<Bxxx16s4x")
+assert all(s.size == RECORD_SIZE for s in (FRAME, HELLO, WELCOME, FILTERS, FILTER, FILTERS_ACK, AUTH))
 
 
 class ProtocolError(ValueError):
@@ -223,3 +234,59 @@ def filters_accept(filters: tuple[Filter, ...] | None, can_id: int, extended: bo
         if (can_id ^ f.can_id) & f.can_mask == 0:
             return True
     return False
+
+
+def pack_auth(token: bytes) -> bytes:
+    """The AUTH record carrying a bus's per-run token (TCP clients send it first)."""
+    if len(token) != TOKEN_BYTES:
+        raise ValueError(f"a bus token is {TOKEN_BYTES} bytes, got {len(token)}")
+    return AUTH.pack(KIND_AUTH, token)
+
+
+def unpack_auth(record: bytes | memoryview, offset: int = 0) -> bytes:
+    kind, token = AUTH.unpack_from(record, offset)
+    if kind != KIND_AUTH:
+        raise ProtocolError(f"record kind {kind} is not AUTH ({KIND_AUTH})")
+    return token
+
+
+class FiltersHead(NamedTuple):
+    count: int
+    generation: int
+
+
+class FiltersAck(NamedTuple):
+    generation: int
+
+
+class Auth(NamedTuple):
+    token: bytes
+
+
+Record = Frame | Hello | Welcome | FiltersHead | Filter | FiltersAck | Auth
+
+
+def decode_record(record: bytes | memoryview) -> Record:
+    """Any 24 bytes -> the typed record, or ProtocolError saying what is wrong (never another exception).
+
+    A FRAME that decodes but could not go on the bus (bad dlc, flags or id) is still a Frame: ``frame_error``
+    judges it, as the server does (counted and dropped, the session goes on)."""
+    if len(record) != RECORD_SIZE:
+        raise ProtocolError(f"a record is {RECORD_SIZE} bytes, got {len(record)}")
+    kind = record[0]
+    if kind == KIND_FRAME:
+        _, flags, dlc, can_id, timestamp, data = FRAME.unpack_from(record)
+        return Frame(can_id, data[:min(dlc, MAX_DLC)], flags, timestamp)
+    if kind == KIND_HELLO:
+        return unpack_hello(record)
+    if kind == KIND_WELCOME:
+        return unpack_welcome(record)
+    if kind == KIND_FILTERS:
+        return FiltersHead(*unpack_filters_head(record))
+    if kind == KIND_FILTER:
+        return unpack_filter(record)
+    if kind == KIND_FILTERS_ACK:
+        return FiltersAck(unpack_filters_ack(record))
+    if kind == KIND_AUTH:
+        return Auth(unpack_auth(record))
+    raise ProtocolError(f"unknown record kind {kind} (first bytes {bytes(record[:4]).hex()})")

@@ -2,6 +2,8 @@
 
     bus = can.Bus(interface="trainhil", channel="seed000/bus1")   # run "seed000", bus "bus1"
     bus = can.Bus(interface="trainhil", channel="/abs/path/bus1.sock")
+    bus = can.Bus(interface="trainhil", channel="tcp:seed000/bus1")        # loopback TCP, token from the run dir
+    bus = can.Bus(interface="trainhil", channel="tcp://127.0.0.1:40123", token="<32 hex digits>")
 
 Channel: ``"<run>/<bus>"`` names the socket ``<runtime_root>/<run>/<bus>.sock`` (runtime root:
 ``$XDG_RUNTIME_DIR/trainhil`` or ``<tempdir>/trainhil-<uid>``, see ``hil.realtime.paths``), or an absolute
@@ -17,16 +19,21 @@ import logging
 import os
 import select
 import socket
+import stat
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from can import BusABC, CanInitializationError, CanInterfaceNotImplementedError, CanOperationError, Message
 
-from hil.realtime.paths import bus_sockets, check_private_dir, parse_channel, socket_is_live
+from hil.realtime.paths import (
+    bus_sockets, check_private_dir, check_private_socket, parse_channel, parse_tcp_channel, read_token_file,
+    socket_is_live,
+)
 from hil.realtime.protocol import (
     FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME, PROTOCOL_VERSION,
-    RECORD_SIZE, ProtocolError, filter_from_python_can, pack_filters, pack_frame, pack_hello,
+    RECORD_SIZE, TOKEN_BYTES, ProtocolError, filter_from_python_can, pack_auth, pack_filters, pack_frame, pack_hello,
     unpack_filters_ack, unpack_welcome,
 )
 
@@ -39,16 +46,26 @@ class TrainhilBus(BusABC):
     """A python-can bus whose other end is an emulated CAN bus server (see the module docstring)."""
 
     def __init__(self, channel: Any, can_filters=None, receive_own_messages: bool = False,
-                 node_name: str | None = None, connect_timeout: float = 2.0, **kwargs: Any) -> None:
+                 node_name: str | None = None, connect_timeout: float = 2.0, token: str | bytes | None = None,
+                 **kwargs: Any) -> None:
         if kwargs.get("fd"):
             raise CanInterfaceNotImplementedError("trainhil: CAN FD is not emulated (classical CAN only)")
+        self._tcp: tuple[str, int, bytes] | None = None
         try:
-            self.channel_name, self.path = parse_channel(channel)
-        except ValueError as exc:
+            if str(channel).startswith("tcp:"):
+                self.channel_name, self.path, self._tcp = self._tcp_endpoint(channel, token)
+            else:
+                self.channel_name, self.path = parse_channel(channel)
+        except FileNotFoundError as exc:
+            raise CanInitializationError(f"trainhil: no TCP bus server for channel {channel!r} ({exc.filename} does "
+                                         "not exist); start one with tcp=True") from None
+        except (ValueError, OSError) as exc:
             raise CanInitializationError(f"trainhil: {exc}") from exc
         name = node_name or f"pid{os.getpid()}.{next(_node_seq)}"
         hello = pack_hello(name, receive_own_messages)  # ValueError names a bad node name
-        self._sock = self._connect(connect_timeout)
+        if self._tcp is not None:
+            hello = pack_auth(self._tcp[2]) + hello  # the token goes first, or the server hangs up
+        self._sock = self._connect_tcp(connect_timeout) if self._tcp is not None else self._connect(connect_timeout)
         try:
             welcome = self._handshake(hello, connect_timeout)
         except BaseException:
@@ -72,6 +89,38 @@ class TrainhilBus(BusABC):
         super().__init__(channel, can_filters=can_filters, **kwargs)
 
     # ---- connection
+    @staticmethod
+    def _tcp_endpoint(channel: Any, token: str | bytes | None) -> tuple[str, Path | None, tuple[str, int, bytes]]:
+        """(channel text, token file or None, (host, port, token)) of a "tcp:..." channel."""
+        text, token_file, host, port = parse_tcp_channel(channel)
+        if token_file is not None:
+            for d in (token_file.parent.parent, token_file.parent):  # runtime root, run directory
+                check_private_dir(d)
+            host, port, found = read_token_file(token_file)
+            return text, token_file, (host, port, found)
+        if token is None:
+            raise ValueError(f"channel {text!r}: a TCP bus needs the run's token (token=...), or use "
+                             "\"tcp:<run>/<bus>\" to read it from the run directory")
+        if isinstance(token, int) and not isinstance(token, bool):
+            token = f"{token:032d}"  # python-can casts an all-digit hex string to int: undo it
+        if not isinstance(token, (str, bytes, bytearray)):
+            raise ValueError(f"channel {text!r}: token must be 32 hex digits or 16 bytes, got {type(token).__name__} "
+                             "(python-can reads some strings as numbers: pass bytes.fromhex(...))")
+        raw = bytes.fromhex(token) if isinstance(token, str) else bytes(token)
+        if len(raw) != TOKEN_BYTES:
+            raise ValueError(f"channel {text!r}: token must be {TOKEN_BYTES} bytes (32 hex digits), got {len(raw)}")
+        return text, None, (host, port, raw)
+
+    def _connect_tcp(self, timeout: float) -> socket.socket:
+        host, port, _ = self._tcp
+        try:
+            sock = socket.create_connection((host, port), timeout=timeout)
+        except OSError as exc:
+            raise CanInitializationError(f"trainhil: no bus server accepts TCP connections on {host}:{port} "
+                                         f"(channel {self.channel_name!r}): {exc}") from None
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock
+
     def _connect(self, timeout: float) -> socket.socket:
         if "/" in self.channel_name and not os.path.isabs(self.channel_name):
             for d in (self.path.parent.parent, self.path.parent):  # runtime root, run directory
@@ -81,6 +130,13 @@ class TrainhilBus(BusABC):
                     break  # reported as "no server" below
                 except PermissionError as exc:
                     raise CanInitializationError(f"trainhil: {exc}") from exc
+        try:
+            if stat.S_ISSOCK(os.lstat(self.path).st_mode):
+                check_private_socket(self.path)  # ours, owner-only: not a socket someone else planted
+        except FileNotFoundError:
+            pass  # reported as "no server" below
+        except PermissionError as exc:
+            raise CanInitializationError(f"trainhil: {exc}") from exc
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         sock.settimeout(timeout)
         try:
@@ -104,20 +160,24 @@ class TrainhilBus(BusABC):
             try:
                 chunk = self._sock.recv(RECORD_SIZE - len(buf))
             except TimeoutError:
-                raise CanInitializationError(f"trainhil: the server at {self.path} did not answer within "
+                raise CanInitializationError(f"trainhil: the server at {self._where()} did not answer within "
                                              f"{timeout} s") from None
             if not chunk:
-                raise CanInitializationError(f"trainhil: the server at {self.path} closed the connection "
-                                             "during the handshake")
+                why = " (TCP: a missing or wrong token is refused)" if self._tcp is not None else ""
+                raise CanInitializationError(f"trainhil: the server at {self._where()} closed the connection "
+                                             f"during the handshake{why}")
             buf += chunk
         try:
             welcome = unpack_welcome(buf)
         except ProtocolError as exc:
-            raise CanInitializationError(f"trainhil: {self.path} does not speak the trainhil protocol: {exc}") from None
+            raise CanInitializationError(f"trainhil: {self._where()} does not speak the trainhil protocol: {exc}") from None
         if welcome.version != PROTOCOL_VERSION:
-            raise CanInitializationError(f"trainhil: the server at {self.path} speaks protocol version "
+            raise CanInitializationError(f"trainhil: the server at {self._where()} speaks protocol version "
                                          f"{welcome.version}, this client {PROTOCOL_VERSION}")
         return welcome
+
+    def _where(self) -> str:
+        return f"{self._tcp[0]}:{self._tcp[1]}" if self._tcp is not None else str(self.path)
 
     def fileno(self) -> int:
         """The socket: readable when a record waits (one record is read per message, so this stays exact)."""
@@ -188,7 +248,7 @@ class TrainhilBus(BusABC):
         except OSError as exc:
             raise CanOperationError(f"trainhil {self.channel_name}: receive failed: {exc}") from exc
         if n == 0:
-            raise CanOperationError(f"trainhil {self.channel_name}: the bus server at {self.path} "
+            raise CanOperationError(f"trainhil {self.channel_name}: the bus server at {self._where()} "
                                     "closed the connection")
         self._rlen += n
         if self._rlen < RECORD_SIZE:

@@ -93,6 +93,8 @@ def read_toml(path: Path, error: type[ValueError]) -> dict[str, Any]:
         return tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not valid TOML: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except OSError as exc:
         raise error(f"{path}: cannot read: {exc.strerror}") from None
 

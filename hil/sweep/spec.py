@@ -50,6 +50,7 @@ from hil.scenario.loader import (
     resolve_packaged,
     scenario_from_dict,
 )
+from hil.scenario.checks import non_finite
 from hil.scenario.model import Scenario, Section
 
 _DOTTED = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
@@ -180,6 +181,9 @@ class SweepSpec(Section):
         for key, values in axes.items():
             if not values:
                 raise ValueError(f"axis {key!r} has no values")
+            bad = non_finite(values)
+            if bad is not None:
+                raise ValueError(f"axis {key!r}: value {bad} is NaN or infinite (a finite number is needed)")
             seen = [canonical_json(v) for v in values]
             for v, text in zip(values, seen):
                 if seen.count(text) > 1:
@@ -261,7 +265,7 @@ def _resolve_base(base: str, source: str, base_dir: Path) -> Path:
 def _read_base(path: Path, source: str) -> dict[str, Any]:
     try:
         return tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, OSError) as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError) as exc:
         raise SweepError(f"{source}: base {path}: cannot read: {exc}") from None
 
 
