@@ -3,6 +3,10 @@
 AUTOSAR profile-1 style header shared by every frame of dbc/train.dbc: byte 0 is the CRC over
 [data ID] + bytes 1..end, the low nibble of byte 1 is the alive counter. The data ID is not sent,
 so a frame checked against the wrong message type (wrong ID mapping) fails the CRC.
+
+Receivers classify every frame (``E2EStatus``: OK, INITIAL, OK_SOME_LOST with the lost frames counted as LOST,
+REPEATED, WRONG_SEQUENCE, CRC_ERROR); TIMEOUT is counted by the receiver's freshness check
+(``ecu_sim.runtime.InputSlot.fresh``) each time a stream that had been fresh goes stale.
 """
 from __future__ import annotations
 
@@ -81,7 +85,7 @@ class E2EChecker:
     the new reference, so after a long outage exactly one frame is rejected before the stream is OK.
     """
 
-    __slots__ = ("data_id", "max_delta", "name", "last_counter", "counts", "lost")
+    __slots__ = ("data_id", "max_delta", "name", "last_counter", "counts", "lost", "timeouts")
 
     def __init__(self, data_id: int, max_delta: int = 1, name: str = "") -> None:
         if not 0 <= data_id <= 0xFF:
@@ -94,6 +98,7 @@ class E2EChecker:
         self.last_counter: int | None = None
         self.counts = [0] * len(E2EStatus)  # indexed by E2EStatus
         self.lost = 0  # frames known lost from OK_SOME_LOST gaps
+        self.timeouts = 0  # times the stream went stale (counted by the receiver's freshness check)
 
     def reset(self) -> None:
         """Forget the sequence (next valid frame is INITIAL); keeps the statistics."""
@@ -130,8 +135,10 @@ class E2EChecker:
         return self.counts[status]
 
     def summary(self) -> dict[str, int]:
-        """Non-zero counts by status name, plus the number of lost frames."""
+        """Non-zero counts by status name, plus the number of lost frames and of timeouts."""
         out = {s.name: self.counts[s] for s in E2EStatus if self.counts[s]}
         if self.lost:
             out["LOST"] = self.lost
+        if self.timeouts:
+            out["TIMEOUT"] = self.timeouts
         return out

@@ -17,6 +17,11 @@ of the law; a stale own sensor or (for pinned units) a stale reference commands 
 losing the train ahead for longer than ``radio_contact_timeout_s`` after contact commands the
 emergency brake; a controller that raises or returns a non-finite force stops the ECU (it falls
 silent, and the plant's fail-safe takes over), as a crashed ECU would.
+
+Every freshness check counts a TIMEOUT in the stream's E2E statistics when a stream that had been fresh goes
+stale. ``monitors`` run after every cycle (``ecu_sim.diagnostics``: diagnostic events, sensor and traction
+plausibility); a monitor that judges the own sensor implausible sets ``sensor_fault``, which gives the same
+degraded mode as a stale sensor (service brake, no AgentState/AgentAux).
 """
 from __future__ import annotations
 
@@ -44,6 +49,7 @@ class InputSlot:
     values: tuple[float, ...] = ()
     t_good: float = -INF  # reception time of the last good frame
     counter: int = -1  # alive counter of the last good frame
+    was_fresh: bool = False  # at the last freshness check
 
     def refresh(self) -> None:
         """Check and decode the frame that arrived since the last cycle, if any."""
@@ -57,6 +63,15 @@ class InputSlot:
 
     def age(self, t: float) -> float:
         return t - self.t_good
+
+    def fresh(self, t: float, timeout: float) -> bool:
+        """Age within ``timeout``; a stream that had been fresh and is not any more counts a TIMEOUT."""
+        ok = t - self.t_good <= timeout
+        if ok != self.was_fresh:
+            if not ok:
+                self.checker.timeouts += 1
+            self.was_fresh = ok
+        return ok
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +89,8 @@ class NeighbourLink:
 class EcuCounters:
     cycles: int = 0
     controller_errors: int = 0
+    unknown_frames: int = 0  # frames with an ID this ECU has no input for (a receiver without acceptance filter)
+    malformed_frames: int = 0  # frames of a known ID whose length is not the DBC's DLC: dropped, never decoded
 
 
 class Ecu:
@@ -108,6 +125,9 @@ class Ecu:
                               neighbours=[NeighbourView(nl.link, nl.side, nl.offset_m) for nl in neighbours],
                               ref=ReferenceView())
         self._flags: dict[str, bool] = {}
+        self.sensor_fault = False  # own sensor judged implausible (stuck, noisy) by a monitor: service brake
+        self.monitors: list = []  # callables monitor(ecu, t) run after every cycle (ecu_sim.diagnostics)
+        self.last_command: Command | None = None  # what the last cycle commanded (None: the ECU stopped)
 
     def _slot(self, codec: MessageCodec) -> InputSlot:
         slot = InputSlot(codec, E2EChecker(codec.data_id, max_delta=self._max_delta, name=codec.name))
@@ -120,6 +140,9 @@ class Ecu:
         for slot in self.slots.values():
             for status, n in slot.checker.summary().items():
                 totals[status] = totals.get(status, 0) + n
+        for key, n in (("UNKNOWN_ID", self.counters.unknown_frames), ("WRONG_LENGTH", self.counters.malformed_frames)):
+            if n:
+                totals[key] = n  # bad input seen before any E2E check (absent when zero: results unchanged)
         return totals
 
     @property
@@ -131,7 +154,14 @@ class Ecu:
     def on_frame(self, frame_id: int, data: bytes, t: float) -> None:
         """Mailbox write: keep the latest frame of each stream (checked at the next cycle)."""
         slot = self.slots.get(frame_id)
-        if slot is not None:
+        if slot is None:
+            self.counters.unknown_frames += 1
+        elif len(data) != slot.codec.dlc:
+            self.counters.malformed_frames += 1
+            if self.counters.malformed_frames == 1:
+                self.events.append((t, "WARN", f"{slot.codec.name}: frame of {len(data)} bytes, DLC is "
+                                               f"{slot.codec.dlc}: dropped (further ones are counted)"))
+        else:
             slot.raw = data
             slot.t_raw = t
 
@@ -142,27 +172,31 @@ class Ecu:
         self.counters.cycles += 1
         for slot in self.slots.values():
             slot.refresh()
-        cmd = self._control(t)
-        if cmd is None:
-            return []
-        return self._outputs(cmd)
+        cmd = self.last_command = self._control(t)
+        frames = [] if cmd is None else self._outputs(cmd)
+        for monitor in self.monitors:
+            monitor(self, t)
+        return frames
 
     def restart(self) -> None:
         """Power-cycle: clear the controller's memory and the mailboxes, start sending again."""
         self.controller.reset()
         for slot in self.slots.values():
-            slot.raw, slot.values, slot.t_good, slot.counter = None, (), -INF, -1
+            slot.raw, slot.values, slot.t_good, slot.counter, slot.was_fresh = None, (), -INF, -1, False
             slot.checker.reset()
         self._samples = [None] * 16
+        self.sensor_fault = False
         self.alive = True
 
     # ---- internals
     def _control(self, t: float) -> Command | None:
         view, cfg = self.view, self.cfg
         view.t = t
-        sensor_ok = self._sensor.age(t) <= cfg.neighbour_timeout_s
+        sensor_ok = self._sensor.fresh(t, cfg.neighbour_timeout_s)
         self._flag(t, "sensor_stale", not sensor_ok, "WARN", "own sensor data stale: service brake")
         if not sensor_ok:
+            return Command(0.0, BrakeMode.SERVICE, 0.0)
+        if self.sensor_fault:
             return Command(0.0, BrakeMode.SERVICE, 0.0)
         view.x, view.v = self._sensor.values
         self._samples[self._sensor.counter] = (view.x, view.v, self._sensor.t_good)
@@ -190,14 +224,13 @@ class Ecu:
     def _fill_neighbours(self, t: float) -> None:
         timeout = self.cfg.neighbour_timeout_s
         for nv, (nl, state, aux) in zip(self.view.neighbours, self._links):
-            age = state.age(t)
-            nv.age_s = age
-            nv.valid = age <= timeout
+            nv.age_s = state.age(t)
+            nv.valid = state.fresh(t, timeout)
             if not nv.valid:
                 continue
             nv.x, nv.v = state.values
             self._align(nv, state)
-            if aux is not None and aux.values and aux.age(t) <= timeout:
+            if aux is not None and aux.values and aux.fresh(t, timeout):
                 nv.a, nv.u = aux.values
             else:
                 nv.a = nv.u = math.nan
@@ -217,7 +250,7 @@ class Ecu:
             return True
         ref = self.view.ref
         ref.age_s = self._ref.age(t)
-        ref.valid = ref.age_s <= self.cfg.reference_timeout_s
+        ref.valid = self._ref.fresh(t, self.cfg.reference_timeout_s)
         if ref.valid:
             ref.x, ref.v = self._ref.values
             ref.a = self._ref_aux.values[0] if self._ref_aux and self._ref_aux.values else 0.0
@@ -243,7 +276,7 @@ class Ecu:
         self._cmd_counter = (self._cmd_counter + 1) & 0xF
         c = self._out_cmd
         frames = [(c.frame_id, c.encode((int(cmd.mode), cmd.force_n), self._cmd_counter))]
-        if self._flags.get("sensor_stale") or self._sensor.counter < 0:
+        if self._flags.get("sensor_stale") or self.sensor_fault or self._sensor.counter < 0:
             return frames
         v, k = self.view, self._sensor.counter
         accel = cmd.accel_mps2 if math.isfinite(cmd.accel_mps2) else cmd.force_n / self.agent.mass_kg

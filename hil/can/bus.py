@@ -42,6 +42,7 @@ class Transmission:
     t_start: int
     t_end: int
     extended: bool = False
+    error: str | None = None  # set by hil.can.errors when the frame is destroyed: not delivered, retransmitted
 
 
 class CanNode:
@@ -63,6 +64,7 @@ class CanNode:
         self.fifo: deque[_Item] = deque()
         self.sent = 0
         self.dropped = 0
+        self.bus_off = False  # set by hil.can.errors (fault confinement): a bus-off node neither sends nor receives
 
 
 class CanBusModel:
@@ -94,6 +96,7 @@ class CanBusModel:
         self._window_end = self._window_ns
         self._window_busy = 0
         self.frame_listeners: list[Callable[[Transmission], None]] = []  # e.g. CAN log writers
+        self.errors = None  # hil.can.errors.BusErrors when faults or errors are modelled (None: error-free fast path)
 
     # ---- topology
     def attach(self, name: str, on_rx: RxCallback | None = None, rx_ids: set[int] | None = None,
@@ -125,7 +128,8 @@ class CanBusModel:
     def _receivers(self, frame_id: int) -> list[CanNode]:
         found = self._listeners.get(frame_id)
         if found is None:
-            found = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is not None and frame_id in n.rx_ids]
+            found = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is not None and frame_id in n.rx_ids
+                     and not n.bus_off]
             found += self._catch_all
             self._listeners[frame_id] = found
         return found
@@ -135,7 +139,7 @@ class CanBusModel:
         """Queue a frame in a node's TX queue at time t; False (and counted) when the queue is full.
 
         ``extended`` picks the frame format of this frame (default: the bus's ``extended``)."""
-        if node.queued >= node.depth:
+        if node.queued >= node.depth or (node.bus_off and not self.errors.admits(node, t)):
             node.dropped += 1
             return False
         node.queued += 1
@@ -160,7 +164,12 @@ class CanBusModel:
         """If the bus is idle at t, start the winning pending frame and return it."""
         if self.current is not None or t < self.busy_until:
             return None
+        errors = self.errors
+        if errors is not None:
+            errors.before_arbitrate(t)
         won = self._pop_winner()
+        if errors is not None:
+            won = errors.filter_winner(won, t)
         if won is None:
             return None
         _, _, data, t_enq, node, frame_id, ext = won
@@ -168,6 +177,8 @@ class CanBusModel:
         t_end = t + frame_bits(frame_id, data, ext) * self.bit_ns
         self.current = Transmission(node, frame_id, data, t_enq, t, t_end, ext)
         self.busy_until = t_end
+        if errors is not None:
+            errors.on_start(self.current, won)  # may destroy the frame: it then ends with its error frame
         return self.current
 
     def complete(self) -> Transmission:
@@ -175,6 +186,8 @@ class CanBusModel:
         tx = self.current
         assert tx is not None, "complete() without a transmission"
         self.current = None
+        if self.errors is not None and not self.errors.on_complete(tx):
+            return tx  # destroyed (tx.error): not delivered; hil.can.errors requeued it for retransmission
         self._account(tx)
         for node in self._receivers(tx.frame_id):
             if node is not tx.node or node.receive_own:
@@ -182,6 +195,30 @@ class CanBusModel:
         for listener in self.frame_listeners:
             listener(tx)
         return tx
+
+    def requeue(self, item: _Item) -> None:
+        """Put a destroyed frame back at its place in its node's queue (automatic retransmission)."""
+        item[4].queued += 1
+        if self._priority:
+            heapq.heappush(self._heap, item)
+        else:
+            item[4].fifo.appendleft(item)
+
+    def drop_queued(self, node: CanNode) -> int:
+        """Drop (and count) every frame a node has queued, e.g. when it goes bus-off; returns how many."""
+        lost = node.queued
+        if self._priority and lost:
+            self._heap = [item for item in self._heap if item[4] is not node]
+            heapq.heapify(self._heap)
+        node.fifo.clear()
+        node.queued = 0
+        node.dropped += lost
+        return lost
+
+    def refresh_receivers(self) -> None:
+        """Rebuild the receiver lists (a node went bus-off or recovered)."""
+        self._listeners.clear()
+        self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None and not n.bus_off]
 
     def pending(self) -> bool:
         return bool(self._heap) if self._priority else any(n.fifo for n in self.nodes)
@@ -206,6 +243,8 @@ class CanBusModel:
 
     def finish(self, t: int) -> None:
         """Close the load windows up to t and fold the nodes' drop counts into the log."""
+        if self.errors is not None:
+            self.errors.finish(t)
         self._close_windows(t, inclusive=True)
         self.log.frames_dropped = sum(n.dropped for n in self.nodes) + self._detached_dropped
 

@@ -27,11 +27,16 @@ class PlantCanNode:
         self.sensor_counter = [0] * layout.n_units  # alive counter = sample number of each unit's Sensor frames
         self.ref_counter = 0
         self.e2e_errors = 0
+        self.malformed_frames = 0  # TractionCmd frames of the wrong length
 
     def command(self, train: int, frame_id: int, data: bytes, t: float) -> int | None:
         """Apply a TractionCmd received on a train's bus at time t; the unit it drove, or None if rejected (logged)."""
         codec = self.db.by_id[frame_id]
         source = f"bus{train + 1}/plant"
+        if len(data) != codec.dlc:  # a foreign or broken node: counted and logged, never decoded
+            self.malformed_frames += 1
+            self.log.event(t, "WARN", source, f"{codec.name}: {len(data)} bytes, DLC is {codec.dlc}: frame ignored")
+            return None
         if not codec.crc_ok(data):
             self.e2e_errors += 1
             self.log.event(t, "WARN", source, f"{codec.name}: CRC error, frame ignored")
@@ -56,8 +61,8 @@ class PlantCanNode:
         return out
 
     def reference_frames(self, t: float) -> list[tuple[int, bytes]]:
-        """The wayside's Reference and ReferenceAux at time t (the same pair goes on every train bus)."""
-        x_r, v_r = self.reference.at(t)
+        """The wayside's Reference (x_r, v_r) and ReferenceAux (a_r) at time t (the same pair goes on every train bus)."""
+        x_r, v_r, a_r = self.reference.state(t)  # a_r = 0 for step profiles, the ramp's slope otherwise
         self.ref_counter = c = (self.ref_counter + 1) & 0xF
         ref, aux = self.db.reference, self.db.reference_aux
-        return [(ref.frame_id, ref.encode((x_r, v_r), c)), (aux.frame_id, aux.encode((0.0,), c))]
+        return [(ref.frame_id, ref.encode((x_r, v_r), c)), (aux.frame_id, aux.encode((a_r,), c))]

@@ -5,7 +5,8 @@ arrives. Times are integer nanoseconds (the virtual-time kernel's clock).
 
 Choices made here (and relied on by the tests):
 
-* Checks run in order range -> blackout -> rate cap -> loss; the first that fails names the
+* Checks run in order range -> blackout -> injected fault (``impairment``, hil/faults/radio.py: its drops
+  count as ``fault``, its delay adds to the latency) -> rate cap -> loss; the first that fails names the
   drop in ``stats``. A position of ``None`` means "not known yet" and never causes a drop.
 * Rate cap: a token bucket with burst 1 and one token every ``round(1e9 / rate_cap_hz)`` ns;
   a frame passes iff at least one period has elapsed since the last frame that took a token.
@@ -63,6 +64,7 @@ class RadioLink:
         self._u_step: list[float] = []
         self._u_loss: list[float] = []
         self._jit: list[int] = []
+        self.impairment = None  # hil.faults.radio.RadioImpairment: t_ns -> extra delay (ns), or None to drop
 
     def _check_blackouts(self, cfg: RadioConfig) -> tuple[tuple[float, float], ...]:
         for k, b in enumerate(cfg.blackouts):
@@ -137,13 +139,19 @@ class RadioLink:
         if self._blackouts and (self._in_blackout(sender_pos_m) or self._in_blackout(receiver_pos_m)):
             stats["blackout"] += 1
             return None
+        extra = 0
+        if self.impairment is not None:  # an injected fault (after range and tunnels: they are the physics)
+            extra = self.impairment(t_ns)
+            if extra is None:
+                stats["fault"] = stats.get("fault", 0) + 1
+                return None
         if not self._take_token(t_ns):
             stats["rate_capped"] += 1
             return None
         if lost:
             stats["lost"] += 1
             return None
-        deliver = t_ns + self._latency_ns + self._jit[k]
+        deliver = t_ns + self._latency_ns + self._jit[k] + extra
         if deliver < self._last_delivery_ns:
             deliver = self._last_delivery_ns  # no overtaking within one direction
         self._last_delivery_ns = deliver

@@ -12,6 +12,7 @@ miss and skips to its next future deadline. At exit it writes ``DIR/ecu_<train>_
 from __future__ import annotations
 
 import heapq
+import math
 import sys
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from hil.runtime.virtual import build_ecu
 def main(argv: list[str] | None = None) -> int:
     p = node_parser("python -m hil.realtime.ecu_node", "Run ECU firmware on the real-time rig's buses.")
     p.add_argument("--unit", type=int, action="append", required=True, help="flat unit index (repeatable)")
+    p.add_argument("--join-late", action="store_true", help="a restarted ECU: start at the first cycle after 'go'")
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
@@ -38,6 +40,11 @@ def main(argv: list[str] | None = None) -> int:
         if not 0 <= u < layout.n_units:
             raise SystemExit(f"--unit {u}: out of range 0..{layout.n_units - 1}")
     ecus = {u: build_ecu(parts, db, u) for u in args.unit}
+    if sc.faults or sc.ecu.restart_after_s is not None:  # diagnostics as in virtual time (hil/faults/virtual.py)
+        from ecu_sim.diagnostics import EcuDiagnostics, neighbour_names
+
+        for u, ecu in ecus.items():
+            ecu.monitors.append(EcuDiagnostics(ecu, sc.can.sensor_period_s, neighbour_names(layout, u), parts.plant_info))
     trains = sorted({layout.train_unit(u)[0] for u in ecus})
     buses, routes = [], []  # per bus: frame id -> the hosted ECUs that listen to it
     for train in trains:
@@ -50,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     bus_of = {u: trains.index(layout.train_unit(u)[0]) for u in ecus}
     try:
         clock = SimClock(handshake(stop), args.pace)
-        stats = run(clock, sc, layout, ecus, buses, routes, bus_of, args.duration, stop)
+        stats = run(clock, sc, layout, ecus, buses, routes, bus_of, args.duration, stop, args.join_late)
     finally:
         for b in buses:
             b.shutdown()
@@ -66,12 +73,20 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(clock: SimClock, sc, layout, ecus: dict, buses: list, routes: list, bus_of: dict, duration: float,
-        stop: StopFlag) -> dict[int, LatenessStats]:
-    """The paced loop: earliest deadline first over the hosted units."""
+        stop: StopFlag, join_late: bool = False) -> dict[int, LatenessStats]:
+    """The paced loop: earliest deadline first over the hosted units (``join_late``: from the first cycle after now).
+
+    With ``ecu.restart_after_s``, a unit whose controller stopped it (exception, NaN) is restarted in place after
+    that long, as the virtual rig's watchdog does."""
     cycle = sc.ecu.cycle_s
     stats = {u: LatenessStats(cycle, clock.pace) for u in ecus}
-    queue = [(sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s, u) for u in ecus]
+    start = clock.now() if join_late else 0.0
+    queue = []
+    for u in ecus:
+        phase = sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s
+        queue.append((phase + max(0, math.ceil((start - phase) / cycle)) * cycle, u))
     heapq.heapify(queue)
+    watchdog, stopped_at = sc.ecu.restart_after_s, {}
     extended = sc.can.extended_ids
 
     def on_msg(i: int, msg: can.Message) -> None:
@@ -90,6 +105,11 @@ def run(clock: SimClock, sc, layout, ecus: dict, buses: list, routes: list, bus_
         ecu = ecus[u]
         for frame_id, data in ecu.cycle(now):
             buses[bus_of[u]].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=extended))
+        if watchdog is not None and not ecu.alive:
+            if now - stopped_at.setdefault(u, now) >= watchdog:
+                del stopped_at[u]
+                ecu.restart()
+                ecu.events.append((now, "INFO", "restarted with a reset controller (watchdog, after a controller error)"))
         overrun = stats[u].add(now - deadline, deadline)
         stats[u].skipped += overrun
         heapq.heapreplace(queue, (deadline + (1 + overrun) * cycle, u))

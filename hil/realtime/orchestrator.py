@@ -256,8 +256,7 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
         raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
     from ecu_sim.codec import TrainDb
 
-    periods = {fid: codec.cycle_time_s for fid, codec in TrainDb.load().by_id.items()}
-    return RealtimeFaults(scenario, layout, servers, seed, periods)
+    return RealtimeFaults(scenario, layout, servers, seed, TrainDb.load())
 
 
 def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout):

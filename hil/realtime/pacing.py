@@ -92,15 +92,18 @@ class StopFlag:
 
     def __init__(self) -> None:
         self.event = threading.Event()
+        self.on_line: Callable[[str], None] | None = None  # other stdin lines (fault commands, hil/faults)
         signal.signal(signal.SIGTERM, lambda *_: self.event.set())
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def watch_stdin(self) -> None:
-        """Read further stdin lines in a daemon thread: "stop" or EOF sets the flag."""
+        """Read further stdin lines in a daemon thread: "stop" or EOF sets the flag; others go to ``on_line``."""
         def reader() -> None:
             for line in sys.stdin:
                 if line.strip() == "stop":
                     break
+                if self.on_line is not None:
+                    self.on_line(line.strip())
             self.event.set()
 
         threading.Thread(target=reader, name="stdin-watch", daemon=True).start()

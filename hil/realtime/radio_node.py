@@ -33,6 +33,12 @@ def main(argv: list[str] | None = None) -> int:
     set_timer_slack(1)
     sc, db = load_scenario_json(args.scenario_json), TrainDb.load()
     gateway = build_gateway(sc, db, random_streams(args.seed)["radio"])
+    faults = None
+    if sc.faults:  # radio faults arrive as "fault <k> start|end" lines (hil/faults/realtime.py)
+        from hil.faults.realtime import RadioNodeFaults
+
+        faults = RadioNodeFaults(sc, gateway, args.seed)
+        stop.on_line = faults.on_line
     ext = sc.can.extended_ids
     buses = []
     try:
@@ -52,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
             if queue:
                 wait = min(wait, clock.wall_until(queue[0][0] * 1e-9))
             drain(buses, on_msg, wait)  # returns as soon as a frame arrives: its delivery may be due first
+            if faults is not None:
+                faults.apply_pending()
             now_ns = clock.now() * 1e9
             while queue and queue[0][0] <= now_ns:
                 _, _, dst_bus, dst_id, payload = heapq.heappop(queue)

@@ -10,6 +10,10 @@ CAN deadlines are implicit (deadline = period): a frame misses its deadline when
 transmission) exceeds its ID's period, taken as the median interval between consecutive enqueues of that ID on
 that bus in this run (so it follows the scenario's cycle settings; with >= 50 % radio loss the period of forwarded
 frames is overestimated). Frames dropped from a full TX queue are not in the latency table: see frames_dropped.
+
+``safety`` is the safety supervisor's report (hil/record/safety.py): per verdict (gap below l_e, collision, coupler
+out of band, overspeed) whether it happened, and each violation with its time, place, worst value and cause.
+``faults`` (only when the scenario schedules faults) is hil/faults' injected-vs-detected report.
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from hil.record.runlog import BusLog, RunLog
+from hil.record.safety import safety_report
 
 KMH = 1.0 / 3.6
 LEVELS = ("INFO", "WARN", "ERROR")
@@ -42,6 +47,10 @@ def compute_metrics(log: RunLog, coupler_band: tuple[float, float], settle_band_
     out["radio"] = _counters(log.radio_stats)
     out["e2e"] = _counters(log.e2e)
     out["interrupted"] = bool(log.interrupted)
+    out["safety"] = safety_report(log, (lo, hi))  # each violation with its time and cause (hil/record/safety.py)
+    fault_report = getattr(log, "fault_report", None)  # set by hil.faults when the scenario schedules faults
+    if fault_report is not None:
+        out["faults"] = fault_report
     out["sim_time_s"] = _f(log.sim_time_s)
     out["wall_time_s"] = _f(log.wall_time_s)
     out["realtime_factor"] = _f(log.sim_time_s / log.wall_time_s) if log.wall_time_s > 0 else None

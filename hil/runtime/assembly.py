@@ -52,7 +52,8 @@ def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     seed = scenario.seed if seed is None else seed
     streams = random_streams(seed)
     layout = TrainLayout.from_config(scenario.trains)
-    x0 = layout.initial_positions(scenario.trains.head_positions_m)
+    given = scenario.trains.initial_unit_positions  # per-unit start (uneven couplers), else couplers at rest
+    x0 = np.array(given, dtype=float) if given is not None else layout.initial_positions(scenario.trains.head_positions_m)
     v0 = np.repeat(scenario.trains.initial_speeds_mps, layout.units_per_train).astype(float)
     plant = Plant(scenario.plant, scenario.track, layout, x0, v0, streams["plant"])
     info = plant_info(scenario)

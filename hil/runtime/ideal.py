@@ -47,11 +47,11 @@ class IdealLoop:
     def _control(self, t: float) -> None:
         plant, ref = self.parts.plant, self.parts.reference
         x, v = plant.x.tolist(), plant.v.tolist()
-        x_r, v_r = ref.at(t)
+        x_r, v_r, a_r = ref.state(t)
         commands = []
         for u, (view, nbrs) in enumerate(zip(self._views, self._neighbours)):
             view.t, view.x, view.v = t, x[u], v[u]
-            view.ref.x, view.ref.v, view.ref.a, view.ref.age_s, view.ref.valid = x_r, v_r, 0.0, 0.0, True
+            view.ref.x, view.ref.v, view.ref.a, view.ref.age_s, view.ref.valid = x_r, v_r, a_r, 0.0, True
             for nv, (q, _, _) in zip(view.neighbours, nbrs):
                 nv.x, nv.v, nv.a, nv.u = x[q], v[q], self._demanded[q], self._applied[q]
             commands.append(self.parts.controllers[u].step(view))

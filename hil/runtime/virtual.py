@@ -48,6 +48,11 @@ class VirtualRig:
             self._attach_ecu(u)
         self.gateway, self._gw_nodes = self._attach_radio()
         self._schedule()
+        self.faults = None  # the fault schedule, its injectors and monitors (hil/faults), if the scenario has one
+        if scenario.faults or scenario.ecu.restart_after_s is not None:
+            from hil.faults.virtual import VirtualFaults
+
+            self.faults = VirtualFaults(self)
 
     # ------------------------------------------------------------------ wiring
     def _make_bus(self, i: int) -> VirtualCanBus:
@@ -178,6 +183,8 @@ class VirtualRig:
         log.e2e = {ecu.name: ecu.e2e_summary() for ecu in self.ecus}
         log.sim_time_s = now * 1e-9
         log.wall_time_s = wall_s
+        if self.faults is not None:
+            self.faults.finish(log)
 
 
 # ---------------------------------------------------------------------- wiring shared with the real-time runtime
@@ -212,7 +219,9 @@ def build_gateway(sc: Scenario, db: TrainDb, radio_rng) -> RadioGateway:
     position_ids = {db.agent_state(k).frame_id for k in range(layout.units_per_train)}
 
     def position_of(frame_id: int, data: bytes) -> float | None:
-        return db.by_id[frame_id].decode(data)[0] if frame_id in position_ids else None
+        if frame_id not in position_ids or len(data) != db.by_id[frame_id].dlc:
+            return None  # not a position frame, or a malformed one (receivers count it)
+        return db.by_id[frame_id].decode(data)[0]
 
     return RadioGateway(routes, links, position_of)
 

@@ -6,9 +6,12 @@ scenario file is reported with its dotted path instead of being silently ignored
 """
 from __future__ import annotations
 
-from typing import Any, Literal
+import math
+from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
+
+from hil.scenario.checks import scenario_inconsistency, wrong_kind
 
 KMH = 1.0 / 3.6
 
@@ -16,7 +19,16 @@ KMH = 1.0 / 3.6
 class Section(BaseModel):
     """Base of every scenario section: strict about unknown keys, immutable once loaded."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN/inf: "a finite number"
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_lax_coercion(cls, value: Any, info: ValidationInfo) -> Any:
+        """A string, boolean or number of the wrong kind is an error, not coerced (``count = "3"``, ``enabled = "no"``)."""
+        why = wrong_kind(cls.model_fields[info.field_name].annotation, value) if info.field_name else None
+        if why is not None:
+            raise ValueError(why)
+        return value
 
 
 # --------------------------------------------------------------------------- trains
@@ -31,10 +43,16 @@ class TrainsConfig(Section):
     unit_length_m: float = Field(gt=0)
     rotating_mass_factor: float = Field(default=0.0, ge=0, le=0.5)
     head_positions_m: list[float] = Field(description="front-end position of each train's head unit")
+    unit_positions_m: list[list[float]] | None = Field(
+        default=None, description="optional front-end position of every unit, one list per train (head first); "
+        "replaces couplers at rest; each list's first value must equal the train's head_positions_m")
     speeds_mps: list[float] | None = None
     speeds_kmh: list[float] | None = None
     spacing_m: float = Field(gt=0, description="l_s: desired gap rear-of-train to front-of-next")
     emergency_gap_m: float = Field(gt=0, description="l_e: emergency-braking trigger gap")
+    reference_units: Literal["heads", "all"] = Field(
+        default="heads", description="units whose ECU receives the wayside reference: every train's head, or every unit "
+        "(seed 004: each car tracks its own x_r - offset)")
 
     @model_validator(mode="after")
     def _check(self) -> "TrainsConfig":
@@ -51,7 +69,36 @@ class TrainsConfig(Section):
             rear = pos[i - 1] - self.units * self.unit_length_m
             if pos[i] >= rear:
                 raise ValueError(f"train {i + 1} starts overlapping train {i} (head at {pos[i]} m, rear of train {i} at {rear} m)")
+        if self.unit_positions_m is not None:
+            self._check_unit_positions()
         return self
+
+    def _check_unit_positions(self) -> None:
+        """Per-unit start positions: one list per train, head first, consistent with head_positions_m, no overlaps."""
+        rows = self.unit_positions_m or []
+        if len(rows) != self.count:
+            raise ValueError(f"unit_positions_m has {len(rows)} lists, expected count = {self.count} (one per train)")
+        for i, row in enumerate(rows):
+            where = f"unit_positions_m[{i}]"
+            if len(row) != self.units:
+                raise ValueError(f"{where} has {len(row)} values, expected units = {self.units}")
+            if not all(math.isfinite(x) for x in row):
+                raise ValueError(f"{where} has a non-finite value: {row}")
+            if abs(row[0] - self.head_positions_m[i]) > 1e-9:
+                raise ValueError(f"{where}[0] = {row[0]} differs from head_positions_m[{i}] = {self.head_positions_m[i]}")
+            for j in range(1, len(row)):
+                if row[j] >= row[j - 1]:
+                    raise ValueError(f"{where}[{j}] = {row[j]} m is not behind unit {j} at {row[j - 1]} m (positions must decrease)")
+            if i > 0 and rows[i][0] >= rows[i - 1][-1] - self.unit_length_m:
+                raise ValueError(f"train {i + 1} starts overlapping train {i} (head at {rows[i][0]} m, "
+                                 f"rear of train {i} at {rows[i - 1][-1] - self.unit_length_m} m)")
+
+    @property
+    def initial_unit_positions(self) -> list[float] | None:
+        """Flat per-unit start positions (layout order), or None when couplers start at rest."""
+        if self.unit_positions_m is None:
+            return None
+        return [x for row in self.unit_positions_m for x in row]
 
     @property
     def initial_speeds_mps(self) -> list[float]:
@@ -83,21 +130,37 @@ class FailSafe(Section):
 
 
 class Disturbance(Section):
-    """An additive force on some units over a time window."""
+    """An additive force on some units over a time window, or (``channel = "position"``) an additive
+    speed on the position channel, dx/dt = v + d2 (seed 003's mismatched disturbance)."""
 
     kind: Literal["pulse", "step", "sine", "random"]
     train: int | None = Field(default=None, ge=1, description="1-based; omit for all trains")
     unit: int | None = Field(default=None, ge=1, description="1-based; omit for all units")
     start_s: float = Field(ge=0)
     end_s: float
-    amplitude_n: float
+    amplitude_n: float | None = Field(default=None, description="force channel: the force, N")
     frequency_hz: float = Field(default=0.0, ge=0, description="sine frequency")
     correlation_s: float = Field(default=1.0, gt=0, description="random: correlation time")
+    channel: Literal["force", "position"] = Field(
+        default="force", description="force: adds amplitude_n to the unit's forces (matched); "
+        "position: adds amplitude_mps to dx/dt only (mismatched: v is not changed)")
+    amplitude_mps: float | None = Field(default=None, description="position channel: the speed added to dx/dt, m/s")
+
+    @property
+    def amplitude(self) -> float:
+        """The amplitude in the channel's unit: N (force) or m/s (position)."""
+        value = self.amplitude_n if self.channel == "force" else self.amplitude_mps
+        return float(value)  # type: ignore[arg-type]
 
     @model_validator(mode="after")
     def _check(self) -> "Disturbance":
         if self.end_s <= self.start_s:
             raise ValueError(f"end_s ({self.end_s}) must be after start_s ({self.start_s})")
+        wanted, other = ("amplitude_n", "amplitude_mps") if self.channel == "force" else ("amplitude_mps", "amplitude_n")
+        if getattr(self, wanted) is None:
+            raise ValueError(f"a {self.channel}-channel disturbance needs {wanted}")
+        if getattr(self, other) is not None:
+            raise ValueError(f"{other} does not apply to a {self.channel}-channel disturbance (give {wanted})")
         if self.kind == "sine" and self.frequency_hz <= 0:
             raise ValueError("a sine disturbance needs frequency_hz > 0")
         return self
@@ -108,6 +171,128 @@ class SensorConfig(Section):
 
     position_noise_m: float = Field(default=0.0, ge=0)
     speed_noise_mps: float = Field(default=0.0, ge=0)
+
+
+class UnitValues(Section):
+    """One value per unit: an explicit list, or a uniform draw from a range (seeded by plant.units.seed).
+
+    ``values`` has one entry per unit of a train (repeated for every train) or one per unit of the
+    whole group (front to back). ``uniform = [lo, hi]`` draws every unit independently.
+    """
+
+    values: list[float] | None = None
+    uniform: tuple[float, float] | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> "UnitValues":
+        if (self.values is None) == (self.uniform is None):
+            raise ValueError("give exactly one of values or uniform")
+        if self.values is not None and not self.values:
+            raise ValueError("values is empty")
+        if self.uniform is not None and not self.uniform[0] <= self.uniform[1]:
+            raise ValueError(f"uniform = {list(self.uniform)} must be [lo, hi] with lo <= hi")
+        return self
+
+    def bounds(self) -> tuple[float, float]:
+        """Smallest and largest value this can give."""
+        if self.uniform is not None:
+            return self.uniform
+        return min(self.values or [0.0]), max(self.values or [0.0])
+
+
+def _check_range(where: str, uv: UnitValues | None, lo: float, hi: float, lo_open: bool = False) -> None:
+    """Every value of ``uv`` lies in [lo, hi] (or (lo, hi] with lo_open); the error names the field."""
+    if uv is None:
+        return
+    a, b = uv.bounds()
+    if not ((a > lo if lo_open else a >= lo) and b <= hi):
+        side = "(" if lo_open else "["
+        raise ValueError(f"{where}: values must lie in {side}{lo}, {hi}], got {a}..{b}")
+
+
+class UnitResistance(Section):
+    """Per-unit Davis resistance, replacing plant.davis_c0/c1/c2 for every unit.
+
+    ``form = "per_kg"``: c0 + c1 v + c2 v^2 in N/kg with v in m/s (the plant's own form).
+    ``form = "specific_kmh"``: the Chinese specific resistance w0 [N/kN] = 1e-2 a0 + 1e-4 a1 V + 1e-4 a2 V^2
+    with V in km/h, per kN of the unit's weight; converted to per kg with g = 9.81 (hil/plant/units.py).
+    """
+
+    form: Literal["per_kg", "specific_kmh"]
+    c0: UnitValues | None = None
+    c1: UnitValues | None = None
+    c2: UnitValues | None = None
+    a0: UnitValues | None = None
+    a1: UnitValues | None = None
+    a2: UnitValues | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> "UnitResistance":
+        mine, other = (("c0", "c1", "c2"), ("a0", "a1", "a2")) if self.form == "per_kg" else (("a0", "a1", "a2"), ("c0", "c1", "c2"))
+        missing = [k for k in mine if getattr(self, k) is None]
+        extra = [k for k in other if getattr(self, k) is not None]
+        if missing or extra:
+            raise ValueError(f"form = {self.form!r} takes {', '.join(mine)}" + (f"; missing {', '.join(missing)}" if missing else "")
+                             + (f"; {', '.join(extra)} belong to the other form" if extra else ""))
+        for k in mine:
+            _check_range(k, getattr(self, k), 0.0, float("inf"))
+        return self
+
+
+class UnitsConfig(Section):
+    """Per-unit masses, rotating-mass factors and resistance (off by default: every unit as in [trains]/[plant]).
+
+    Drawn values use their own seed (not the run's): every law and every run seed meet the same cars.
+    The values in effect are logged as a plant event at t = 0.
+    """
+
+    seed: int = Field(default=0, ge=0, description="seed of the uniform draws")
+    mass_kg: UnitValues | None = Field(default=None, description="physical mass per unit (overrides trains.unit_mass_kg)")
+    rotating_mass_factor: UnitValues | None = Field(default=None, description="overrides trains.rotating_mass_factor")
+    resistance: UnitResistance | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> "UnitsConfig":
+        _check_range("mass_kg", self.mass_kg, 0.0, float("inf"), lo_open=True)
+        _check_range("rotating_mass_factor", self.rotating_mass_factor, 0.0, 0.5)
+        return self
+
+
+class ActuatorConfig(Section):
+    """The actuator chain of every unit (off by default): applied = lambda (h rho Q(F) + nu), see hil/plant/actuators.py.
+
+    lambda: traction/brake distribution (share of the commanded force F the unit delivers); rho: actuator
+    slope; Q: the input nonlinearity (notch quantisation, |rho (Q(F) - F)| <= rho notch_step_n / 2);
+    h (health) and nu (fault offset) come from [[plant.actuator_faults]] or the plant's fault API.
+    """
+
+    distribution: UnitValues | None = Field(default=None, description="lambda per unit, default 1")
+    slope: UnitValues | None = Field(default=None, description="rho per unit, default 1")
+    notch_step_n: float = Field(default=0.0, ge=0, description="input nonlinearity: F realised in steps of this (N); 0 = off")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ActuatorConfig":
+        _check_range("distribution", self.distribution, 0.0, 1.0)
+        _check_range("slope", self.slope, 0.0, float("inf"), lo_open=True)
+        return self
+
+
+class ActuatorFault(Section):
+    """A partial actuator fault: from start_s the unit's health goes to ``health`` (linearly over ramp_s)
+    and a bounded offset ``offset_n`` (nu) is added. The ECU never sees it."""
+
+    train: int = Field(default=1, ge=1, description="1-based")
+    unit: int = Field(ge=1, description="1-based")
+    start_s: float = Field(ge=0)
+    health: float | None = Field(default=None, ge=0, le=1, description="h target (1 = healthy, 0 = no force)")
+    offset_n: float | None = Field(default=None, description="nu target, N (before the distribution share)")
+    ramp_s: float = Field(default=0.0, ge=0, description="linear change from the value at start_s; 0 = a step")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ActuatorFault":
+        if self.health is None and self.offset_n is None:
+            raise ValueError("give health, offset_n or both")
+        return self
 
 
 class PlantConfig(Section):
@@ -124,6 +309,25 @@ class PlantConfig(Section):
     failsafe: FailSafe = FailSafe()
     sensor: SensorConfig = SensorConfig()
     disturbances: list[Disturbance] = []
+    units: UnitsConfig = UnitsConfig()
+    actuator: ActuatorConfig = ActuatorConfig()
+    actuator_faults: list[ActuatorFault] = []
+
+    def check_units(self, count: int, units: int) -> None:
+        """Per-unit lists and fault units fit the train group (count trains x units); errors name the field."""
+        named = [("units.mass_kg", self.units.mass_kg), ("units.rotating_mass_factor", self.units.rotating_mass_factor),
+                 ("actuator.distribution", self.actuator.distribution), ("actuator.slope", self.actuator.slope)]
+        res = self.units.resistance
+        if res is not None:
+            named += [(f"units.resistance.{k}", getattr(res, k)) for k in ("c0", "c1", "c2", "a0", "a1", "a2")]
+        for where, uv in named:
+            if uv is not None and uv.values is not None and len(uv.values) not in (units, count * units):
+                raise ValueError(f"plant.{where}.values has {len(uv.values)} values: give one per unit of a train ({units}) "
+                                 f"or one per unit of the group ({count * units})")
+        for i, f in enumerate(self.actuator_faults):
+            if f.train > count or f.unit > units:
+                raise ValueError(f"plant.actuator_faults[{i}]: train {f.train} unit {f.unit} does not exist "
+                                 f"({count} train(s) of {units} units)")
 
 
 # --------------------------------------------------------------------------- track & reference
@@ -154,11 +358,15 @@ class SpeedSegment(Section):
     end: float
     speed_mps: float | None = None
     speed_kmh: float | None = None
+    to_speed_mps: float | None = Field(default=None, description="time profiles only: v_r ramps linearly from speed to this over [start, end)")
+    to_speed_kmh: float | None = None
 
     @model_validator(mode="after")
     def _check(self) -> "SpeedSegment":
         if (self.speed_mps is None) == (self.speed_kmh is None):
             raise ValueError("give exactly one of speed_mps or speed_kmh")
+        if self.to_speed_mps is not None and self.to_speed_kmh is not None:
+            raise ValueError("give at most one of to_speed_mps or to_speed_kmh")
         if self.end <= self.start:
             raise ValueError(f"end ({self.end}) must be after start ({self.start})")
         return self
@@ -166,6 +374,17 @@ class SpeedSegment(Section):
     @property
     def speed(self) -> float:
         return self.speed_mps if self.speed_mps is not None else self.speed_kmh * KMH  # type: ignore[operator]
+
+    @property
+    def is_ramp(self) -> bool:
+        return self.to_speed_mps is not None or self.to_speed_kmh is not None
+
+    @property
+    def to_speed(self) -> float:
+        """Speed at the segment's end: the ramp's target, or ``speed`` for a constant segment."""
+        if self.to_speed_mps is not None:
+            return self.to_speed_mps
+        return self.to_speed_kmh * KMH if self.to_speed_kmh is not None else self.speed
 
 
 class ReferenceConfig(Section):
@@ -184,6 +403,9 @@ class ReferenceConfig(Section):
                 raise ValueError(f"segments must be contiguous: one ends at {a.end}, the next starts at {b.start}")
         if self.by == "position" and not (segs[0].start <= self.x0_m < segs[-1].end):
             raise ValueError(f"x0_m = {self.x0_m} lies outside the segments [{segs[0].start}, {segs[-1].end})")
+        for i, seg in enumerate(segs):
+            if seg.is_ramp and self.by != "time":
+                raise ValueError(f"segments[{i}]: a speed ramp (to_speed_*) needs by = \"time\"")
         return self
 
 
@@ -204,6 +426,9 @@ class EcuConfig(Section):
     neighbour_timeout_s: float = Field(default=0.1, gt=0, description="older neighbour data is dropped")
     reference_timeout_s: float = Field(default=0.5, gt=0, description="older reference -> service brake")
     radio_contact_timeout_s: float = Field(default=2.0, gt=0, description="lost train ahead this long -> emergency brake")
+    restart_after_s: float | None = Field(default=None, gt=0, description="watchdog: an ECU that stopped (crash, "
+                                          "controller error, hang) restarts with a reset controller after this long; "
+                                          "omit: it stays down (hil/faults)")
 
 
 # --------------------------------------------------------------------------- networks
@@ -279,6 +504,15 @@ class Scenario(Section):
     can: CanConfig = CanConfig()
     radio: RadioConfig = RadioConfig()
     recording: RecordingConfig = RecordingConfig()
+    faults: list[Fault] = Field(default=[], description="fault schedule (hil/faults): [[faults]] tables")
+
+    @model_validator(mode="after")
+    def _faults_fit_the_group(self) -> "Scenario":
+        """Every fault names a train, unit, radio pair and frame ID that exist (errors name faults.<i>.<field>)."""
+        why = fault_target_error(self)
+        if why is not None:
+            raise ValueError(why)
+        return self
 
     @model_validator(mode="after")
     def _periods_fit_the_plant_step(self) -> "Scenario":
@@ -289,3 +523,205 @@ class Scenario(Section):
             if round(value * 1e9) % step:
                 raise ValueError(f"{field} = {value} must be a whole multiple of plant.step_s = {self.plant.step_s}")
         return self
+
+    @model_validator(mode="after")
+    def _units_fit_the_trains(self) -> "Scenario":
+        """Per-unit plant lists and actuator faults name units that exist."""
+        self.plant.check_units(self.trains.count, self.trains.units)
+        return self
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "Scenario":
+        """Cross-section rules (``hil.scenario.checks``): each error names its dotted field."""
+        why = scenario_inconsistency(self)
+        if why is not None:
+            raise ValueError(why)
+        return self
+
+
+# --------------------------------------------------------------------------- fault schedule (hil/faults)
+
+
+class FaultTrigger(Section):
+    """When a fault starts and how long it lasts: at a time, or when a train's head reaches a position."""
+
+    at_s: float | None = Field(default=None, ge=0, description="time trigger (simulated s)")
+    at_position_m: float | None = Field(default=None, description="position trigger: the head of trigger_train reaches it")
+    trigger_train: int | None = Field(default=None, ge=1, description="1-based; default: the fault's train (else train 1)")
+    duration_s: float | None = Field(default=None, gt=0, description="omit: to the end of the run")
+
+    @model_validator(mode="after")
+    def _one_trigger(self) -> "FaultTrigger":
+        if (self.at_s is None) == (self.at_position_m is None):
+            raise ValueError("give exactly one of at_s or at_position_m")
+        if self.trigger_train is not None and self.at_position_m is None:
+            raise ValueError("trigger_train only goes with at_position_m")
+        return self
+
+
+class UnitFault(FaultTrigger):
+    train: int = Field(ge=1, description="1-based")
+    unit: int = Field(ge=1, description="1-based, head = 1")
+
+
+class EcuCrashFault(UnitFault):
+    """The ECU stops dead and leaves the bus (its queued frames are lost). It restarts with a reset controller
+    after ``duration_s``; without one, after ``ecu.restart_after_s`` (watchdog) if set, else never."""
+
+    kind: Literal["ecu_crash"]
+
+
+class EcuHangFault(UnitFault):
+    """The ECU stops sending but stays connected (it still receives). It resumes after ``duration_s`` where it
+    stopped; ``ecu.restart_after_s`` shorter than the hang restarts it (reset) instead."""
+
+    kind: Literal["ecu_hang"]
+
+
+class SensorStuckFault(UnitFault):
+    """The unit's speed and position sensors freeze at their last value (frames keep coming, counters advance)."""
+
+    kind: Literal["sensor_stuck"]
+
+
+class SensorNoiseFault(UnitFault):
+    """Gaussian noise added to the unit's sensor values (on top of plant.sensor)."""
+
+    kind: Literal["sensor_noise"]
+    position_noise_m: float = Field(default=0.0, ge=0)
+    speed_noise_mps: float = Field(default=0.0, ge=0)
+
+    @model_validator(mode="after")
+    def _some_noise(self) -> "SensorNoiseFault":
+        if self.position_noise_m == 0 and self.speed_noise_mps == 0:
+            raise ValueError("give position_noise_m or speed_noise_mps > 0")
+        return self
+
+
+class BusFault(FaultTrigger):
+    train: int = Field(ge=1, description="1-based: the bus of this train")
+
+
+class BabblingNodeFault(BusFault):
+    """A node floods the bus with one high-priority frame, back to back (a babbling idiot)."""
+
+    kind: Literal["babbling_node"]
+    frame_id: int = Field(default=0x000, ge=0, le=0x7FF, description="11-bit ID it babbles (0 = top priority)")
+    dlc: int = Field(default=8, ge=0, le=8)
+
+
+class FrameSelection(BusFault):
+    """Which frames of the bus a fault hits: each with ``probability``, only ``frame_ids`` if given, at most ``count``."""
+
+    probability: float = Field(default=1.0, gt=0, le=1)
+    frame_ids: list[int] | None = Field(default=None, description="11-bit IDs; omit: every frame")
+    count: int | None = Field(default=None, ge=1, description="stop after this many frames hit")
+
+
+class BusCorruptionFault(FrameSelection):
+    """Bits flipped on the wire as the receivers sample them: they reject the frame (stuff, CRC or form error),
+    send an error frame, count it (REC), and the sender counts it (TEC) and retransmits (hil/can/errors.py)."""
+
+    kind: Literal["bus_corruption"]
+    bits: int = Field(default=1, ge=1, le=16, description="bits flipped per corrupted frame")
+
+
+class BusErrorFramesFault(FrameSelection):
+    """A faulty transceiver destroys frames with an error flag at a random bit: every node sees the error."""
+
+    kind: Literal["bus_error_frames"]
+
+
+class FrameDropFault(FrameSelection):
+    """Frames vanish from their sender's TX queue before transmission (receivers see a counter gap)."""
+
+    kind: Literal["frame_drop"]
+
+
+class RadioFault(FaultTrigger):
+    pair: int | None = Field(default=None, ge=1, description="the link of trains pair and pair+1 (both ways); omit: all")
+
+
+class RadioBlackoutFault(RadioFault):
+    """Nothing passes the radio (a time-triggered tunnel)."""
+
+    kind: Literal["radio_blackout"]
+
+
+class RadioBurstLossFault(RadioFault):
+    """Each frame offered to the radio is lost with ``probability`` (on top of radio.loss)."""
+
+    kind: Literal["radio_burst_loss"]
+    probability: float = Field(default=0.5, gt=0, le=1)
+
+
+class RadioLatencyFault(RadioFault):
+    """Extra latency on every frame (frames are never reordered)."""
+
+    kind: Literal["radio_latency"]
+    latency_s: float = Field(gt=0)
+
+
+class ActuatorDegradationFault(UnitFault):
+    """The unit's actuator delivers ``health`` times the force it should (the plant's health factor)."""
+
+    kind: Literal["actuator_degradation"]
+    health: float = Field(ge=0, lt=1)
+
+
+class TractionLossFault(UnitFault):
+    """The unit delivers no traction or brake force at all (health 0)."""
+
+    kind: Literal["traction_loss"]
+
+
+FAULT_MODELS: dict[str, type[FaultTrigger]] = {
+    "ecu_crash": EcuCrashFault, "ecu_hang": EcuHangFault, "sensor_stuck": SensorStuckFault,
+    "sensor_noise": SensorNoiseFault, "babbling_node": BabblingNodeFault, "bus_corruption": BusCorruptionFault,
+    "bus_error_frames": BusErrorFramesFault, "frame_drop": FrameDropFault, "radio_blackout": RadioBlackoutFault,
+    "radio_burst_loss": RadioBurstLossFault, "radio_latency": RadioLatencyFault,
+    "actuator_degradation": ActuatorDegradationFault, "traction_loss": TractionLossFault,
+}
+FAULT_KINDS = tuple(FAULT_MODELS)
+
+
+def _fault_kind(value: Any) -> str | None:
+    """The ``kind`` tag of a fault table (None: missing or unknown, which pydantic reports with the known kinds)."""
+    kind = value.get("kind") if isinstance(value, dict) else getattr(value, "kind", None)
+    return kind if kind in FAULT_MODELS else None
+
+
+# A callable discriminator: Section's mode="before" validator rules out pydantic's field-based one.
+Fault = Annotated[
+    Union[tuple(Annotated[model, Tag(kind)] for kind, model in FAULT_MODELS.items())],  # type: ignore[valid-type]
+    Discriminator(_fault_kind, custom_error_type="fault_kind",
+                  custom_error_message=f"kind must be one of: {', '.join(FAULT_KINDS)}"),
+]
+
+
+def fault_target_error(sc: "Scenario") -> str | None:
+    """The first fault that names something the scenario does not have (train, unit, radio pair, ID), or None."""
+    count, units, ext = sc.trains.count, sc.trains.units, sc.can.extended_ids
+    for i, f in enumerate(sc.faults):
+        where = f"faults.{i}"
+        train = getattr(f, "train", None)
+        if train is not None and train > count:
+            return f"{where}.train = {train}: there are only {count} trains (trains.count)"
+        unit = getattr(f, "unit", None)
+        if unit is not None and unit > units:
+            return f"{where}.unit = {unit}: a train has only {units} units (trains.units)"
+        if f.trigger_train is not None and f.trigger_train > count:
+            return f"{where}.trigger_train = {f.trigger_train}: there are only {count} trains (trains.count)"
+        pair = getattr(f, "pair", None)
+        if pair is not None and pair >= count:
+            return f"{where}.pair = {pair}: the radio pairs are 1..{count - 1} (train pair and pair+1)"
+        if isinstance(f, RadioFault) and count < 2:
+            return f"{where}: a radio fault needs at least 2 trains (trains.count = {count})"
+        limit = (1 << 29) if ext else (1 << 11)
+        for fid in getattr(f, "frame_ids", None) or []:
+            if not 0 <= fid < limit:
+                return f"{where}.frame_ids: {fid:#x} is not a {'29' if ext else '11'}-bit CAN ID"
+    return None
+
+
+Scenario.model_rebuild()

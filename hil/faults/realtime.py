@@ -1,0 +1,271 @@
+"""The fault schedule of a real-time run: who triggers, who injects, and how it comes back together.
+
+* The plant node owns the schedule's clock (``PlantFaults``): it knows the positions, so it resolves time and
+  position triggers alike, at every publication. It logs each start and end (source ``faults``), injects the
+  faults that live in the plant (stuck/noisy sensors, actuator health) itself, and announces the others on its
+  stdout (``fault <k> start|end <t>``).
+* The orchestrator (``RealtimeFaults``) reads those lines and acts: an ECU crash is the ECU's process killed
+  (SIGKILL), a hang is SIGSTOP and SIGCONT, a restart is a new process for the unit that joins the running rig
+  (a reset controller); bus faults go to the bus servers' models (``hil.faults.bus.BusFaults``, under each
+  server's lock); radio faults go to the radio node's stdin (``RadioNodeFaults``). Units with an ECU fault get
+  their own process. The watchdog (``ecu.restart_after_s``) restarts crashed and hung ECU processes;
+  controller errors are restarted inside the ECU process (``hil.realtime.ecu_node``).
+* At the end, the bus servers' events are moved to simulated time, detections are matched (``report``), the
+  safety violations are added to the timeline and ``log.fault_report`` is left for the metrics, as in virtual
+  time.
+
+A restarted ECU process needs its imports (1-3 s on a loaded 2-core machine) before it is back: the down time
+of a crash in real time is its duration plus that boot time, logged when the new process joins.
+"""
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from hil.faults.actuator import ActuatorFaults
+from hil.faults.bus import BusFaults, e2e_checker
+from hil.faults.radio import RadioFaults
+from hil.faults.report import fault_report
+from hil.faults.schedule import SOURCE, FaultSchedule, fault_rng
+from hil.faults.sensor import SensorFaults
+from hil.faults.virtual import BUS_KINDS, RADIO_KINDS
+from hil.record.runlog import Event, RunLog
+from hil.record.safety import violation_events
+
+ECU_KINDS = ("ecu_crash", "ecu_hang")
+PLANT_KINDS = ("sensor_stuck", "sensor_noise", "actuator_degradation", "traction_loss")
+
+
+def wanted(scenario) -> bool:
+    """Whether a run needs the fault machinery (a schedule, or the restart policy)."""
+    return bool(scenario.faults) or scenario.ecu.restart_after_s is not None
+
+
+# --------------------------------------------------------------------------- plant node
+
+
+class PlantFaults:
+    """In the plant node: the schedule's clock, plant-side injection, announcements to the orchestrator."""
+
+    def __init__(self, scenario, plant, layout, seed: int, log: RunLog, announce=None) -> None:
+        self.schedule = FaultSchedule(scenario, layout)
+        self.log = log
+        self.sensors = SensorFaults(plant, layout, fault_rng(seed, 2000))
+        self.actuators = ActuatorFaults(plant, layout)
+        self._announce = announce or (lambda line: print(line, flush=True))
+
+    def poll(self, t: float, x) -> None:
+        for f, what in self.schedule.poll(t, x):
+            spec = f.spec
+            if what == "start":
+                self.log.event(t, "WARN", SOURCE, self.schedule.start_text(f))
+            else:
+                self.log.event(t, "INFO", SOURCE, f"{f.label}: over after {t - f.start_s:.3f} s")
+            if spec.kind in ("sensor_stuck", "sensor_noise"):
+                (self.sensors.start if what == "start" else self.sensors.end)(spec)
+            elif spec.kind in ("actuator_degradation", "traction_loss"):
+                (self.actuators.start if what == "start" else self.actuators.end)(spec, t)
+            else:
+                self._announce(f"fault {f.index} {what} {t!r}")
+
+
+# --------------------------------------------------------------------------- radio node
+
+
+class RadioNodeFaults:
+    """In the radio node: fault lines from stdin (any thread) queued, applied by the node's loop."""
+
+    def __init__(self, scenario, gateway, seed: int) -> None:
+        self.specs = list(scenario.faults)
+        self.radio = RadioFaults(gateway.links, scenario.trains.count, fault_rng(seed, 3000))
+        self.lines: queue.Queue[str] = queue.Queue()
+
+    def on_line(self, line: str) -> None:
+        if line.startswith("fault "):
+            self.lines.put(line)
+
+    def apply_pending(self) -> None:
+        while not self.lines.empty():
+            _, k, what, *_ = self.lines.get().split()
+            spec = self.specs[int(k)]
+            (self.radio.start if what == "start" else self.radio.end)(spec, int(k))
+
+
+# --------------------------------------------------------------------------- orchestrator
+
+
+class RealtimeFaults:
+    """In the orchestrator: bus faults on the servers, ECU processes killed, stopped and restarted."""
+
+    def __init__(self, scenario, layout, servers: list, seed: int, db) -> None:
+        self.sc, self.layout, self.seed = scenario, layout, seed
+        self.specs = list(scenario.faults)
+        self.restart_after_s = scenario.ecu.restart_after_s
+        self.solo_units = {layout.index(s.train - 1, s.unit - 1) for s in self.specs if s.kind in ECU_KINDS}
+        self.servers = servers
+        periods = {fid: codec.cycle_time_s for fid, codec in db.by_id.items()}
+        ok = e2e_checker(db)
+        self.bus_events: list[list] = [[] for _ in servers]  # (model t_ns, level, source, text) per server
+        self.buses: list[BusFaults] = []
+        for i, server in enumerate(servers):
+            def sink(what: str, i: int = i):
+                return lambda t_ns, level, text: self.bus_events[i].append((t_ns, level, f"bus{i + 1}/{what}", text))
+            self.buses.append(server.apply(lambda model, now, i=i: BusFaults(model, i, seed, periods, sink("can"),
+                                                                               sink("guardian"), e2e_ok=ok)))
+        self.events: list[Event] = []
+        self.nodes: list = []
+        self.spawn = None
+        self.t0 = 0.0
+        self.pace = 1.0
+        self._hung: dict[int, object] = {}  # unit -> its stopped node
+        self._down: dict[int, str] = {}  # unit -> "crash" | "hang"
+        self._timers: list[tuple[float, int, str]] = []  # (sim time, unit, why): watchdog restarts
+        self._pending: list[tuple[object, int, float]] = []  # (new node, unit, sim time asked) not yet ready
+        self.restarts = 0
+
+    def go(self, t0: float, pace: float, nodes: list, spawn) -> None:
+        """The run started: ``nodes`` is the orchestrator's live list, ``spawn(unit)`` starts a late-joining ECU."""
+        self.t0, self.pace, self.nodes, self.spawn = t0, pace, nodes, spawn
+
+    def _node(self, kind: str, name: str | None = None):
+        return next((n for n in self.nodes if n.kind == kind and (name is None or n.name == name)
+                     and n.proc.poll() is None), None)
+
+    def _unit_name(self, u: int) -> str:
+        train, unit = self.layout.train_unit(u)
+        return f"train{train + 1}/unit{unit + 1}"
+
+    def _event(self, t: float, level: str, text: str) -> None:
+        self.events.append(Event(t, level, "rig", text))
+
+    # ---- called by the supervising loop
+    def tick(self, sim_now: float) -> None:
+        plant = self._node("plant")
+        if plant is not None:
+            while not plant.lines.empty():
+                line = plant.lines.get()
+                if line.startswith("fault "):
+                    _, k, what, t = line.split()
+                    self._dispatch(int(k), what, sim_now)
+        for item in list(self._timers):
+            if item[0] <= sim_now:
+                self._timers.remove(item)
+                _, u, why = item
+                if self._down.get(u) == why:
+                    self._restart(u, sim_now, "watchdog")
+        for item in list(self._pending):
+            node, u, asked = item
+            while not node.lines.empty():
+                if node.lines.get() == "ready":
+                    node.ready = True
+            if node.ready:
+                self._pending.remove(item)
+                node.tell(f"go {self.t0!r}")
+                self._event(sim_now, "INFO", f"ECU process {node.name} restarted (a new process, reset controller), "
+                                             f"{sim_now - asked:.2f} s after the restart was asked")
+
+    def _dispatch(self, k: int, what: str, sim_now: float) -> None:
+        spec = self.specs[k]
+        kind = spec.kind
+        if kind in ECU_KINDS:
+            u = self.layout.index(spec.train - 1, spec.unit - 1)
+            if what == "start":
+                (self._crash if kind == "ecu_crash" else self._hang)(u, spec, sim_now)
+            elif self._down.get(u) == ("crash" if kind == "ecu_crash" else "hang"):
+                if kind == "ecu_crash":
+                    self._restart(u, sim_now, "the crash ended")
+                else:
+                    self._continue(u, sim_now)
+        elif kind in BUS_KINDS:
+            server, bf = self.servers[spec.train - 1], self.buses[spec.train - 1]
+            if what == "start":
+                server.apply(lambda model, now: bf.start(spec, k, now))
+            else:
+                server.apply(lambda model, now: bf.end(spec, k))
+        elif kind in RADIO_KINDS:
+            radio = self._node("radio")
+            if radio is not None:
+                radio.tell(f"fault {k} {what}")
+
+    def _crash(self, u: int, spec, t: float) -> None:
+        node = self._node("ecu", self._unit_name(u))
+        if node is None:
+            return
+        node.reported = True  # not an unexpected exit: we killed it
+        if u in self._hung:
+            del self._hung[u]
+        node.proc.kill()
+        self._down[u] = "crash"
+        self._event(t, "WARN", f"ECU process {node.name} killed (SIGKILL): crash")
+        if spec.duration_s is None and self.restart_after_s is not None:
+            self._timers.append((t + self.restart_after_s, u, "crash"))
+
+    def _hang(self, u: int, spec, t: float) -> None:
+        node = self._node("ecu", self._unit_name(u))
+        if node is None:
+            return
+        os.kill(node.proc.pid, signal.SIGSTOP)
+        self._hung[u] = node
+        self._down[u] = "hang"
+        self._event(t, "WARN", f"ECU process {node.name} stopped (SIGSTOP): hang, still connected")
+        w = self.restart_after_s
+        if w is not None and (spec.duration_s is None or w < spec.duration_s):
+            self._timers.append((t + w, u, "hang"))
+
+    def _continue(self, u: int, t: float) -> None:
+        node = self._hung.pop(u, None)
+        self._down.pop(u, None)
+        if node is not None and node.proc.poll() is None:
+            os.kill(node.proc.pid, signal.SIGCONT)
+            self._event(t, "INFO", f"ECU process {node.name} continued (SIGCONT): the hang is over, no reset")
+
+    def _restart(self, u: int, t: float, by: str) -> None:
+        why = self._down.pop(u, None)
+        old = self._hung.pop(u, None)
+        if old is not None and old.proc.poll() is None:  # a hung process is replaced by the watchdog
+            old.reported = True
+            old.proc.kill()
+        node = self.spawn(u)
+        self.nodes.append(node)
+        self._pending.append((node, u, t))
+        self.restarts += 1
+        self._event(t, "INFO", f"ECU process {self._unit_name(u)}: restart asked ({by}, after a {why})")
+
+    def release(self) -> None:
+        """Before the nodes are told to stop: a stopped (hung) process must run again to hear it."""
+        for node in self._hung.values():
+            if node.proc.poll() is None:
+                os.kill(node.proc.pid, signal.SIGCONT)
+        self._hung.clear()
+
+    # ---- the end
+    def finish(self, log: RunLog, t0: float | None, pace: float) -> None:
+        """Bus events in simulated time, detections matched, violations on the timeline, ``log.fault_report``."""
+        for server, events in zip(self.servers, self.bus_events):
+            shift = 0.0 if t0 is None else (t0 - server.epoch0) * pace
+            log.events.extend(Event(t_ns * 1e-9 - shift, level, source, text) for t_ns, level, source, text in events)
+        log.events.extend(self.events)
+        log.events.sort(key=lambda e: e.t)
+        can = {f"bus{i + 1}": bf.summary() for i, bf in enumerate(self.buses)}
+        log.fault_report = fault_report(self.specs, self.layout, log, can, {"ecu_restarts": self.restarts})  # type: ignore[attr-defined]
+        log.events.extend(violation_events(log, self.sc.plant.coupler_band_m))
+        log.events.sort(key=lambda e: e.t)
+
+
+def spawn_ecu(node_cls, run: str, nodes_dir: Path, seed: int, duration: float, pace: float, u: int, name: str,
+              serial: int):
+    """A late-joining ECU process for unit ``u`` (``--join-late``): the orchestrator's node command line."""
+    argv = [sys.executable, "-m", "hil.realtime.ecu_node", "--run", run, "--scenario-json", str(nodes_dir / "scenario.json"),
+            "--seed", str(seed), "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir),
+            "--unit", str(u), "--join-late"]
+    err = nodes_dir / f"ecu_restart_{serial}.stderr"
+    with open(err, "w") as fh:
+        proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=fh, text=True, bufsize=1,
+                                start_new_session=True)
+    node = node_cls(name, "ecu", proc, err)
+    node.start_reader()
+    return node
