@@ -9,10 +9,8 @@ the wrong length instead of decoding them.
 from __future__ import annotations
 
 import logging
-import shutil
 import socket
 import struct
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,14 +23,6 @@ from hil.realtime.busserver import BusServer
 from hil.realtime.pycan_bus import TrainhilBus
 
 DATA = bytes(range(1, 9))
-
-
-@pytest.fixture
-def rt(monkeypatch):
-    d = tempfile.mkdtemp(prefix="th", dir="/tmp")
-    monkeypatch.setenv("XDG_RUNTIME_DIR", d)
-    yield Path(d)
-    shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture

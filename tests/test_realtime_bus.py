@@ -10,7 +10,6 @@ import asyncio
 import importlib.metadata
 import json
 import os
-import shutil
 import signal
 import socket
 import stat
@@ -40,15 +39,6 @@ NEEDS_ENTRY_POINT = pytest.mark.skipif(
     not ENTRY_POINT_INSTALLED,
     reason="the can.interface entry point 'trainhil' is not installed yet (add it to pyproject.toml and "
            "`pip install -e .`)")
-
-
-@pytest.fixture
-def rt(monkeypatch):
-    """A short private runtime root (unix socket paths are limited to 107 bytes)."""
-    d = tempfile.mkdtemp(prefix="th", dir="/tmp")
-    monkeypatch.setenv("XDG_RUNTIME_DIR", d)
-    yield Path(d)
-    shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture

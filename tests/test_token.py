@@ -7,10 +7,8 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import socket
 import stat
-import tempfile
 import time
 from pathlib import Path
 
@@ -22,14 +20,6 @@ from hil.realtime.busserver import BusServer
 from hil.realtime.pycan_bus import TrainhilBus
 
 DATA = bytes(range(8))
-
-
-@pytest.fixture
-def rt(monkeypatch):
-    d = tempfile.mkdtemp(prefix="th", dir="/tmp")
-    monkeypatch.setenv("XDG_RUNTIME_DIR", d)
-    yield Path(d)
-    shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture

@@ -39,7 +39,7 @@ from enum import IntEnum
 import numpy as np
 
 from hil.can.bus import CanBusModel, CanNode, Transmission, _Item
-from hil.can.frame import _bits_of, _crc15_bitwise, _stuff
+from hil.can.frame import _crc15_bitwise, stuffed_bits
 
 ERROR_PASSIVE_AT = 128
 BUS_OFF_ABOVE = 255
@@ -125,15 +125,7 @@ class ErrorCounters:
 def wire_bits(can_id: int, data: bytes, extended: bool = False) -> list[int]:
     """A data frame as sent, SOF to the end of EOF: stuffed SOF..CRC, CRC delimiter, ACK slot (dominant, as the
     receivers drive it), ACK delimiter, 7 EOF bits. ``len - 10`` is the index of the ACK delimiter."""
-    dlc = len(data)
-    if extended:
-        head = [0] + _bits_of(can_id >> 18, 11) + [1, 1] + _bits_of(can_id & 0x3FFFF, 18) + [0, 0, 0]
-    else:
-        head = [0] + _bits_of(can_id, 11) + [0, 0, 0]
-    head += _bits_of(dlc, 4)
-    for byte in data:
-        head += _bits_of(byte, 8)
-    return _stuff(head + _bits_of(_crc15_bitwise(head), 15)) + [1, 0, 1] + [1] * 7
+    return stuffed_bits(can_id, data, extended) + [1, 0, 1] + [1] * 7
 
 
 @dataclass(frozen=True)

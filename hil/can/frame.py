@@ -188,18 +188,22 @@ def _stuff(bits: list[int]) -> list[int]:
     return out
 
 
-def frame_bits_reference(can_id: int, data: bytes, extended: bool = False) -> int:
-    """Bit-by-bit reference for `frame_bits`: build the frame, stuff it, count the bits."""
-    _validate(can_id, data, extended)
-    dlc = len(data)
+def stuffed_bits(can_id: int, data: bytes, extended: bool = False) -> list[int]:
+    """The stuffed part of a data frame as sent, SOF through the CRC sequence, bit by bit (0 = dominant)."""
     if extended:
         head = [0] + _bits_of(can_id >> 18, 11) + [1, 1] + _bits_of(can_id & 0x3FFFF, 18) + [0, 0, 0]
     else:
         head = [0] + _bits_of(can_id, 11) + [0, 0, 0]
-    head += _bits_of(dlc, 4)
+    head += _bits_of(len(data), 4)
     for byte in data:
         head += _bits_of(byte, 8)
-    stuffed = _stuff(head + _bits_of(_crc15_bitwise(head), 15))
+    return _stuff(head + _bits_of(_crc15_bitwise(head), 15))
+
+
+def frame_bits_reference(can_id: int, data: bytes, extended: bool = False) -> int:
+    """Bit-by-bit reference for `frame_bits`: build the frame, stuff it, count the bits."""
+    _validate(can_id, data, extended)
+    stuffed = stuffed_bits(can_id, data, extended)
     trailer = [1] + [0] + [1] + [1] * 7 + [1] * 3  # CRC delim, ACK (acknowledged), ACK delim, EOF, IFS
     return len(stuffed) + len(trailer)
 
