@@ -6,6 +6,11 @@ window (the names only describe the intent: short bump vs sustained load). ``ran
 Ornstein-Uhlenbeck force per selected unit with stationary standard deviation ``amplitude_n`` and
 correlation time ``correlation_s``, discretised exactly at the plant step and drawn from the
 plant's generator, so a seeded run is reproducible.
+
+``channel = "position"`` disturbances (seed 003's mismatched d2, in m/s) are kept apart: :meth:`add`
+never sees them, :meth:`add_position` sums them into a speed the plant adds to dx/dt only (the
+step's position gains d2 dt after the exact linear step; v is unchanged). With none configured the
+force path and its random draws are exactly as before.
 """
 from __future__ import annotations
 
@@ -38,10 +43,11 @@ class _Active:
     def __init__(self, d: Disturbance, mask: np.ndarray, dt: float) -> None:
         self.kind, self.start, self.end = d.kind, d.start_s, d.end_s
         self.mask = mask
-        self.const = d.amplitude_n * mask  # pulse / step force vector
-        self.amplitude, self.omega = d.amplitude_n, 2.0 * math.pi * d.frequency_hz
+        amplitude = d.amplitude  # N (force channel) or m/s (position channel)
+        self.const = amplitude * mask  # pulse / step vector
+        self.amplitude, self.omega = amplitude, 2.0 * math.pi * d.frequency_hz
         self.phi = math.exp(-dt / d.correlation_s)  # OU decay per step
-        self.kick = d.amplitude_n * math.sqrt(1.0 - self.phi * self.phi)  # keeps the variance at amplitude^2
+        self.kick = amplitude * math.sqrt(1.0 - self.phi * self.phi)  # keeps the variance at amplitude^2
         self.state: np.ndarray | None = None  # OU force, drawn stationary on the first step in the window
 
 
@@ -50,16 +56,31 @@ class Disturbances:
 
     def __init__(self, configs: list[Disturbance], layout: TrainLayout, rng: np.random.Generator, dt: float) -> None:
         self._rng = rng
-        self._items = [_Active(d, unit_mask(d, layout, f"plant.disturbances[{i}]"), dt) for i, d in enumerate(configs)]
+        items = [(d.channel, _Active(d, unit_mask(d, layout, f"plant.disturbances[{i}]"), dt)) for i, d in enumerate(configs)]
+        self._items = [a for channel, a in items if channel == "force"]
+        self._position_items = [a for channel, a in items if channel == "position"]
         self._tmp = np.empty(layout.n_units)
 
     def __bool__(self) -> bool:
+        """True when a force-channel disturbance is configured (position-channel ones: :attr:`has_position`)."""
         return bool(self._items)
+
+    @property
+    def has_position(self) -> bool:
+        """True when a position-channel (mismatched) disturbance is configured."""
+        return bool(self._position_items)
 
     def add(self, t: float, out: np.ndarray) -> None:
         """Add the disturbance force at time t (N, per unit) into ``out`` in place."""
+        self._accumulate(self._items, t, out)
+
+    def add_position(self, t: float, out: np.ndarray) -> None:
+        """Add the position-channel disturbance at time t (m/s added to dx/dt, per unit) into ``out`` in place."""
+        self._accumulate(self._position_items, t, out)
+
+    def _accumulate(self, items: list[_Active], t: float, out: np.ndarray) -> None:
         tmp = self._tmp
-        for d in self._items:
+        for d in items:
             if not d.start <= t < d.end:
                 continue
             if d.kind == "sine":
