@@ -65,7 +65,28 @@ def print_summary(metrics: dict, out: Path) -> None:
     sat = metrics.get("codec_saturations") or {}
     if sat:
         print(f"  {'signals saturated (count)':38s} " + ", ".join(f"{k}: {v}" for k, v in sat.items()))
+    for line in _safety_lines(metrics.get("safety")) + _fault_lines(metrics.get("faults")):
+        print(f"  {line}")
     print(f"  written to {out}/ (run.rrd, metrics.json)")
+
+
+def _safety_lines(safety: dict | None) -> list[str]:
+    """One line per safety verdict that was violated (first time, count, total time), or 'safe'."""
+    if not safety:
+        return []
+    verdicts = {k: v for k, v in safety.items() if isinstance(v, dict) and "violated" in v}
+    bad = [f"{k}: {v['count']}x from t = {v['first_s']:.1f} s ({v['total_s']:.1f} s summed over units)"
+           for k, v in verdicts.items() if v["violated"]]
+    return [f"{'safety verdicts':38s} " + ("; ".join(bad) if bad else "safe (" + ", ".join(verdicts) + ": none)")]
+
+
+def _fault_lines(faults: dict | None) -> list[str]:
+    """Injected vs detected faults, with each undetected one named."""
+    if not faults or not faults.get("scheduled"):
+        return []
+    missed = [f"{f['kind']} on {f['target']}" for f in faults.get("faults", []) if f.get("injected") and not f.get("detected")]
+    text = f"{faults['injected']} injected, {faults['detected']} detected"
+    return [f"{'faults':38s} " + text + (f" (missed: {', '.join(missed)})" if missed else "")]
 
 
 def parse_assignment(text: str) -> tuple[str, object]:
@@ -128,8 +149,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_sweep_parser(sub)
     add_sweeps_list_parser(sub)
+    from hil.compare.cli import add_compare_parser
+
+    add_compare_parser(sub)
     add_can_analysis_parser(sub)
     add_bus_server_parser(sub)
+    from hil.view import add_view_parser
+
+    add_view_parser(sub)
     return p
 
 

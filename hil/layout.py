@@ -5,7 +5,7 @@ Every other module (plant, ECUs, recording, metrics) uses this one numbering.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -25,6 +25,7 @@ class TrainLayout:
     offset_m: np.ndarray  # (n,) x*_u = x_r - offset_m[u]
     spacing_m: float
     emergency_gap_m: float
+    reference_all: bool = False  # every unit's ECU receives the reference (else only train heads)
 
     @classmethod
     def from_config(cls, trains: TrainsConfig) -> "TrainLayout":
@@ -43,7 +44,16 @@ class TrainLayout:
             offset_m=offset,
             spacing_m=trains.spacing_m,
             emergency_gap_m=trains.emergency_gap_m,
+            reference_all=trains.reference_units == "all",
         )
+
+    def with_masses(self, mass_kg: np.ndarray, effective_mass_kg: np.ndarray) -> "TrainLayout":
+        """The same layout with per-unit masses (hil/plant/units.py: drawn or listed per unit)."""
+        n = self.n_units
+        for name, a in (("mass_kg", mass_kg), ("effective_mass_kg", effective_mass_kg)):
+            if np.shape(a) != (n,) or not np.all(np.isfinite(a)) or not np.all(np.asarray(a) > 0):
+                raise ValueError(f"{name} must be {n} finite positive values, got {a!r}")
+        return replace(self, mass_kg=np.asarray(mass_kg, dtype=float), effective_mass_kg=np.asarray(effective_mass_kg, dtype=float))
 
     @property
     def n_units(self) -> int:
@@ -86,7 +96,7 @@ class TrainLayout:
             mass_kg=float(self.effective_mass_kg[u]),
             length_m=float(self.length_m[u]),
             offset_m=float(self.offset_m[u]),
-            has_reference=(unit == 0),
+            has_reference=(unit == 0 or self.reference_all),
         )
 
     def neighbours(self, u: int) -> list[tuple[int, str, str]]:

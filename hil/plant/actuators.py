@@ -5,6 +5,18 @@ Commands are zero-order held. In ``NORMAL`` mode the commanded force is applied;
 max_power / v)`` and the applied force follows at most ``rate_limit`` N/s; the braking part
 (F < 0) is then scaled by ``clip(v / V_STOP, -1, 1)`` because a friction brake opposes motion and
 cannot drive a unit backwards from standstill. With limits disabled the command passes unchanged.
+
+Actuator chain (seed 004's plant, off by default): before the envelope the NORMAL-mode command F becomes
+
+    F_act = lambda (h rho Q(F) + nu)
+
+lambda = ``plant.actuator.distribution`` (the unit's share of its commanded force), rho = the actuator slope,
+Q = the input nonlinearity (F realised in notches of ``notch_step_n``: rho Q(F) = rho F + Delta(F) with
+|Delta| <= rho notch / 2), h = the health factor (1 healthy, 0 no force) and nu = a bounded fault offset.
+h and nu follow a per-unit schedule of steps and linear ramps, from ``[[plant.actuator_faults]]`` or from
+:meth:`Actuators.set_health` / :meth:`Actuators.set_fault_offset` at run time. The ECU never sees h or nu:
+only their effect on the motion. Service and emergency brakes (fail-safe, train line) bypass the chain.
+With no chain configured the command goes to the envelope exactly as before (bit-identical runs).
 The fade is viscous, not static friction: on a grade steeper than c0 / g a braked unit creeps
 back at v = V_STOP (g grade - c0) / a_brake (1.5 cm/s at 20 permille under the emergency brake).
 
@@ -23,6 +35,7 @@ import numpy as np
 
 from ecu_sim.view import BrakeMode
 from hil.layout import TrainLayout
+from hil.plant.units import UnitParams, unit_params
 from hil.scenario.model import PlantConfig
 
 V_STOP = 0.1  # m/s: brake force fades linearly to zero below this speed (no driving backwards)
@@ -30,10 +43,44 @@ _clip = np.clip if not hasattr(np, "_core") else np._core.umath.clip  # the ufun
 _LEVELS = {0: "normal", 1: "service brake", 2: "emergency brake"}
 
 
+class _Schedule:
+    """One unit's health or fault offset over time: pieces (start, value at start, slope), steps and ramps."""
+
+    def __init__(self, base: float) -> None:
+        self.pieces: list[tuple[float, float, float]] = [(-math.inf, base, 0.0)]
+
+    def _piece(self, t: float) -> tuple[float, float, float]:
+        for p in reversed(self.pieces):
+            if p[0] <= t:
+                return p
+        return self.pieces[0]
+
+    def value(self, t: float) -> float:
+        start, v, slope = self._piece(t)
+        return v if slope == 0.0 else v + slope * (t - start)
+
+    def ramping(self, t: float) -> bool:
+        return self._piece(t)[2] != 0.0
+
+    def next_change(self, t: float) -> float:
+        return min((p[0] for p in self.pieces if p[0] > t), default=math.inf)
+
+    def add(self, start: float, target: float, ramp: float) -> float:
+        """From ``start`` go to ``target`` (linearly over ``ramp`` s); later pieces are replaced. Returns the value at start."""
+        v0 = self.value(start)
+        self.pieces = [p for p in self.pieces if p[0] < start]
+        if ramp > 0.0:
+            self.pieces += [(start, v0, (target - v0) / ramp), (start + ramp, target, 0.0)]
+        else:
+            self.pieces.append((start, target, 0.0))
+        return v0
+
+
 class Actuators:
     """Per-unit actuator state; :meth:`apply` gives the force of the coming step."""
 
-    def __init__(self, plant: PlantConfig, layout: TrainLayout, dt: float, t0: float = 0.0) -> None:
+    def __init__(self, plant: PlantConfig, layout: TrainLayout, dt: float, t0: float = 0.0,
+                 units: UnitParams | None = None) -> None:
         n = layout.n_units
         self._layout = layout
         lim, fs = plant.limits, plant.failsafe
@@ -59,11 +106,105 @@ class Actuators:
         self._next_check = -math.inf  # next time a fail-safe level can change
         self._tmp = np.empty(n)
         self._scale = np.empty(n)
+        self._init_chain(plant, units if units is not None else unit_params(layout, plant))
+
+    # ------------------------------------------------------------------ actuator chain (lambda, rho, Q, h, nu)
+
+    def _init_chain(self, plant: PlantConfig, units: UnitParams) -> None:
+        n = self._layout.n_units
+        self._lam, self._rho = units.distribution, units.slope
+        self._notch = plant.actuator.notch_step_n
+        self.health = np.ones(n)  # h per unit (a plant fault: never on CAN)
+        self.fault_offset = np.zeros(n)  # nu per unit, N
+        self._health_sched: dict[int, _Schedule] = {}
+        self._offset_sched: dict[int, _Schedule] = {}
+        self._notices: list[tuple[float, str]] = []  # (time, text) of scheduled fault changes, logged when reached
+        self._chain = units.actuator_shaped or self._notch > 0.0
+        self._chain_dirty = True
+        self._next_fault_t = math.inf
+        self._eff = np.zeros(n)  # shaped NORMAL-mode force
+        for i, f in enumerate(plant.actuator_faults):
+            u = self._layout.index(f.train - 1, f.unit - 1)
+            if f.health is not None:
+                self.set_health(u, f.health, f.start_s, f.ramp_s)
+            if f.offset_n is not None:
+                self.set_fault_offset(u, f.offset_n, f.start_s, f.ramp_s)
+
+    def set_health(self, u: int, health: float, at_s: float, ramp_s: float = 0.0) -> None:
+        """Unit u's actuator health goes to ``health`` at ``at_s`` (linearly over ``ramp_s`` from its value then).
+
+        Later changes of the same unit replace what the schedule held after their start. Examples:
+        degradation to 60 % over 10 s from t = 300 s: ``set_health(u, 0.6, 300.0, 10.0)``; total traction
+        loss of a car at t = 500 s: ``set_health(u, 0.0, 500.0)``; repair: ``set_health(u, 1.0, t)``.
+        A time already passed takes effect at the next step, as if the change had started at ``at_s``.
+        """
+        self._check_fault(u, "health", health, at_s, ramp_s)
+        if not 0.0 <= health <= 1.0:
+            raise ValueError(f"health {health!r} for {self.unit_name(u)} must lie in [0, 1] (1 = healthy)")
+        v0 = self._health_sched.setdefault(u, _Schedule(1.0)).add(at_s, health, ramp_s)
+        self._schedule_notice(at_s, f"{self.unit_name(u)}: actuator health {v0:.3g} -> {health:.3g}"
+                              + (f" over {ramp_s:g} s" if ramp_s > 0 else ""))
+
+    def set_fault_offset(self, u: int, offset_n: float, at_s: float, ramp_s: float = 0.0) -> None:
+        """Unit u's bounded fault offset nu goes to ``offset_n`` N at ``at_s`` (linearly over ``ramp_s``)."""
+        self._check_fault(u, "offset_n", offset_n, at_s, ramp_s)
+        v0 = self._offset_sched.setdefault(u, _Schedule(0.0)).add(at_s, offset_n, ramp_s)
+        self._schedule_notice(at_s, f"{self.unit_name(u)}: actuator fault offset {v0:.6g} -> {offset_n:.6g} N"
+                              + (f" over {ramp_s:g} s" if ramp_s > 0 else ""))
+
+    def _check_fault(self, u: int, what: str, value: float, at_s: float, ramp_s: float) -> None:
+        if not 0 <= u < self._layout.n_units:
+            raise IndexError(f"unit index {u} out of range 0..{self._layout.n_units - 1}")
+        for name, x in ((what, value), ("at_s", at_s), ("ramp_s", ramp_s)):
+            if not (isinstance(x, (int, float)) and math.isfinite(x)):
+                raise ValueError(f"{name} = {x!r} for {self.unit_name(u)} must be a finite number")
+        if at_s < 0 or ramp_s < 0:
+            raise ValueError(f"at_s = {at_s} and ramp_s = {ramp_s} for {self.unit_name(u)} must be >= 0")
+
+    def _schedule_notice(self, at_s: float, text: str) -> None:
+        self._notices.append((at_s, text))
+        self._notices.sort(key=lambda item: item[0])
+        self._chain = True
+        self._next_fault_t = -math.inf  # re-evaluate at the next step
+
+    def _update_faults(self, t: float) -> None:
+        """Health and offsets at t; the next time they can change (every step while one ramps)."""
+        nxt = math.inf
+        for sched, out in ((self._health_sched, self.health), (self._offset_sched, self.fault_offset)):
+            for u, s in sched.items():
+                out[u] = s.value(t)
+                nxt = -math.inf if s.ramping(t) else min(nxt, s.next_change(t))
+        while self._notices and self._notices[0][0] <= t:
+            self.events.append((t, "WARN", self._notices.pop(0)[1]))
+        if self._notices:
+            nxt = min(nxt, self._notices[0][0])
+        self._next_fault_t = nxt
+        self._chain_dirty = True
+
+    def _shaped_command(self, t: float) -> np.ndarray:
+        """lambda (h rho Q(F) + nu) of the held commands, recomputed only when an input changed."""
+        if t >= self._next_fault_t:
+            self._update_faults(t)
+        if self._chain_dirty:
+            eff = self._eff
+            if self._notch > 0.0:
+                np.divide(self.force_cmd, self._notch, out=eff)
+                np.round(eff, out=eff)
+                np.multiply(eff, self._notch, out=eff)
+            else:
+                eff[:] = self.force_cmd
+            np.multiply(eff, self._rho, out=eff)
+            np.multiply(eff, self.health, out=eff)
+            np.add(eff, self.fault_offset, out=eff)
+            np.multiply(eff, self._lam, out=eff)
+            self._chain_dirty = False
+        return self._eff
 
     # ------------------------------------------------------------------ commands
 
     def command(self, u: int, force_n: float, mode: int, t: float) -> None:
         """Store the command of unit u (held until the next one) and its arrival time."""
+        self._chain_dirty = True
         if mode == self.mode_cmd[u] and self._failsafe[u] == 0:
             self.force_cmd[u] = force_n
             self.last_cmd_t[u] = t
@@ -86,22 +227,23 @@ class Actuators:
         if t >= self._next_check:
             self._relevel(t)
         out = self.force_applied
+        cmd = self._shaped_command(t) if self._chain else self.force_cmd
         if self._limited:
-            self._limited_force(v, out)
+            self._limited_force(v, out, cmd)
         else:
-            out[:] = self.force_cmd
+            out[:] = cmd
         if self._any_override:
             s = self._standstill_factor(v)
             np.multiply(self._brake, s, out=s)
             np.copyto(out, s, where=self._override)
         return out
 
-    def _limited_force(self, v: np.ndarray, out: np.ndarray) -> None:
-        """Envelope, rate limit and standstill fade of the NORMAL-mode force."""
+    def _limited_force(self, v: np.ndarray, out: np.ndarray, cmd: np.ndarray) -> None:
+        """Envelope, rate limit and standstill fade of the NORMAL-mode force ``cmd``."""
         cap, drive = self._tmp, self._drive
         np.maximum(v, self._v_base, out=cap)
         np.divide(self._power, cap, out=cap)  # = min(max_traction, P / v)
-        _clip(self.force_cmd, -self._max_brake, cap, out=cap)  # target force
+        _clip(cmd, -self._max_brake, cap, out=cap)  # target force
         np.subtract(cap, drive, out=cap)
         _clip(cap, -self._max_step, self._max_step, out=cap)
         np.add(drive, cap, out=drive)

@@ -33,6 +33,8 @@ dt/2. They are small and slowly varying next to the coupler forces, and the comm
 anyway (the ECUs send them every 10 ms). Measured: one unit at 60 m/s under 30 kN with the default
 Davis terms differs from solve_ivp (rtol 1e-10) by 3e-5 m/s and 3.7 mm after 200 s at 1 ms.
 Grade and curve changes take effect at the first step after a unit front crosses a breakpoint.
+A position-channel (mismatched) disturbance d2 (seed 003: dx/dt = v + d2) is evaluated at the step
+start like the forces and added to q as d2 dt after the exact step; it never enters v.
 The explicit brake fade near standstill (time constant V_STOP / a_brake ~ 0.08 s) and c0 sgn v
 (chatter of c0 dt ~ 1e-5 m/s at rest) are stable for dt well above the 1 ms default.
 
@@ -53,6 +55,7 @@ from hil.layout import TrainLayout
 from hil.plant.actuators import Actuators
 from hil.plant.disturbances import Disturbances
 from hil.plant.track import TrackProfile
+from hil.plant.units import unit_params
 from hil.scenario.model import PlantConfig, TrackConfig
 
 DENSE_MAX_UNITS = 64  # above this a batched per-train block product is cheaper than one dense matvec
@@ -88,9 +91,9 @@ def train_block(m_eff: np.ndarray, m: np.ndarray, k: float, d: float, c1: float,
 class _Propagator:
     """Applies the exact linear step to the buffer [q; v; w], writing [q'; v'; a; check]."""
 
-    def __init__(self, layout: TrainLayout, plant: PlantConfig, dt: float) -> None:
+    def __init__(self, layout: TrainLayout, plant: PlantConfig, dt: float, c1: float | np.ndarray | None = None) -> None:
         n, nt, u = layout.n_units, layout.n_trains, layout.units_per_train
-        blocks = self._blocks(layout, plant, dt)
+        blocks = self._blocks(layout, plant, dt, c1)
         units = np.arange(n).reshape(nt, u)
         self._cols = np.hstack([units, n + units, 2 * n + units])  # (nt, 3u) inputs of each train
         self.dense = n <= DENSE_MAX_UNITS
@@ -106,17 +109,20 @@ class _Propagator:
             self._inv = np.argsort(self._cols.ravel())  # output position -> flat index into the block results
 
     @staticmethod
-    def _blocks(layout: TrainLayout, plant: PlantConfig, dt: float) -> np.ndarray:
-        """Per-train step maps, computed once per distinct train (they are usually all equal)."""
+    def _blocks(layout: TrainLayout, plant: PlantConfig, dt: float, c1_units: float | np.ndarray | None = None) -> np.ndarray:
+        """Per-train step maps, computed once per distinct train (they are usually all equal).
+
+        ``c1_units``: per-unit Davis c1 (hil/plant/units.py), else ``plant.davis_c1`` for every unit."""
         k, d, c1 = plant.coupler_stiffness_n_per_m, plant.coupler_damping_ns_per_m, plant.davis_c1
         cache: dict[bytes, np.ndarray] = {}
         out = []
         for i in range(layout.n_trains):
             sl = slice(layout.index(i, 0), layout.index(i, 0) + layout.units_per_train)
+            c1_i = c1_units[sl] if isinstance(c1_units, np.ndarray) else (c1 if c1_units is None else c1_units)
             params = (layout.effective_mass_kg[sl], layout.mass_kg[sl])
-            key = b"".join(np.ascontiguousarray(p, dtype=float).tobytes() for p in params)
+            key = b"".join(np.ascontiguousarray(p, dtype=float).tobytes() for p in (*params, c1_i))
             if key not in cache:
-                cache[key] = train_block(*params, k, d, c1, dt)
+                cache[key] = train_block(*params, k, d, c1_i, dt)
             out.append(cache[key])
         return np.array(out)
 
@@ -133,7 +139,12 @@ class _Propagator:
 
 
 class Plant:
-    """The train group's true state, advanced by :meth:`step`; commands in, sensor values out."""
+    """The train group's true state, advanced by :meth:`step`; commands in, sensor values out.
+
+    Per-unit masses, rotating-mass factors and Davis coefficients ([plant.units]) and the actuator chain
+    ([plant.actuator], health faults) come from hil/plant/units.py and hil/plant/actuators.py; ``self.layout``
+    holds the true per-unit masses, while the firmware's AgentInfo keeps the nominal ones of [trains].
+    """
 
     def __init__(
         self,
@@ -146,6 +157,8 @@ class Plant:
         dt: float | None = None,
     ) -> None:
         n, u = layout.n_units, layout.units_per_train
+        self.units = unit_params(layout, plant)  # per-unit masses, Davis, lambda, rho ([plant.units], [plant.actuator])
+        layout = self.units.layout  # the true masses (the firmware keeps the nominal ones of [trains])
         self.layout, self.config, self.rng = layout, plant, rng
         self.dt = float(plant.step_s if dt is None else dt)
         if not (self.dt > 0 and math.isfinite(self.dt)):
@@ -161,16 +174,20 @@ class Plant:
         self._base = np.repeat(self._origin, u) - self._ahead
         self._x = np.empty(n)
         self.x, self.v = x0, _state_array("v0", v0, n)
-        self._prop = _Propagator(layout, plant, self.dt)
-        self._act = Actuators(plant, layout, self.dt)
+        self._prop = _Propagator(layout, plant, self.dt, self.units.c1)
+        self._act = Actuators(plant, layout, self.dt, units=self.units)
         self.force_cmd, self.mode_cmd = self._act.force_cmd, self._act.mode_cmd
         self.force_applied, self.last_cmd_t = self._act.force_applied, self._act.last_cmd_t
         self.events = self._act.events
         self._track = TrackProfile(track)
         self._dist = Disturbances(plant.disturbances, layout, rng, self.dt)
+        self._d2 = np.zeros(n) if self._dist.has_position else None  # position-channel disturbance (m/s)
         m = layout.mass_kg
-        self._neg_m, self._neg_mc0, self._neg_mc2 = -m, -m * plant.davis_c0, -m * plant.davis_c2
-        self._c0, self._c2 = plant.davis_c0, plant.davis_c2
+        c0, c2 = self.units.c0, self.units.c2  # floats unless given per unit
+        self._neg_m, self._neg_mc0, self._neg_mc2 = -m, -m * c0, -m * c2
+        self._c0, self._c2 = c0, c2
+        if self.units.configured:
+            self.events.append((0.0, "INFO", self.units.describe(plant.units.seed)))
         self._r, self._s = np.empty(n), np.empty(n)
         self._grade, self._curve = np.empty(n), np.empty(n)
         self._steps = 0
@@ -225,6 +242,24 @@ class Plant:
             raise PlantDiverged(f"non-finite force command {force_n!r} N for {self._act.unit_name(u)} at t = {t:.6f} s")
         self._act.command(u, force_n, mode, t)
 
+    def set_health(self, u: int, health: float, at_s: float | None = None, ramp_s: float = 0.0) -> None:
+        """Actuator fault API: unit u's health h goes to ``health`` (in [0, 1]) at ``at_s`` (default: now),
+        linearly over ``ramp_s`` from its value then. h scales the unit's shaped traction/brake force
+        (hil/plant/actuators.py); the ECU never sees it. A later call for the same unit replaces the schedule
+        after its start. Degradation to 60 % over 10 s at t = 300 s: ``set_health(u, 0.6, 300.0, 10.0)``;
+        total traction loss of a car at t = 500 s: ``set_health(u, 0.0, 500.0)``. Logged when it takes effect.
+        """
+        self._act.set_health(u, health, self.t if at_s is None else at_s, ramp_s)
+
+    def set_fault_offset(self, u: int, offset_n: float, at_s: float | None = None, ramp_s: float = 0.0) -> None:
+        """Actuator fault API: unit u's bounded fault offset nu (N, scaled by its distribution share) from ``at_s``."""
+        self._act.set_fault_offset(u, offset_n, self.t if at_s is None else at_s, ramp_s)
+
+    @property
+    def health(self) -> np.ndarray:
+        """Actuator health h per unit at the last step (a live array: copy it to keep a snapshot)."""
+        return self._act.health
+
     def measure(self) -> tuple[np.ndarray, np.ndarray]:
         """Sensor positions and speeds: new arrays (the caller may keep them), with configured noise."""
         x, v = self._x.copy(), self._v.copy()
@@ -268,6 +303,10 @@ class Plant:
             self._diverged(t)
         n2 = 2 * self.layout.n_units
         self._zw[:n2] = self._zn[:n2]
+        if self._d2 is not None:  # mismatched disturbance dx/dt = v + d2 (held over the step), v unchanged
+            self._d2.fill(0.0)
+            self._dist.add_position(t, self._d2)
+            self._q += self._d2 * self.dt
         self._steps += 1
         if self._steps % REBASE_EVERY == 0:
             self._rebase()

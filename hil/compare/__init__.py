@@ -1,0 +1,1 @@
+"""``hil compare``: several scenarios side by side, judged by a metric family (see report.py)."""
