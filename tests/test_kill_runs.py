@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import json
 import random
-import shutil
 import signal
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -24,12 +22,13 @@ RNG = random.Random(20240611)
 VIRTUAL_KILLS = [(RNG.choice(SIGNALS), round(RNG.uniform(0.0, 4.0), 2)) for _ in range(3)] + [(signal.SIGTERM, 0.0)]
 
 
-@pytest.fixture
-def rt(monkeypatch):
-    d = tempfile.mkdtemp(prefix="th", dir="/tmp")
-    monkeypatch.setenv("XDG_RUNTIME_DIR", d)
-    yield Path(d)
-    shutil.rmtree(d, ignore_errors=True)
+@pytest.fixture(autouse=True)
+def sighup_default():
+    """Run these tests with SIGHUP at its default action, even under nohup (which makes it ignored, and the rig
+    rightly keeps an ignored signal ignored): the tests below send SIGHUP on purpose."""
+    previous = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    yield
+    signal.signal(signal.SIGHUP, previous)
 
 
 @pytest.mark.parametrize(("sig", "delay"), VIRTUAL_KILLS, ids=[f"{s.name}-{d}s" for s, d in VIRTUAL_KILLS])
