@@ -112,13 +112,7 @@ class CanBusModel:
         returned; a frame of it already on the wire completes."""
         if node not in self.nodes:
             raise ValueError(f"node {node.name!r} is not attached to bus {self.name}")
-        lost = node.queued
-        if self._priority and lost:
-            self._heap = [item for item in self._heap if item[4] is not node]
-            heapq.heapify(self._heap)
-        node.fifo.clear()
-        node.queued = 0
-        node.dropped += lost
+        lost = self.drop_queued(node)
         self._detached_dropped += node.dropped
         self.nodes.remove(node)
         self._listeners.clear()
