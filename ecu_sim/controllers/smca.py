@@ -15,21 +15,17 @@ from __future__ import annotations
 
 from pydantic import Field
 
-from ecu_sim.controllers.base import ControllerParams, PlantInfo, register
+from ecu_sim.controllers.base import PlantInfo, register
 from ecu_sim.controllers.chain import per_car
-from ecu_sim.controllers.stsmca import AccelExchange, EquivalentControlLaw, sign
+from ecu_sim.controllers.stsmca import EquivalentControlLaw, ExchangeParams, sign
 from ecu_sim.view import AgentInfo
 
 
-class SmcaParams(ControllerParams):
+class SmcaParams(ExchangeParams):
     """SMCA gains: the seed's c = 1; k is ours (see the module docstring)."""
 
     c: float | list[float] = Field(default=1.0, description="sliding-surface slope c_i (1/s), scalar or per car")
     k: float | list[float] = Field(default=2.0, description="switching gain k_i (ours: the seed gives none)")
-    compensate_resistance: bool = Field(default=True, description="add the nominal Davis resistance omega^(v)")
-    accel_exchange: AccelExchange = Field(default="last", description="use of neighbours' accelerations: last | mean2 | lowpass | none")
-    accel_filter_s: float = Field(default=0.05, gt=0, description="time constant of the 'lowpass' exchange filter, s")
-    accel_gain: float = Field(default=1.0, ge=0, le=1, description="kappa: weight of the neighbours' accelerations (1 = as written)")
 
 
 @register

@@ -64,16 +64,22 @@ from ecu_sim.view import AgentInfo, Command, LocalView
 AccelExchange = Literal["last", "mean2", "lowpass", "none"]
 
 
-class StsmcaParams(ControllerParams):
+class ExchangeParams(ControllerParams):
+    """What every equivalent-control law of seed 001 shares: resistance compensation and the use of the
+    neighbours' accelerations received over CAN."""
+
+    compensate_resistance: bool = Field(default=True, description="add the nominal Davis resistance omega^(v) (the seed's omega^)")
+    accel_exchange: AccelExchange = Field(default="last", description="use of neighbours' accelerations: last | mean2 | lowpass | none")
+    accel_filter_s: float = Field(default=0.05, gt=0, description="time constant of the 'lowpass' exchange filter, s")
+    accel_gain: float = Field(default=1.0, ge=0, le=1, description="kappa: weight of the neighbours' accelerations (1 = as written)")
+
+
+class StsmcaParams(ExchangeParams):
     """Seed 001's STSMCA gains (per car where the seed gives per-car values)."""
 
     c: float | list[float] = Field(default=[3.0, 1.5, 2.0, 3.0, 1.0, 1.5], description="sliding-surface slope c_i (1/s), per car")
     k1: float | list[float] = Field(default=2.0, description="super-twisting gain k1_i on |s|^(1/2), per car")
     k2: float | list[float] = Field(default=[0.8, 0.91, 0.9, 0.9, 0.88, 0.91], description="super-twisting integral gain k2_i")
-    compensate_resistance: bool = Field(default=True, description="add the nominal Davis resistance omega^(v) (the seed's omega^)")
-    accel_exchange: AccelExchange = Field(default="last", description="use of neighbours' accelerations: last | mean2 | lowpass | none")
-    accel_filter_s: float = Field(default=0.05, gt=0, description="time constant of the 'lowpass' exchange filter, s")
-    accel_gain: float = Field(default=1.0, ge=0, le=1, description="kappa: weight of the neighbours' accelerations (1 = as written)")
 
 
 def sign(z: float) -> float:
