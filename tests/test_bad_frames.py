@@ -21,6 +21,7 @@ from ecu_sim.codec import TrainDb
 from hil.realtime import protocol
 from hil.realtime.busserver import BusServer
 from hil.realtime.pycan_bus import TrainhilBus
+from tests.polling import wait_for
 
 DATA = bytes(range(1, 9))
 
@@ -29,15 +30,6 @@ DATA = bytes(range(1, 9))
 def server(rt):
     with BusServer("r1", "bus1", 500_000, hello_timeout_s=0.3, max_clients=8) as srv:
         yield srv
-
-
-def wait_for(pred, timeout: float = 3.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
 
 
 def raw(server: BusServer, payload: bytes, hello: str | None = "foreign", close: bool = True) -> socket.socket:

@@ -18,6 +18,7 @@ import pytest
 from hil.realtime import protocol
 from hil.realtime.busserver import BusServer
 from hil.realtime.pycan_bus import TrainhilBus
+from tests.polling import wait_for
 
 DATA = bytes(range(8))
 
@@ -26,15 +27,6 @@ DATA = bytes(range(8))
 def server(rt):
     with BusServer("r1", "bus1", 500_000, tcp=True) as srv:
         yield srv
-
-
-def wait_for(pred, timeout: float = 3.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
 
 
 def raw_tcp(server: BusServer, *records: bytes) -> bytes:
