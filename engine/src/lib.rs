@@ -1,10 +1,23 @@
-#[cfg(feature = "python")]
-use pyo3::prelude::*;
+//! trainhil's frame engine: everything that runs once per CAN frame, for both runtimes.
+//!
+//! * `frame`: exact frame length from the actual bits (stuffing, CRC-15), durations from two bit rates;
+//! * `e2e`: CRC-8 SAE J1850 and the alive-counter check;
+//! * `codec`: the DBC message layouts compiled from cantools (saturate and count, never wrap);
+//! * `mailbox`: an ECU's input mailboxes, read once per cycle;
+//! * `bus`: the CAN bus model (TX queues, arbitration, filters, statistics);
+//! * `radio`: the train-to-train links and the routing gateway;
+//! * `kernel` and `network`: the virtual-time event queue and the network it drives.
+//!
+//! `py` (feature `python`) is the Python surface, `trainhil_engine._native`.
+
+pub mod bus;
+pub mod codec;
+pub mod e2e;
+pub mod frame;
+pub mod kernel;
+pub mod mailbox;
+pub mod network;
+pub mod radio;
 
 #[cfg(feature = "python")]
-#[pymodule]
-fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add("VERSION", env!("CARGO_PKG_VERSION"))?;
-    m.add("__all__", vec!["VERSION"])?;
-    Ok(())
-}
+mod py;

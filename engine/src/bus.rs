@@ -1,0 +1,349 @@
+//! The CAN bus model: per-node TX queues, arbitration, exact frame durations, acceptance filters, load and
+//! latency statistics. It is told the time by its driver (the virtual-time network, or a wall clock).
+//!
+//! When the bus goes idle every node offers the head of its TX queue (the lowest ID it holds under the
+//! `Priority` policy, its oldest frame under `Fifo`) and the lowest arbitration key wins. A transmission ends
+//! after its last bit including the 3-bit intermission, which is the time stamped on the received frame.
+
+use std::cmp::{Ordering, Reverse};
+use std::collections::{BinaryHeap, HashMap, VecDeque};
+
+use crate::frame::{BitTiming, FrameError, MAX_DATA};
+
+/// Where a node's received frames go (resolved by the driver).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sink {
+    /// A node that only sends.
+    None,
+    /// An ECU's mailboxes (index into the driver's mailboxes).
+    Mailbox(usize),
+    /// A queue the driver drains from Python (the plant's commands).
+    Inbox(usize),
+    /// The radio gateway's end on this bus.
+    Gateway(usize),
+}
+
+/// Queue policy of the TX queues.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Policy {
+    Priority,
+    Fifo,
+}
+
+/// A frame's payload: up to 64 bytes inline.
+#[derive(Clone, Copy)]
+pub struct Payload {
+    pub len: u8,
+    pub bytes: [u8; MAX_DATA],
+}
+
+impl Payload {
+    pub fn new(data: &[u8]) -> Payload {
+        let mut bytes = [0u8; MAX_DATA];
+        bytes[..data.len()].copy_from_slice(data);
+        Payload { len: data.len() as u8, bytes }
+    }
+    pub fn as_slice(&self) -> &[u8] {
+        &self.bytes[..self.len as usize]
+    }
+}
+
+impl std::fmt::Debug for Payload {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:02X?}", self.as_slice())
+    }
+}
+
+/// A queued frame. Ordered by (arbitration key, bus-wide sequence number).
+#[derive(Debug, Clone, Copy)]
+pub struct Item {
+    pub key: u64,
+    pub seq: u64,
+    pub node: usize,
+    pub frame_id: u32,
+    pub extended: bool,
+    pub t_enqueue: u64,
+    pub data: Payload,
+}
+
+impl PartialEq for Item {
+    fn eq(&self, other: &Self) -> bool {
+        (self.key, self.seq) == (other.key, other.seq)
+    }
+}
+impl Eq for Item {}
+impl PartialOrd for Item {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Item {
+    fn cmp(&self, other: &Self) -> Ordering {
+        (self.key, self.seq).cmp(&(other.key, other.seq))
+    }
+}
+
+/// The order arbitration on the wire decides: base ID, then SRR and IDE (a standard frame beats an extended
+/// one with the same base ID), then the 18-bit ID extension.
+pub fn arbitration_key(frame_id: u32, extended: bool) -> u64 {
+    let id = frame_id as u64;
+    if extended {
+        ((id >> 18) << 20) | (0b11 << 18) | (id & 0x3FFFF)
+    } else {
+        id << 20
+    }
+}
+
+/// A node's CAN controller: a bounded TX queue and an acceptance filter.
+#[derive(Debug, Clone)]
+pub struct Node {
+    pub name: String,
+    pub sink: Sink,
+    /// Accepted IDs (None = everything).
+    pub rx_ids: Option<Vec<u32>>,
+    pub receive_own: bool,
+    pub queued: usize,
+    pub fifo: VecDeque<Item>,
+    pub sent: u64,
+    pub dropped: u64,
+}
+
+/// A frame on the wire.
+#[derive(Debug, Clone, Copy)]
+pub struct Transmission {
+    pub node: usize,
+    pub frame_id: u32,
+    pub extended: bool,
+    pub data: Payload,
+    pub t_enqueue: u64,
+    pub t_start: u64,
+    pub t_end: u64,
+}
+
+/// Statistics the run log takes over: one row per frame and one per load window.
+#[derive(Debug, Default, Clone)]
+pub struct BusStats {
+    /// (t_end s, frame id, latency s = end - enqueue, queueing s = start - enqueue), flattened.
+    pub frames: Vec<f64>,
+    /// (window end s, load 0..1), flattened.
+    pub load: Vec<f64>,
+    pub frames_sent: u64,
+}
+
+/// One CAN bus.
+#[derive(Debug)]
+pub struct Bus {
+    pub name: String,
+    pub timing: BitTiming,
+    pub policy: Policy,
+    pub depth: usize,
+    pub extended: bool,
+    pub nodes: Vec<Node>,
+    heap: BinaryHeap<Reverse<Item>>,
+    seq: u64,
+    receivers: HashMap<u32, Vec<usize>>,
+    pub busy_until: u64,
+    pub current: Option<Transmission>,
+    window_ns: u64,
+    window_end: u64,
+    window_busy: u64,
+    pub stats: BusStats,
+    /// When set, every completed transmission is also kept here for the driver (CAN logs, frame rows).
+    pub trace: Option<Vec<Transmission>>,
+}
+
+impl Bus {
+    pub fn new(name: &str, timing: BitTiming, policy: Policy, depth: usize, extended: bool, load_window_ns: u64) -> Bus {
+        Bus {
+            name: name.to_string(), timing, policy, depth, extended, nodes: Vec::new(), heap: BinaryHeap::new(), seq: 0,
+            receivers: HashMap::new(), busy_until: 0, current: None, window_ns: load_window_ns,
+            window_end: load_window_ns, window_busy: 0, stats: BusStats::default(), trace: None,
+        }
+    }
+
+    /// Attach a node; returns its index on this bus.
+    pub fn attach(&mut self, name: &str, sink: Sink, rx_ids: Option<Vec<u32>>, receive_own: bool) -> usize {
+        self.nodes.push(Node { name: name.to_string(), sink, rx_ids, receive_own, queued: 0, fifo: VecDeque::new(), sent: 0, dropped: 0 });
+        self.receivers.clear();
+        self.nodes.len() - 1
+    }
+
+    /// Nodes that receive `frame_id`: filtered nodes in attach order, then the catch-all ones.
+    pub fn receivers(&mut self, frame_id: u32) -> &[usize] {
+        let nodes = &self.nodes;
+        self.receivers.entry(frame_id).or_insert_with(|| {
+            let mut found: Vec<usize> = (0..nodes.len())
+                .filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.as_ref().is_some_and(|ids| ids.contains(&frame_id)))
+                .collect();
+            found.extend((0..nodes.len()).filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.is_none()));
+            found
+        })
+    }
+
+    /// Queue a frame at time t; false (and counted as a drop) when the node's queue is full.
+    pub fn enqueue(&mut self, node: usize, frame_id: u32, data: &[u8], t: u64, extended: Option<bool>) -> bool {
+        let n = &mut self.nodes[node];
+        if n.queued >= self.depth {
+            n.dropped += 1;
+            return false;
+        }
+        n.queued += 1;
+        self.seq += 1;
+        let ext = extended.unwrap_or(self.extended);
+        let item = Item { key: arbitration_key(frame_id, ext), seq: self.seq, node, frame_id, extended: ext, t_enqueue: t,
+                          data: Payload::new(data) };
+        match self.policy {
+            Policy::Priority => self.heap.push(Reverse(item)),
+            Policy::Fifo => n.fifo.push_back(item),
+        }
+        true
+    }
+
+    fn pop_winner(&mut self) -> Option<Item> {
+        match self.policy {
+            Policy::Priority => self.heap.pop().map(|Reverse(item)| item),
+            Policy::Fifo => {
+                let mut best: Option<usize> = None;
+                for (i, n) in self.nodes.iter().enumerate() {
+                    if let Some(head) = n.fifo.front() {
+                        if best.is_none_or(|b| head.key < self.nodes[b].fifo[0].key) {
+                            best = Some(i);
+                        }
+                    }
+                }
+                best.and_then(|b| self.nodes[b].fifo.pop_front())
+            }
+        }
+    }
+
+    /// Whether any frame is queued.
+    pub fn pending(&self) -> bool {
+        match self.policy {
+            Policy::Priority => !self.heap.is_empty(),
+            Policy::Fifo => self.nodes.iter().any(|n| !n.fifo.is_empty()),
+        }
+    }
+
+    /// If the bus is idle at t, start the winning pending frame and return its end time.
+    pub fn arbitrate(&mut self, t: u64) -> Result<Option<u64>, FrameError> {
+        if self.current.is_some() || t < self.busy_until {
+            return Ok(None);
+        }
+        let Some(won) = self.pop_winner() else { return Ok(None) };
+        self.nodes[won.node].queued -= 1;
+        let t_end = t + self.timing.frame_ns(won.frame_id, won.data.as_slice(), won.extended, false)?;
+        self.current = Some(Transmission { node: won.node, frame_id: won.frame_id, extended: won.extended, data: won.data,
+                                           t_enqueue: won.t_enqueue, t_start: t, t_end });
+        self.busy_until = t_end;
+        Ok(Some(t_end))
+    }
+
+    /// End the current transmission and account for it; the driver delivers it to `receivers(frame_id)`.
+    pub fn complete(&mut self) -> Transmission {
+        let tx = self.current.take().expect("complete() without a transmission");
+        self.nodes[tx.node].sent += 1;
+        self.stats.frames_sent += 1;
+        self.stats.frames.extend_from_slice(&[
+            tx.t_end as f64 * 1e-9, tx.frame_id as f64, (tx.t_end - tx.t_enqueue) as f64 * 1e-9,
+            (tx.t_start - tx.t_enqueue) as f64 * 1e-9,
+        ]);
+        self.close_windows(tx.t_end, false);
+        self.window_busy += tx.t_end - tx.t_start;
+        if let Some(trace) = self.trace.as_mut() {
+            trace.push(tx);
+        }
+        tx
+    }
+
+    /// Emit a load sample for every window that ended before t (at or before t if inclusive); a frame counts
+    /// in the window its transmission ends in.
+    fn close_windows(&mut self, t: u64, inclusive: bool) {
+        while t > self.window_end || (inclusive && t == self.window_end) {
+            self.stats.load.push(self.window_end as f64 * 1e-9);
+            self.stats.load.push(self.window_busy as f64 / self.window_ns as f64);
+            self.window_busy = 0;
+            self.window_end += self.window_ns;
+        }
+    }
+
+    /// Close the load windows up to t (the end of a run).
+    pub fn finish(&mut self, t: u64) {
+        self.close_windows(t, true);
+    }
+
+    /// Frames dropped at full TX queues, over all nodes.
+    pub fn frames_dropped(&self) -> u64 {
+        self.nodes.iter().map(|n| n.dropped).sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bus(policy: Policy) -> Bus {
+        Bus::new("bus1", BitTiming::new(500_000, 500_000).unwrap(), policy, 2, false, 100_000_000)
+    }
+
+    #[test]
+    fn lowest_id_wins_and_duration_is_exact() {
+        let mut b = bus(Policy::Priority);
+        let a = b.attach("A", Sink::None, None, false);
+        let c = b.attach("C", Sink::Mailbox(0), Some(vec![0x100, 0x200]), false);
+        assert!(b.enqueue(a, 0x200, &[1, 2], 0, None));
+        assert!(b.enqueue(c, 0x100, &[3], 0, None));
+        let end = b.arbitrate(0).unwrap().unwrap();
+        assert_eq!(b.current.unwrap().frame_id, 0x100);
+        assert_eq!(end, crate::frame::frame_bits(0x100, &[3], false).unwrap() as u64 * 2000);
+        assert_eq!(b.arbitrate(10).unwrap(), None); // busy
+        let tx = b.complete();
+        assert_eq!(b.receivers(tx.frame_id), &[1]);
+        assert_eq!(b.arbitrate(end).unwrap().map(|_| b.current.unwrap().frame_id), Some(0x200));
+    }
+
+    #[test]
+    fn standard_beats_extended_with_same_base_id() {
+        assert!(arbitration_key(0x100, false) < arbitration_key(0x100 << 18, true));
+        assert!(arbitration_key((0x100 << 18) | 5, true) < arbitration_key(0x101, false));
+    }
+
+    #[test]
+    fn fifo_offers_each_nodes_oldest_frame() {
+        let mut b = bus(Policy::Fifo);
+        let a = b.attach("A", Sink::None, None, false);
+        let c = b.attach("C", Sink::None, None, false);
+        b.enqueue(a, 0x300, &[], 0, None);
+        b.enqueue(a, 0x010, &[], 0, None);
+        b.enqueue(c, 0x200, &[], 0, None);
+        let mut order = Vec::new();
+        let mut t = 0;
+        while let Some(end) = b.arbitrate(t).unwrap() {
+            order.push(b.complete().frame_id);
+            t = end;
+        }
+        assert_eq!(order, vec![0x200, 0x300, 0x010]); // 0x010 waits behind A's 0x300: priority inversion
+    }
+
+    #[test]
+    fn full_queue_drops_and_counts() {
+        let mut b = bus(Policy::Priority);
+        let a = b.attach("A", Sink::None, None, false);
+        assert!(b.enqueue(a, 1, &[], 0, None));
+        assert!(b.enqueue(a, 2, &[], 0, None));
+        assert!(!b.enqueue(a, 3, &[], 0, None));
+        assert_eq!(b.frames_dropped(), 1);
+    }
+
+    #[test]
+    fn load_windows_count_a_frame_where_it_ends() {
+        let mut b = Bus::new("b", BitTiming::new(1_000_000, 1_000_000).unwrap(), Policy::Priority, 8, false, 1_000);
+        let a = b.attach("A", Sink::None, None, false);
+        b.enqueue(a, 0, &[], 0, None);
+        let end = b.arbitrate(0).unwrap().unwrap(); // 53 us (the all-zero frame) > one 1 us window
+        b.complete();
+        b.finish(end);
+        let windows = b.stats.load.len() / 2;
+        assert_eq!(windows as u64, end / 1_000);
+        assert_eq!(*b.stats.load.last().unwrap(), 53.0); // the whole frame in its last window (as the Python model)
+    }
+}

@@ -1,0 +1,264 @@
+//! Exact CAN frame timing: CRC-15, bit stuffing from the actual bits, frame length and duration.
+//!
+//! A classical data frame is counted from SOF through the 3-bit intermission: the stuffed part
+//! (SOF..CRC sequence, stuff bits computed from the real ID, DLC, data and CRC bits) plus the
+//! never-stuffed trailer (CRC delimiter, ACK slot, ACK delimiter, 7 EOF bits, 3 IFS bits).
+//! Frames carry up to 64 data bytes so CAN FD can be added here; the duration function already
+//! takes a nominal (arbitration) and a data bit time.
+
+/// CRC-15 generator polynomial of classical CAN (x^15 + x^14 + x^10 + x^8 + x^7 + x^4 + x^3 + 1).
+pub const CRC15_POLY: u16 = 0x4599;
+/// Largest payload a frame can carry (CAN FD); classical frames carry at most 8.
+pub const MAX_DATA: usize = 64;
+/// Largest classical CAN payload.
+pub const MAX_CLASSIC_DATA: usize = 8;
+/// Never-stuffed bits after the CRC: CRC delimiter, ACK slot, ACK delimiter, EOF (7), IFS (3).
+pub const TRAILER_BITS: u32 = 1 + 1 + 1 + 7 + 3;
+const STD_ID_LIMIT: u32 = 1 << 11;
+const EXT_ID_LIMIT: u32 = 1 << 29;
+
+/// Why a frame cannot be timed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum FrameError {
+    IdOutOfRange { can_id: u32, extended: bool },
+    TooLong { can_id: u32, len: usize, limit: usize },
+    FdNotSupported { can_id: u32 },
+}
+
+impl std::fmt::Display for FrameError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FrameError::IdOutOfRange { can_id, extended } => {
+                let (kind, limit) = if *extended { ("extended (29-bit)", EXT_ID_LIMIT) } else { ("standard (11-bit)", STD_ID_LIMIT) };
+                write!(f, "can_id={can_id:#x} out of range for a {kind} identifier (0..{:#x})", limit - 1)
+            }
+            FrameError::TooLong { can_id, len, limit } => {
+                write!(f, "data length {len} > {limit} bytes (classical CAN) for can_id={can_id:#x}")
+            }
+            FrameError::FdNotSupported { can_id } => {
+                write!(f, "can_id={can_id:#x}: the CAN FD frame format is not modelled yet")
+            }
+        }
+    }
+}
+
+/// A sequence of bits, first bit on the wire first (0 = dominant).
+#[derive(Default, Clone)]
+pub struct Bits(pub Vec<u8>);
+
+impl Bits {
+    fn push(&mut self, value: u64, width: u32) {
+        for i in (0..width).rev() {
+            self.0.push(((value >> i) & 1) as u8);
+        }
+    }
+}
+
+/// CRC-15 of a bit sequence, exactly as the specification's shift register.
+pub fn crc15(bits: &[u8]) -> u16 {
+    let mut reg: u16 = 0;
+    for &bit in bits {
+        let next = bit ^ ((reg >> 14) & 1) as u8;
+        reg = (reg << 1) & 0x7FFF;
+        if next == 1 {
+            reg ^= CRC15_POLY;
+        }
+    }
+    reg
+}
+
+/// Check the identifier and the payload length of a classical frame.
+pub fn validate(can_id: u32, len: usize, extended: bool) -> Result<(), FrameError> {
+    let limit = if extended { EXT_ID_LIMIT } else { STD_ID_LIMIT };
+    if can_id >= limit {
+        return Err(FrameError::IdOutOfRange { can_id, extended });
+    }
+    if len > MAX_CLASSIC_DATA {
+        return Err(FrameError::TooLong { can_id, len, limit: MAX_CLASSIC_DATA });
+    }
+    Ok(())
+}
+
+/// The unstuffed bits SOF..CRC sequence of a classical data frame (RTR = r0 = r1 = 0, SRR = IDE = 1).
+pub fn unstuffed_bits(can_id: u32, data: &[u8], extended: bool) -> Bits {
+    let mut b = Bits(Vec::with_capacity(160));
+    b.push(0, 1); // SOF
+    if extended {
+        b.push((can_id >> 18) as u64, 11);
+        b.push(0b11, 2); // SRR, IDE
+        b.push((can_id & 0x3FFFF) as u64, 18);
+        b.push(0, 3); // RTR, r1, r0
+    } else {
+        b.push(can_id as u64, 11);
+        b.push(0, 3); // RTR, IDE, r0
+    }
+    b.push(data.len() as u64, 4);
+    for &byte in data {
+        b.push(byte as u64, 8);
+    }
+    let crc = crc15(&b.0);
+    b.push(crc as u64, 15);
+    b
+}
+
+/// Insert a complement bit after every 5 equal consecutive bits (the stuff bit starts the next run).
+pub fn stuff(bits: &[u8]) -> Bits {
+    let mut out = Vec::with_capacity(bits.len() + bits.len() / 4 + 1);
+    let (mut last, mut run) = (2u8, 0u32);
+    for &bit in bits {
+        out.push(bit);
+        if bit == last {
+            run += 1;
+        } else {
+            last = bit;
+            run = 1;
+        }
+        if run == 5 {
+            last = 1 - bit;
+            run = 1;
+            out.push(last);
+        }
+    }
+    Bits(out)
+}
+
+/// Number of stuff bits the sequence needs.
+pub fn stuff_count(bits: &[u8]) -> u32 {
+    let (mut last, mut run, mut count) = (2u8, 0u32, 0u32);
+    for &bit in bits {
+        if bit == last {
+            run += 1;
+        } else {
+            last = bit;
+            run = 1;
+        }
+        if run == 5 {
+            last = 1 - bit;
+            run = 1;
+            count += 1;
+        }
+    }
+    count
+}
+
+/// The stuffed part of a classical data frame as sent, SOF through the CRC sequence.
+pub fn stuffed_bits(can_id: u32, data: &[u8], extended: bool) -> Bits {
+    stuff(&unstuffed_bits(can_id, data, extended).0)
+}
+
+/// Exact bits on the wire of a classical data frame, SOF through the intermission.
+pub fn frame_bits(can_id: u32, data: &[u8], extended: bool) -> Result<u32, FrameError> {
+    validate(can_id, data.len(), extended)?;
+    let raw = unstuffed_bits(can_id, data, extended);
+    Ok(raw.0.len() as u32 + stuff_count(&raw.0) + TRAILER_BITS)
+}
+
+/// Worst-case classical frame length incl. the 3-bit IFS (Davis et al. 2007, eq. 1).
+pub fn worst_case_frame_bits(dlc: u32, extended: bool) -> u32 {
+    let g = if extended { 54 } else { 34 };
+    g + 8 * dlc + 13 + (g + 8 * dlc - 1) / 4
+}
+
+/// The timing of one frame format on a bus: nominal bit time and (for CAN FD with BRS) the data-phase bit time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BitTiming {
+    pub nominal_bit_ns: u64,
+    pub data_bit_ns: u64,
+}
+
+impl BitTiming {
+    /// Whole-nanosecond bit times of a nominal and a data bitrate; None when either is not a whole number of ns.
+    pub fn new(nominal_bitrate: u64, data_bitrate: u64) -> Option<BitTiming> {
+        let ns = |rate: u64| if rate > 0 && 1_000_000_000 % rate == 0 { Some(1_000_000_000 / rate) } else { None };
+        Some(BitTiming { nominal_bit_ns: ns(nominal_bitrate)?, data_bit_ns: ns(data_bitrate)? })
+    }
+
+    /// Duration in ns of a data frame, SOF through the intermission. Classical frames run at the nominal rate
+    /// throughout; `fd` frames are refused until the FD format is modelled.
+    pub fn frame_ns(&self, can_id: u32, data: &[u8], extended: bool, fd: bool) -> Result<u64, FrameError> {
+        if fd {
+            return Err(FrameError::FdNotSupported { can_id });
+        }
+        Ok(frame_bits(can_id, data, extended)? as u64 * self.nominal_bit_ns)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A frame worked out by hand: ID 0x000, DLC 0. Bits SOF..DLC are 19 zeros and the CRC of zeros is zero, so
+    /// the stuffed part is 34 zeros with a 1 after every fifth (each stuff bit ends the run): 6 stuff bits.
+    #[test]
+    fn all_zero_frame_by_hand() {
+        let raw = unstuffed_bits(0, &[], false);
+        assert_eq!(raw.0.len(), 34);
+        assert!(raw.0.iter().all(|&b| b == 0));
+        assert_eq!(stuff_count(&raw.0), 6);
+        assert_eq!(frame_bits(0, &[], false).unwrap(), 34 + 6 + 13);
+    }
+
+    /// ID 0x7FF DLC 0: SOF 0, then 11 ones (stuffed after 5 and 10 of them: 2 bits), then 000 + 0000.
+    #[test]
+    fn all_ones_id_by_hand() {
+        let raw = unstuffed_bits(0x7FF, &[], false);
+        let crc = crc15(&raw.0[..19]);
+        assert_eq!(crc, crc15(&raw.0[..19])); // deterministic
+        let stuffed = stuffed_bits(0x7FF, &[], false);
+        // SOF(0) 11111 [0] 11111 [0] 1 then RTR IDE r0 DLC = 0000000 -> run of 7 zeros after the '1': one stuff bit
+        assert_eq!(&stuffed.0[..14], &[0, 1, 1, 1, 1, 1, 0, 1, 1, 1, 1, 1, 0, 1]);
+        assert_eq!(stuffed.0.len() as u32 - 34, stuff_count(&raw.0));
+    }
+
+    #[test]
+    fn crc15_known_value() {
+        // CRC-15/CAN of the ASCII bytes "123456789" is 0x059E (the standard check value).
+        let mut bits = Bits::default();
+        for &c in b"123456789" {
+            bits.push(c as u64, 8);
+        }
+        assert_eq!(crc15(&bits.0), 0x059E);
+    }
+
+    #[test]
+    fn stuffing_worst_case_never_exceeded() {
+        // The worst-case bound holds for every 1-byte payload of a few IDs, and is reached for some frame.
+        for dlc in 0..=8u32 {
+            let bound = worst_case_frame_bits(dlc, false);
+            for id in [0u32, 0x0F0, 0x3C3, 0x555, 0x7FF] {
+                for fill in [0x00u8, 0xFF, 0x0F, 0xF0, 0x3C, 0xAA] {
+                    let data = vec![fill; dlc as usize];
+                    assert!(frame_bits(id, &data, false).unwrap() <= bound);
+                }
+            }
+        }
+        assert_eq!(worst_case_frame_bits(8, false), 135);
+        assert_eq!(worst_case_frame_bits(8, true), 160);
+    }
+
+    #[test]
+    fn stuff_bit_starts_the_next_run() {
+        // 0000011111: stuff after the 5 zeros (a 1), which starts a run of ones: 1 + 4 ones -> stuff again after 4.
+        let s = stuff(&[0, 0, 0, 0, 0, 1, 1, 1, 1, 1]);
+        assert_eq!(s.0, vec![0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 0, 1]);
+    }
+
+    #[test]
+    fn bad_frames_are_refused() {
+        assert!(matches!(frame_bits(0x800, &[], false), Err(FrameError::IdOutOfRange { .. })));
+        assert!(frame_bits(0x800, &[], true).is_ok());
+        assert!(matches!(frame_bits(1, &[0; 9], false), Err(FrameError::TooLong { .. })));
+        let t = BitTiming::new(500_000, 500_000).unwrap();
+        assert_eq!(t.frame_ns(0, &[], false, false).unwrap(), 53 * 2000);
+        assert!(matches!(t.frame_ns(0, &[], false, true), Err(FrameError::FdNotSupported { .. })));
+        assert!(BitTiming::new(300_000, 300_000).is_none());
+    }
+
+    #[test]
+    fn extended_header_layout() {
+        let raw = unstuffed_bits(0x1234_5678 & 0x1FFF_FFFF, &[], true);
+        assert_eq!(raw.0.len(), 39 + 15);
+        assert_eq!(raw.0[12], 1); // SRR
+        assert_eq!(raw.0[13], 1); // IDE
+    }
+}

@@ -1,0 +1,225 @@
+//! The virtual-time network: every train bus, the radio gateway, the mailboxes and inboxes they deliver into,
+//! and one event queue for all of them. Python's periodic tasks (plant steps, ECU cycles, wayside ticks) are
+//! external events on the same queue: `advance` runs every frame event in Rust and returns to Python only when
+//! an external event is due. Scheduling follows the Python kernel exactly (a periodic task is rescheduled
+//! after its handler ran), so both give the same frame schedule.
+
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::rc::Rc;
+use std::sync::Arc;
+
+use crate::bus::{Bus, Payload, Sink};
+use crate::codec::MessageLayout;
+use crate::frame::{self, FrameError};
+use crate::kernel::EventQueue;
+use crate::mailbox::Mailbox;
+use crate::radio::{Draws, Gateway};
+
+/// What happens at a time.
+pub enum Event {
+    Arbitrate(usize),
+    End(usize),
+    RadioSend { bus: usize, frame_id: u32, data: Payload },
+    External { token: u64, period: u64 },
+}
+
+/// A frame delivered into an inbox: (frame id, payload, end of transmission in ns).
+pub type InboxFrame = (u32, Payload, u64);
+
+#[derive(Default)]
+pub struct Network {
+    pub queue: EventQueue<Event>,
+    pub buses: Vec<Bus>,
+    arbitration_pending: Vec<bool>,
+    pub mailboxes: Vec<Rc<RefCell<Mailbox>>>,
+    pub inboxes: Vec<Vec<InboxFrame>>,
+    pub gateway: Gateway,
+    gateway_nodes: Vec<Option<usize>>,
+    position_layouts: HashMap<u32, Arc<MessageLayout>>,
+    reschedule: Option<(u64, u64, u64)>,
+    next_token: u64,
+}
+
+impl Network {
+    pub fn add_bus(&mut self, bus: Bus) -> usize {
+        self.buses.push(bus);
+        self.arbitration_pending.push(false);
+        self.gateway_nodes.push(None);
+        self.buses.len() - 1
+    }
+
+    pub fn add_mailbox(&mut self, mailbox: Rc<RefCell<Mailbox>>) -> usize {
+        self.mailboxes.push(mailbox);
+        self.mailboxes.len() - 1
+    }
+
+    pub fn add_inbox(&mut self) -> usize {
+        self.inboxes.push(Vec::new());
+        self.inboxes.len() - 1
+    }
+
+    /// Attach the radio gateway's node on `bus` (its filter: the routed IDs of that bus).
+    pub fn attach_gateway(&mut self, bus: usize, name: &str) -> usize {
+        let ids = self.gateway.ids_for_bus(bus);
+        let node = self.buses[bus].attach(name, Sink::Gateway(bus), Some(ids), false);
+        self.gateway_nodes[bus] = Some(node);
+        node
+    }
+
+    /// Frames of `frame_id` carry their sender's position in their first signal (the radio's range check).
+    pub fn set_position_layout(&mut self, layout: Arc<MessageLayout>) {
+        self.position_layouts.insert(layout.frame_id, layout);
+    }
+
+    /// A periodic external event from `first` every `period` ns (period 0: once); returns its token.
+    pub fn every(&mut self, first: u64, period: u64) -> u64 {
+        self.next_token += 1;
+        let token = self.next_token;
+        self.queue.at(first, Event::External { token, period });
+        token
+    }
+
+    /// Queue a frame on a bus at the current time; false (counted) when the node's queue is full.
+    /// Frames queued at the same instant all join one arbitration.
+    pub fn send(&mut self, bus: usize, node: usize, frame_id: u32, data: &[u8]) -> Result<bool, FrameError> {
+        let b = &mut self.buses[bus];
+        frame::validate(frame_id, data.len(), b.extended)?;
+        let now = self.queue.now;
+        let ok = b.enqueue(node, frame_id, data, now, None);
+        if ok && b.current.is_none() && !self.arbitration_pending[bus] {
+            self.arbitration_pending[bus] = true;
+            let t = now.max(b.busy_until);
+            self.queue.at(t, Event::Arbitrate(bus));
+        }
+        Ok(ok)
+    }
+
+    fn arbitrate(&mut self, bus: usize) -> Result<(), FrameError> {
+        self.arbitration_pending[bus] = false;
+        if let Some(end) = self.buses[bus].arbitrate(self.queue.now)? {
+            self.queue.at(end, Event::End(bus));
+        }
+        Ok(())
+    }
+
+    fn end<E: From<FrameError>>(&mut self, bus: usize, refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
+        let tx = self.buses[bus].complete();
+        let receivers = self.buses[bus].receivers(tx.frame_id).to_vec();
+        for node in receivers {
+            let n = &self.buses[bus].nodes[node];
+            if node == tx.node && !n.receive_own {
+                continue;
+            }
+            match n.sink {
+                Sink::None => {}
+                Sink::Mailbox(m) => {
+                    self.mailboxes[m].borrow_mut().put(tx.frame_id, tx.data.as_slice(), tx.t_end as f64 * 1e-9);
+                }
+                Sink::Inbox(i) => self.inboxes[i].push((tx.frame_id, tx.data, tx.t_end)),
+                Sink::Gateway(b) => self.forward(b, tx.frame_id, tx.data, tx.t_end, refill)?,
+            }
+        }
+        if self.arbitration_pending[bus] || !self.buses[bus].pending() {
+            return Ok(());
+        }
+        if self.queue.next_time() == Some(self.queue.now) {
+            // other events at this same instant may queue frames: arbitrate after them so they compete
+            self.arbitration_pending[bus] = true;
+            self.queue.at(self.queue.now, Event::Arbitrate(bus));
+            Ok(())
+        } else {
+            Ok(self.arbitrate(bus)?)
+        }
+    }
+
+    /// Offer a frame heard on `bus` to every matching route of the gateway.
+    fn forward<E>(&mut self, bus: usize, frame_id: u32, data: Payload, t: u64,
+                  refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
+        let Some(hops) = self.gateway.table.get(&(bus, frame_id)) else { return Ok(()) };
+        let hops = hops.clone();
+        let pos = self.position_layouts.get(&frame_id).and_then(|l| l.first_value(data.as_slice()));
+        for hop in hops {
+            if pos.is_some() {
+                self.gateway.positions[hop.link] = pos;
+            }
+            let sender = self.gateway.positions[hop.link];
+            let receiver = hop.reverse.and_then(|r| self.gateway.positions[r]);
+            if self.gateway.links[hop.link].needs_draws() {
+                self.gateway.links[hop.link].draws = refill(hop.link)?;
+            }
+            if let Some(deliver) = self.gateway.links[hop.link].offer(t as i64, sender, receiver) {
+                let at = (deliver.max(0) as u64).max(self.queue.now);
+                self.queue.at(at, Event::RadioSend { bus: hop.dst_bus, frame_id: hop.dst_id, data });
+            }
+        }
+        Ok(())
+    }
+
+    /// Run every event before `until` ns. Returns the token of an external event that is due (the clock is at
+    /// its time; call again after handling it), or None when the clock reached `until`.
+    pub fn advance<E: From<FrameError>>(&mut self, until: u64, refill: &mut dyn FnMut(usize) -> Result<Draws, E>)
+                                        -> Result<Option<u64>, E> {
+        if let Some((token, t, period)) = self.reschedule.take() {
+            self.queue.at(t, Event::External { token, period });
+        }
+        while let Some(event) = self.queue.pop_before(until) {
+            match event {
+                Event::Arbitrate(bus) => self.arbitrate(bus)?,
+                Event::End(bus) => self.end(bus, refill)?,
+                Event::RadioSend { bus, frame_id, data } => {
+                    let node = self.gateway_nodes[bus].expect("radio delivery to a bus without a gateway node");
+                    self.send(bus, node, frame_id, data.as_slice())?;
+                }
+                Event::External { token, period } => {
+                    if period > 0 {
+                        self.reschedule = Some((token, self.queue.now + period, period));
+                    }
+                    return Ok(Some(token));
+                }
+            }
+        }
+        self.queue.now = self.queue.now.max(until);
+        Ok(None)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bus::Policy;
+    use crate::frame::BitTiming;
+
+    fn no_draws(_: usize) -> Result<Draws, FrameError> {
+        Ok(Draws::default())
+    }
+
+    #[test]
+    fn frames_queued_by_one_task_arbitrate_together_and_reach_the_inbox() {
+        let mut net = Network::default();
+        let b = net.add_bus(Bus::new("bus1", BitTiming::new(500_000, 500_000).unwrap(), Policy::Priority, 8, false, 100_000_000));
+        let inbox = net.add_inbox();
+        let sender = net.buses[b].attach("ECU", Sink::None, None, false);
+        net.buses[b].attach("Plant", Sink::Inbox(inbox), Some(vec![0x010, 0x020]), false);
+        let tick = net.every(0, 10_000_000);
+        assert_eq!(net.advance(1_000_000_000, &mut no_draws).unwrap(), Some(tick));
+        net.send(b, sender, 0x020, &[0; 8]).unwrap();
+        net.send(b, sender, 0x010, &[0; 8]).unwrap();
+        net.send(b, sender, 0x030, &[0; 8]).unwrap();
+        assert_eq!(net.advance(10_000_000, &mut no_draws).unwrap(), None);
+        let got: Vec<u32> = net.inboxes[inbox].iter().map(|f| f.0).collect();
+        assert_eq!(got, vec![0x010, 0x020]); // lowest ID first; 0x030 is not in the plant's filter
+        assert_eq!(net.buses[b].stats.frames_sent, 3);
+        assert_eq!(net.advance(20_000_000, &mut no_draws).unwrap(), Some(tick));
+        assert_eq!(net.queue.now, 10_000_000);
+    }
+
+    #[test]
+    fn bad_frames_are_refused_at_the_sender() {
+        let mut net = Network::default();
+        let b = net.add_bus(Bus::new("bus1", BitTiming::new(500_000, 500_000).unwrap(), Policy::Priority, 8, false, 100_000_000));
+        let n = net.buses[b].attach("X", Sink::None, None, false);
+        assert!(net.send(b, n, 0x800, &[]).is_err());
+        assert!(net.send(b, n, 0x100, &[0; 9]).is_err());
+    }
+}
