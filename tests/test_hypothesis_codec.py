@@ -21,7 +21,7 @@ SETTINGS = settings(max_examples=200, deadline=None, database=None)
 
 
 def lsb(codec, i: int) -> float:
-    return codec._specs[i].scale
+    return codec.scales[i]
 
 
 @st.composite
@@ -78,14 +78,13 @@ def test_out_of_range_saturates_at_the_near_limit_counted_never_wrapped(case):
 def test_any_bytes_of_the_right_length_decode_inside_the_limits(codec, data):
     frame = data.draw(st.binary(min_size=codec.dlc, max_size=codec.dlc))
     values = codec.decode(frame)
-    raw_limits = [(s.raw_min, s.raw_max) for s in codec._specs]
-    for (lo, hi), v, spec, (rlo, rhi) in zip(codec.limits, values, codec._specs, raw_limits):
-        # the bit range can exceed a DBC min/max narrowing: then the value is outside [lo, hi] but still a
+    for v, (_, _, length, signed, scale, offset, _, _) in zip(values, codec.specs):
+        # the bit range can exceed a DBC min/max narrowing: then the value is outside the limits but still a
         # value of the signal's bits, never NaN or inf
         assert math.isfinite(v)
-        bits_lo = -(spec.mask + 1) // 2 if spec.sign_bit else 0
-        bits_hi = spec.mask // 2 if spec.sign_bit else spec.mask
-        assert bits_lo * spec.scale + spec.offset - 1e-9 <= v <= bits_hi * spec.scale + spec.offset + 1e-9
+        bits_lo = -(1 << (length - 1)) if signed else 0
+        bits_hi = (1 << (length - 1)) - 1 if signed else (1 << length) - 1
+        assert bits_lo * scale + offset - 1e-9 <= v <= bits_hi * scale + offset + 1e-9
 
 
 @SETTINGS

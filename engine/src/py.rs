@@ -1,0 +1,550 @@
+//! The Python surface of the engine (`trainhil_engine._native`); its typed stub is `trainhil_engine/_native.pyi`.
+
+use std::cell::RefCell;
+use std::rc::Rc;
+use std::sync::Arc;
+
+use pyo3::exceptions::{PyIndexError, PyKeyError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::pybacked::PyBackedBytes;
+use pyo3::types::{PyBytes, PyDict, PyList, PyTuple};
+
+use crate::bus::{Bus, Policy, Sink};
+use crate::codec::{CodecError, MessageLayout, SignalSpec};
+use crate::e2e::{self, STATUS_NAMES};
+use crate::frame::{self, BitTiming, FrameError, MAX_DATA};
+use crate::mailbox;
+use crate::network::Network as CoreNetwork;
+use crate::radio::{Draws, Hop, Link, Loss};
+
+fn frame_err(e: FrameError) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+fn codec_err(e: CodecError) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+/// Wrapper so the network's error type can carry a Python exception raised by a radio refill.
+struct EngineError(PyErr);
+
+impl From<FrameError> for EngineError {
+    fn from(e: FrameError) -> Self {
+        EngineError(frame_err(e))
+    }
+}
+
+// ------------------------------------------------------------------------------------------------ functions
+
+/// Exact bits on the wire of a classical data frame, SOF through the 3-bit intermission.
+#[pyfunction]
+#[pyo3(signature = (can_id, data, extended = false))]
+fn frame_bits(can_id: i64, data: PyBackedBytes, extended: bool) -> PyResult<u32> {
+    let id = u32::try_from(can_id).map_err(|_| PyValueError::new_err(format!("can_id={can_id:#x} must be a non-negative identifier")))?;
+    frame::frame_bits(id, &data, extended).map_err(frame_err)
+}
+
+/// Duration in ns of a data frame at a nominal (arbitration) and a data bit rate.
+#[pyfunction]
+#[pyo3(signature = (can_id, data, nominal_bitrate, data_bitrate = None, extended = false, fd = false))]
+fn frame_duration_ns(can_id: u32, data: PyBackedBytes, nominal_bitrate: u64, data_bitrate: Option<u64>, extended: bool, fd: bool) -> PyResult<u64> {
+    let timing = timing(nominal_bitrate, data_bitrate.unwrap_or(nominal_bitrate))?;
+    timing.frame_ns(can_id, &data, extended, fd).map_err(frame_err)
+}
+
+/// CRC-8 SAE J1850 over [data_id] + payload[1:].
+#[pyfunction]
+fn e2e_crc(data_id: u8, payload: PyBackedBytes) -> u8 {
+    e2e::e2e_crc(data_id, &payload)
+}
+
+fn timing(nominal: u64, data: u64) -> PyResult<BitTiming> {
+    BitTiming::new(nominal, data).ok_or_else(|| {
+        PyValueError::new_err(format!("bitrate {nominal} (data {data}) bit/s has no whole-nanosecond bit time"))
+    })
+}
+
+// ------------------------------------------------------------------------------------------------ codec
+
+/// One DBC message compiled for the hot path: physical values <-> frame bytes with the E2E header.
+#[pyclass(module = "trainhil_engine._native", frozen)]
+pub struct MessageCodec {
+    layout: Arc<MessageLayout>,
+    saturations: std::sync::Mutex<Vec<u64>>,
+    #[pyo3(get)]
+    name: String,
+    #[pyo3(get)]
+    frame_id: u32,
+    #[pyo3(get)]
+    dlc: usize,
+    #[pyo3(get)]
+    data_id: u8,
+    #[pyo3(get)]
+    cycle_time_s: f64,
+    #[pyo3(get)]
+    signals: Py<PyTuple>,
+    #[pyo3(get)]
+    units: Py<PyTuple>,
+    #[pyo3(get)]
+    limits: Py<PyTuple>,
+}
+
+type SpecTuple = (String, u32, u32, bool, f64, f64, i64, i64);
+
+#[pymethods]
+impl MessageCodec {
+    /// `specs`: (name, start bit, length, signed, scale, offset, raw_min, raw_max) per payload signal, Intel order.
+    #[new]
+    #[pyo3(signature = (name, frame_id, dlc, cycle_time_s, data_id, specs, units))]
+    fn new(py: Python<'_>, name: String, frame_id: u32, dlc: usize, cycle_time_s: f64, data_id: u8, specs: Vec<SpecTuple>,
+           units: Vec<String>) -> PyResult<Self> {
+        if !(e2e::HEADER_BYTES..=MAX_DATA).contains(&dlc) {
+            return Err(PyValueError::new_err(format!("{name}: DLC {dlc} must be in {}..{MAX_DATA}", e2e::HEADER_BYTES)));
+        }
+        let mut signals = Vec::new();
+        for (sname, start, length, signed, scale, offset, raw_min, raw_max) in specs {
+            if length == 0 || length > 63 || start + length > 8 * dlc as u32 {
+                return Err(PyValueError::new_err(format!("{name}.{sname}: bits {start}..{} do not fit {dlc} bytes", start + length)));
+            }
+            signals.push(SignalSpec { name: sname, start, length, signed, scale, offset, raw_min, raw_max });
+        }
+        let names = PyTuple::new(py, signals.iter().map(|s| s.name.clone()))?.unbind();
+        let limits = PyTuple::new(py, signals.iter().map(|s| (s.raw_min as f64 * s.scale + s.offset, s.raw_max as f64 * s.scale + s.offset)))?.unbind();
+        let n = signals.len();
+        Ok(MessageCodec {
+            layout: Arc::new(MessageLayout { name: name.clone(), frame_id, dlc, data_id, signals }),
+            saturations: std::sync::Mutex::new(vec![0; n]),
+            name, frame_id, dlc, data_id, cycle_time_s, signals: names, units: PyTuple::new(py, units)?.unbind(),
+            limits,
+        })
+    }
+
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let sig: Vec<String> = self.layout.signals.iter().map(|s| format!("'{}'", s.name)).collect();
+        let _ = py;
+        format!("MessageCodec({}, id=0x{:03X}, dlc={}, signals=({}{}))", self.name, self.frame_id, self.dlc, sig.join(", "),
+                if sig.len() == 1 { "," } else { "" })
+    }
+
+    /// Physical values (in `signals` order) -> frame bytes with alive counter and E2E CRC; out-of-range values
+    /// saturate and are counted, NaN raises ValueError naming the signal.
+    fn encode<'py>(&self, py: Python<'py>, values: Vec<f64>, counter: i64) -> PyResult<Bound<'py, PyBytes>> {
+        let mut out = [0u8; MAX_DATA];
+        let mut sat = self.saturations.lock().unwrap();
+        let n = self.layout.encode(&values, counter, &mut sat, &mut out).map_err(codec_err)?;
+        Ok(PyBytes::new(py, &out[..n]))
+    }
+
+    /// Frame bytes -> physical values in `signals` order (E2E header not checked here).
+    fn decode<'py>(&self, py: Python<'py>, data: PyBackedBytes) -> PyResult<Bound<'py, PyTuple>> {
+        let mut v = Vec::with_capacity(self.layout.signals.len());
+        self.layout.decode_into(&data, &mut v).map_err(codec_err)?;
+        PyTuple::new(py, v)
+    }
+
+    /// Alive counter carried in the frame.
+    fn counter_of(&self, data: PyBackedBytes) -> PyResult<u8> {
+        self.check_length(&data)?;
+        Ok(data[1] & 0xF)
+    }
+
+    /// Whether the frame's CRC byte matches this message's data ID and payload.
+    fn crc_ok(&self, data: PyBackedBytes) -> PyResult<bool> {
+        self.check_length(&data)?;
+        Ok(e2e::crc_ok(self.data_id, &data))
+    }
+
+    /// Position of a payload signal in `signals`.
+    fn index(&self, signal: &str) -> PyResult<usize> {
+        self.layout.signals.iter().position(|s| s.name == signal).ok_or_else(|| {
+            let names: Vec<&str> = self.layout.signals.iter().map(|s| s.name.as_str()).collect();
+            PyKeyError::new_err(format!("message {} has no payload signal '{signal}' (has {names:?})", self.name))
+        })
+    }
+
+    /// The compiled layout: (name, start bit, length, signed, scale, offset, raw_min, raw_max) per signal.
+    #[getter]
+    fn specs(&self) -> Vec<SpecTuple> {
+        self.layout.signals.iter()
+            .map(|s| (s.name.clone(), s.start, s.length, s.signed, s.scale, s.offset, s.raw_min, s.raw_max))
+            .collect()
+    }
+
+    /// The LSB (DBC scale) of each payload signal, in `signals` order.
+    #[getter]
+    fn scales(&self) -> Vec<f64> {
+        self.layout.signals.iter().map(|s| s.scale).collect()
+    }
+
+    /// Saturated encodes per signal name.
+    #[getter]
+    fn saturations<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        let sat = self.saturations.lock().unwrap();
+        for (s, n) in self.layout.signals.iter().zip(sat.iter()) {
+            d.set_item(&s.name, *n)?;
+        }
+        Ok(d)
+    }
+
+    /// Zero the saturation counts.
+    fn reset_saturations(&self) {
+        self.saturations.lock().unwrap().fill(0);
+    }
+}
+
+impl MessageCodec {
+    fn check_length(&self, data: &[u8]) -> PyResult<()> {
+        if data.len() != self.dlc {
+            return Err(PyValueError::new_err(format!("{}: frame has {} bytes, DLC is {}", self.name, data.len(), self.dlc)));
+        }
+        Ok(())
+    }
+}
+
+// ------------------------------------------------------------------------------------------------ mailbox
+
+/// An ECU's input mailboxes, one per stream; delivery stores the latest frame, `refresh` checks and decodes
+/// what arrived since the last cycle.
+#[pyclass(module = "trainhil_engine._native", unsendable)]
+pub struct Mailbox {
+    inner: Rc<RefCell<mailbox::Mailbox>>,
+}
+
+#[pymethods]
+impl Mailbox {
+    #[new]
+    fn new() -> Self {
+        Mailbox { inner: Rc::new(RefCell::new(mailbox::Mailbox::default())) }
+    }
+
+    /// Add the mailbox of one message stream; returns its slot index.
+    fn add_slot(&self, codec: &MessageCodec, max_delta: u8) -> PyResult<usize> {
+        if max_delta > e2e::COUNTER_MODULO - 2 {
+            return Err(PyValueError::new_err(format!("{}: max_delta {max_delta} is not in 0..14", codec.name)));
+        }
+        Ok(self.inner.borrow_mut().add_slot(codec.layout.clone(), max_delta))
+    }
+
+    /// Store a frame received at `t` (s): 0 stored, 1 unknown ID, 2 known ID with the wrong length (dropped).
+    fn put(&self, frame_id: u32, data: PyBackedBytes, t: f64) -> u8 {
+        match self.inner.borrow_mut().put(frame_id, &data, t) {
+            mailbox::Delivery::Stored => 0,
+            mailbox::Delivery::UnknownId => 1,
+            mailbox::Delivery::WrongLength(..) => 2,
+        }
+    }
+
+    /// Check and decode the frame of every slot that arrived since the last call.
+    fn refresh(&self) {
+        self.inner.borrow_mut().refresh();
+    }
+
+    /// One slot at time t: (fresh within `timeout`, age s, values, alive counter, reception time of the last good
+    /// frame). A stream that had been fresh and is not any more counts a TIMEOUT.
+    fn read<'py>(&self, py: Python<'py>, slot: usize, t: f64, timeout: f64) -> PyResult<Bound<'py, PyTuple>> {
+        let mut mb = self.inner.borrow_mut();
+        let s = mb.slots.get_mut(slot).ok_or_else(|| PyIndexError::new_err(format!("no mailbox slot {slot}")))?;
+        let fresh = s.fresh(t, timeout);
+        let values = PyTuple::new(py, s.values.iter())?;
+        (fresh, t - s.t_good, values, s.counter, s.t_good).into_pyobject(py)
+    }
+
+    /// Values of a slot's last good frame (empty before any).
+    fn values<'py>(&self, py: Python<'py>, slot: usize) -> PyResult<Bound<'py, PyTuple>> {
+        let mb = self.inner.borrow();
+        PyTuple::new(py, mb.slots[slot].values.iter())
+    }
+
+    fn counter(&self, slot: usize) -> i32 {
+        self.inner.borrow().slots[slot].counter
+    }
+
+    fn t_good(&self, slot: usize) -> f64 {
+        self.inner.borrow().slots[slot].t_good
+    }
+
+    /// Forget what every slot received (a power cycle); keeps the statistics.
+    fn reset(&self) {
+        for s in &mut self.inner.borrow_mut().slots {
+            s.reset();
+        }
+    }
+
+    /// E2E verdicts of one slot: non-zero counts by status name, plus LOST and TIMEOUT.
+    fn summary<'py>(&self, py: Python<'py>, slot: usize) -> PyResult<Bound<'py, PyDict>> {
+        let mb = self.inner.borrow();
+        let c = &mb.slots[slot].checker;
+        let d = PyDict::new(py);
+        for (name, &n) in STATUS_NAMES.iter().zip(c.counts.iter()) {
+            if n > 0 {
+                d.set_item(*name, n)?;
+            }
+        }
+        if c.lost > 0 {
+            d.set_item("LOST", c.lost)?;
+        }
+        if c.timeouts > 0 {
+            d.set_item("TIMEOUT", c.timeouts)?;
+        }
+        Ok(d)
+    }
+
+    /// Count of one E2E status (index as in ecu_sim.e2e.E2EStatus) of one slot.
+    fn count(&self, slot: usize, status: usize) -> u64 {
+        self.inner.borrow().slots[slot].checker.counts[status]
+    }
+
+    /// The frame IDs with a slot (the acceptance filter).
+    fn ids(&self) -> Vec<u32> {
+        self.inner.borrow().ids()
+    }
+
+    #[getter]
+    fn unknown_frames(&self) -> u64 {
+        self.inner.borrow().unknown_frames
+    }
+
+    #[getter]
+    fn malformed_frames(&self) -> u64 {
+        self.inner.borrow().malformed_frames
+    }
+
+    /// The first wrong-length frame not reported yet: (t, slot, length), or None.
+    fn take_first_malformed(&self) -> Option<(f64, usize, usize)> {
+        let mut mb = self.inner.borrow_mut();
+        let first = mb.first_malformed;
+        if first.is_some() {
+            mb.first_malformed = Some((f64::NAN, usize::MAX, 0)); // reported: later ones are only counted
+        }
+        first.filter(|f| f.1 != usize::MAX)
+    }
+}
+
+// ------------------------------------------------------------------------------------------------ network
+
+/// Every train bus, the radio gateway, the mailboxes and inboxes, on one virtual-time event queue.
+#[pyclass(module = "trainhil_engine._native", unsendable)]
+pub struct Network {
+    core: CoreNetwork,
+    refills: Vec<Py<PyAny>>,
+}
+
+fn policy(name: &str) -> PyResult<Policy> {
+    match name {
+        "priority" => Ok(Policy::Priority),
+        "fifo" => Ok(Policy::Fifo),
+        _ => Err(PyValueError::new_err(format!("queue policy must be 'priority' or 'fifo', got '{name}'"))),
+    }
+}
+
+#[pymethods]
+impl Network {
+    #[new]
+    fn new() -> Self {
+        Network { core: CoreNetwork::default(), refills: Vec::new() }
+    }
+
+    /// Add a bus; returns its index.
+    #[pyo3(signature = (name, bitrate, policy_name = "priority", depth = 64, extended = false, load_window_ns = 100_000_000))]
+    fn add_bus(&mut self, name: &str, bitrate: u64, policy_name: &str, depth: usize, extended: bool, load_window_ns: u64) -> PyResult<usize> {
+        if load_window_ns == 0 {
+            return Err(PyValueError::new_err("load_window_ns must be positive"));
+        }
+        let bus = Bus::new(name, timing(bitrate, bitrate)?, policy(policy_name)?, depth, extended, load_window_ns);
+        Ok(self.core.add_bus(bus))
+    }
+
+    /// A node that only sends; returns its node index on the bus.
+    fn attach_sender(&mut self, bus: usize, name: &str) -> PyResult<usize> {
+        Ok(self.bus_mut(bus)?.attach(name, Sink::None, None, false))
+    }
+
+    /// A node delivering into an ECU's mailboxes (filter: the mailbox's IDs).
+    fn attach_mailbox(&mut self, bus: usize, name: &str, mailbox: &Mailbox) -> PyResult<usize> {
+        let ids = mailbox.inner.borrow().ids();
+        let m = self.core.add_mailbox(mailbox.inner.clone());
+        Ok(self.bus_mut(bus)?.attach(name, Sink::Mailbox(m), Some(ids), false))
+    }
+
+    /// A node delivering into an inbox drained by `drain_inbox`; returns (node, inbox).
+    fn attach_inbox(&mut self, bus: usize, name: &str, rx_ids: Option<Vec<u32>>) -> PyResult<(usize, usize)> {
+        self.bus_mut(bus)?;
+        let inbox = self.core.add_inbox();
+        Ok((self.core.buses[bus].attach(name, Sink::Inbox(inbox), rx_ids, false), inbox))
+    }
+
+    /// The radio gateway's node on a bus (add the links and routes first).
+    fn attach_gateway(&mut self, bus: usize, name: &str) -> PyResult<usize> {
+        self.bus_mut(bus)?;
+        Ok(self.core.attach_gateway(bus, name))
+    }
+
+    /// One direction of a radio link; `refill()` returns the next block (u_step, u_loss, jitter_ns) of draws.
+    #[pyo3(signature = (name, range_m, blackouts, latency_ns, period_ns, loss_model, p, p_good_to_bad, p_bad_to_good,
+                        loss_good, loss_bad, initially_bad, refill))]
+    #[allow(clippy::too_many_arguments)]
+    fn add_link(&mut self, name: &str, range_m: f64, blackouts: Vec<(f64, f64)>, latency_ns: i64, period_ns: Option<i64>,
+                loss_model: &str, p: f64, p_good_to_bad: f64, p_bad_to_good: f64, loss_good: f64, loss_bad: f64,
+                initially_bad: bool, refill: Py<PyAny>) -> PyResult<usize> {
+        let loss = match loss_model {
+            "none" => Loss::None,
+            "bernoulli" => Loss::Bernoulli { p },
+            "gilbert_elliott" => Loss::GilbertElliott { p_gb: p_good_to_bad, p_bg: p_bad_to_good, loss_good, loss_bad },
+            other => return Err(PyValueError::new_err(format!("radio link {name}: unknown loss model '{other}'"))),
+        };
+        self.refills.push(refill);
+        Ok(self.core.gateway.add_link(Link::new(name, range_m, blackouts, latency_ns, period_ns, loss, initially_bad)))
+    }
+
+    /// Forward `src_id` heard on `src_bus` to `dst_bus` as `dst_id` over `link` (`reverse`: the other direction).
+    fn add_route(&mut self, src_bus: usize, src_id: u32, dst_bus: usize, dst_id: u32, link: usize, reverse: Option<usize>) -> PyResult<()> {
+        if link >= self.core.gateway.links.len() || reverse.is_some_and(|r| r >= self.core.gateway.links.len()) {
+            return Err(PyIndexError::new_err(format!("route {src_bus}:{src_id:#x}: no radio link {link}")));
+        }
+        self.core.gateway.add_route(src_bus, src_id, Hop { dst_bus, dst_id, link, reverse });
+        Ok(())
+    }
+
+    /// Frames of this message carry their sender's position in their first signal (radio range, tunnels).
+    fn set_position_codec(&mut self, codec: &MessageCodec) {
+        self.core.set_position_layout(codec.layout.clone());
+    }
+
+    /// A periodic task from `first_ns` every `period_ns` (0: once); `advance` returns its token when it is due.
+    fn every(&mut self, first_ns: u64, period_ns: u64) -> PyResult<u64> {
+        if first_ns < self.core.queue.now {
+            return Err(PyValueError::new_err(format!("event scheduled in the past: {first_ns} ns < now {} ns", self.core.queue.now)));
+        }
+        Ok(self.core.every(first_ns, period_ns))
+    }
+
+    /// Run every frame event before `until_ns`; the token of a task that is due (the clock at its time), or None.
+    fn advance(&mut self, py: Python<'_>, until_ns: u64) -> PyResult<Option<u64>> {
+        let refills = &self.refills;
+        let mut refill = |link: usize| -> Result<Draws, EngineError> {
+            let block = refills[link].call0(py).map_err(EngineError)?;
+            let (u_step, u_loss, jitter_ns): (Vec<f64>, Vec<f64>, Vec<i64>) = block.extract(py).map_err(EngineError)?;
+            if u_step.is_empty() || u_loss.len() != u_step.len() || jitter_ns.len() != u_step.len() {
+                return Err(EngineError(PyValueError::new_err("radio refill must return three equal, non-empty lists")));
+            }
+            Ok(Draws { u_step, u_loss, jitter_ns, next: 0 })
+        };
+        self.core.advance(until_ns, &mut refill).map_err(|e| e.0)
+    }
+
+    /// The clock (ns).
+    #[getter]
+    fn now(&self) -> u64 {
+        self.core.queue.now
+    }
+
+    /// Queue a frame at the current time; False when the node's TX queue is full (counted).
+    fn send(&mut self, bus: usize, node: usize, frame_id: u32, data: PyBackedBytes) -> PyResult<bool> {
+        self.check_node(bus, node)?;
+        self.core.send(bus, node, frame_id, &data).map_err(frame_err)
+    }
+
+    /// Queue several (frame_id, data) frames from one node.
+    fn send_frames(&mut self, bus: usize, node: usize, frames: Vec<(u32, PyBackedBytes)>) -> PyResult<()> {
+        self.check_node(bus, node)?;
+        for (frame_id, data) in frames {
+            self.core.send(bus, node, frame_id, &data).map_err(frame_err)?;
+        }
+        Ok(())
+    }
+
+    /// Take the frames delivered into an inbox: [(frame_id, data, t_end_ns)].
+    fn drain_inbox<'py>(&mut self, py: Python<'py>, inbox: usize) -> PyResult<Bound<'py, PyList>> {
+        let frames = std::mem::take(self.core.inboxes.get_mut(inbox).ok_or_else(|| PyIndexError::new_err(format!("no inbox {inbox}")))?);
+        let items: Vec<Bound<'py, PyTuple>> = frames.iter()
+            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        PyList::new(py, items)
+    }
+
+    /// Take a bus's statistics gathered since the last call: (frames rows, load rows) as bytes of float64
+    /// ((t_end, id, latency, queueing) and (window end, load)), and the totals (sent, dropped).
+    fn take_stats<'py>(&mut self, py: Python<'py>, bus: usize) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>, u64, u64)> {
+        let b = self.bus_mut(bus)?;
+        let frames = std::mem::take(&mut b.stats.frames);
+        let load = std::mem::take(&mut b.stats.load);
+        let as_bytes = |v: &[f64]| -> Vec<u8> { v.iter().flat_map(|x| x.to_ne_bytes()).collect() };
+        Ok((PyBytes::new(py, &as_bytes(&frames)), PyBytes::new(py, &as_bytes(&load)), b.stats.frames_sent, b.frames_dropped()))
+    }
+
+    /// Keep every completed transmission of a bus for `take_trace` (CAN logs, frame rows).
+    fn set_trace(&mut self, bus: usize, on: bool) -> PyResult<()> {
+        let b = self.bus_mut(bus)?;
+        b.trace = if on { Some(b.trace.take().unwrap_or_default()) } else { None };
+        Ok(())
+    }
+
+    /// Take the kept transmissions: [(frame_id, data, extended, t_enqueue, t_start, t_end, sender node)].
+    fn take_trace<'py>(&mut self, py: Python<'py>, bus: usize) -> PyResult<Bound<'py, PyList>> {
+        let b = self.bus_mut(bus)?;
+        let trace = b.trace.as_mut().map(std::mem::take).unwrap_or_default();
+        let items: Vec<Bound<'py, PyTuple>> = trace.iter()
+            .map(|tx| (tx.frame_id, PyBytes::new(py, tx.data.as_slice()), tx.extended, tx.t_enqueue, tx.t_start, tx.t_end, tx.node).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        PyList::new(py, items)
+    }
+
+    /// Close the load windows of every bus up to `t_ns` (the end of a run).
+    fn finish(&mut self, t_ns: u64) {
+        for b in &mut self.core.buses {
+            b.finish(t_ns);
+        }
+    }
+
+    /// Counters of a radio link: offered, delivered, out_of_range, blackout, lost, rate_capped.
+    fn link_stats<'py>(&self, py: Python<'py>, link: usize) -> PyResult<Bound<'py, PyDict>> {
+        let l = self.core.gateway.links.get(link).ok_or_else(|| PyIndexError::new_err(format!("no radio link {link}")))?;
+        let s = l.stats;
+        let d = PyDict::new(py);
+        for (k, v) in [("offered", s.offered), ("delivered", s.delivered), ("out_of_range", s.out_of_range),
+                       ("blackout", s.blackout), ("lost", s.lost), ("rate_capped", s.rate_capped)] {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
+    }
+
+    /// (name, sent, dropped, queued) of every node of a bus, in attach order.
+    fn nodes(&self, bus: usize) -> PyResult<Vec<(String, u64, u64, usize)>> {
+        let b = self.core.buses.get(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))?;
+        Ok(b.nodes.iter().map(|n| (n.name.clone(), n.sent, n.dropped, n.queued)).collect())
+    }
+
+    /// The gateway's IDs on a bus.
+    fn gateway_ids(&self, bus: usize) -> Vec<u32> {
+        self.core.gateway.ids_for_bus(bus)
+    }
+}
+
+impl Network {
+    fn bus_mut(&mut self, bus: usize) -> PyResult<&mut Bus> {
+        self.core.buses.get_mut(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))
+    }
+
+    fn check_node(&self, bus: usize, node: usize) -> PyResult<()> {
+        let b = self.core.buses.get(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))?;
+        if node >= b.nodes.len() {
+            return Err(PyIndexError::new_err(format!("bus {}: no node {node}", b.name)));
+        }
+        Ok(())
+    }
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("VERSION", env!("CARGO_PKG_VERSION"))?;
+    m.add("MAX_DATA", MAX_DATA)?;
+    m.add_function(wrap_pyfunction!(frame_bits, m)?)?;
+    m.add_function(wrap_pyfunction!(frame_duration_ns, m)?)?;
+    m.add_function(wrap_pyfunction!(e2e_crc, m)?)?;
+    m.add_class::<MessageCodec>()?;
+    m.add_class::<Mailbox>()?;
+    m.add_class::<Network>()?;
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "e2e_crc", "MessageCodec", "Mailbox", "Network"])?;
+    Ok(())
+}

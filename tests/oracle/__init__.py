@@ -1,0 +1,1 @@
+"""Test-only reference implementations the frame engine is checked against."""
