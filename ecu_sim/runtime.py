@@ -29,49 +29,69 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+from trainhil_engine import Mailbox
+
 from ecu_sim.codec import MessageCodec, TrainDb
 from ecu_sim.controllers.base import Controller
-from ecu_sim.e2e import E2EChecker
+from ecu_sim.e2e import E2EStatus
 from ecu_sim.view import AgentInfo, BrakeMode, Command, LocalView, NeighbourView, ReferenceView
 from hil.scenario.model import EcuConfig
 
 INF = float("inf")
 
 
-@dataclass(slots=True)
+class SlotChecker:
+    """The E2E statistics of one mailbox slot, read from the engine (counts indexed by E2EStatus)."""
+
+    __slots__ = ("_mb", "_i")
+
+    def __init__(self, mailbox: Mailbox, index: int) -> None:
+        self._mb, self._i = mailbox, index
+
+    @property
+    def counts(self) -> list[int]:
+        return [self._mb.count(self._i, s) for s in E2EStatus]
+
+    @property
+    def lost(self) -> int:
+        return self._mb.summary(self._i).get("LOST", 0)
+
+    @property
+    def timeouts(self) -> int:
+        return self._mb.summary(self._i).get("TIMEOUT", 0)
+
+    def summary(self) -> dict[str, int]:
+        """Non-zero counts by status name, plus the lost frames and the timeouts."""
+        return self._mb.summary(self._i)
+
+
 class InputSlot:
-    """Mailbox of one input stream: the last raw frame, and the last frame that passed the checks."""
+    """One input stream of an ECU: its codec and its mailbox slot in the engine (the last raw frame, and the
+    last frame that passed the E2E check, read once per cycle)."""
 
-    codec: MessageCodec
-    checker: E2EChecker
-    raw: bytes | None = None
-    t_raw: float = -INF
-    values: tuple[float, ...] = ()
-    t_good: float = -INF  # reception time of the last good frame
-    counter: int = -1  # alive counter of the last good frame
-    was_fresh: bool = False  # at the last freshness check
+    __slots__ = ("codec", "index", "checker", "_mb")
 
-    def refresh(self) -> None:
-        """Check and decode the frame that arrived since the last cycle, if any."""
-        if self.raw is None:
-            return
-        data, self.raw = self.raw, None
-        if self.checker.check(data).usable:  # CRC and alive counter (AUTOSAR profile-1 semantics)
-            self.values = self.codec.decode(data)
-            self.t_good = self.t_raw
-            self.counter = data[1] & 0xF
+    def __init__(self, mailbox: Mailbox, index: int, codec: MessageCodec) -> None:
+        self._mb, self.index, self.codec = mailbox, index, codec
+        self.checker = SlotChecker(mailbox, index)
+
+    @property
+    def values(self) -> tuple[float, ...]:
+        """Decoded values of the last good frame (empty before any)."""
+        return self._mb.values(self.index)
+
+    @property
+    def counter(self) -> int:
+        """Alive counter of the last good frame (-1 before any)."""
+        return self._mb.counter(self.index)
+
+    @property
+    def t_good(self) -> float:
+        """Reception time of the last good frame (-inf before any)."""
+        return self._mb.t_good(self.index)
 
     def age(self, t: float) -> float:
         return t - self.t_good
-
-    def fresh(self, t: float, timeout: float) -> bool:
-        """Age within ``timeout``; a stream that had been fresh and is not any more counts a TIMEOUT."""
-        ok = t - self.t_good <= timeout
-        if ok != self.was_fresh:
-            if not ok:
-                self.checker.timeouts += 1
-            self.was_fresh = ok
-        return ok
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,12 +105,25 @@ class NeighbourLink:
     offset_m: float
 
 
-@dataclass
 class EcuCounters:
-    cycles: int = 0
-    controller_errors: int = 0
-    unknown_frames: int = 0  # frames with an ID this ECU has no input for (a receiver without acceptance filter)
-    malformed_frames: int = 0  # frames of a known ID whose length is not the DBC's DLC: dropped, never decoded
+    """What an ECU counts: cycles and controller failures here, bad frames in its mailboxes."""
+
+    __slots__ = ("cycles", "controller_errors", "_mb")
+
+    def __init__(self, mailbox: Mailbox) -> None:
+        self.cycles = 0
+        self.controller_errors = 0
+        self._mb = mailbox
+
+    @property
+    def unknown_frames(self) -> int:
+        """Frames with an ID this ECU has no input for (a receiver without acceptance filter)."""
+        return self._mb.unknown_frames
+
+    @property
+    def malformed_frames(self) -> int:
+        """Frames of a known ID whose length is not the DBC's DLC: dropped, never decoded."""
+        return self._mb.malformed_frames
 
 
 class Ecu:
@@ -104,7 +137,8 @@ class Ecu:
         self.cfg = cfg
         self.alive = True
         self.events: list[tuple[float, str, str]] = []  # (t, level, text), drained by the runtime
-        self.counters = EcuCounters()
+        self.mailbox = Mailbox()  # the input mailboxes (engine): the rig delivers into it, cycle() reads it
+        self.counters = EcuCounters(self.mailbox)
         u = agent.unit
         self._out_cmd = db.traction_cmd(u)
         self._out_state = db.agent_state(u)
@@ -125,12 +159,14 @@ class Ecu:
                               neighbours=[NeighbourView(nl.link, nl.side, nl.offset_m) for nl in neighbours],
                               ref=ReferenceView())
         self._flags: dict[str, bool] = {}
+        self._sensor_counter = -1  # alive counter (sample number) of the own sensor frame read this cycle
+        self._link_t_good = [-INF] * len(self._links)  # reception time of each neighbour's last good state
         self.sensor_fault = False  # own sensor judged implausible (stuck, noisy) by a monitor: service brake
         self.monitors: list = []  # callables monitor(ecu, t) run after every cycle (ecu_sim.diagnostics)
         self.last_command: Command | None = None  # what the last cycle commanded (None: the ECU stopped)
 
     def _slot(self, codec: MessageCodec) -> InputSlot:
-        slot = InputSlot(codec, E2EChecker(codec.data_id, max_delta=self._max_delta, name=codec.name))
+        slot = InputSlot(self.mailbox, self.mailbox.add_slot(codec, self._max_delta), codec)
         self.slots[codec.frame_id] = slot
         return slot
 
@@ -138,7 +174,7 @@ class Ecu:
         """E2E verdicts summed over every input stream (status name -> count)."""
         totals: dict[str, int] = {}
         for slot in self.slots.values():
-            for status, n in slot.checker.summary().items():
+            for status, n in self.mailbox.summary(slot.index).items():
                 totals[status] = totals.get(status, 0) + n
         for key, n in (("UNKNOWN_ID", self.counters.unknown_frames), ("WRONG_LENGTH", self.counters.malformed_frames)):
             if n:
@@ -152,26 +188,28 @@ class Ecu:
 
     # ---- called by the runtime
     def on_frame(self, frame_id: int, data: bytes, t: float) -> None:
-        """Mailbox write: keep the latest frame of each stream (checked at the next cycle)."""
-        slot = self.slots.get(frame_id)
-        if slot is None:
-            self.counters.unknown_frames += 1
-        elif len(data) != slot.codec.dlc:
-            self.counters.malformed_frames += 1
-            if self.counters.malformed_frames == 1:
-                self.events.append((t, "WARN", f"{slot.codec.name}: frame of {len(data)} bytes, DLC is "
-                                               f"{slot.codec.dlc}: dropped (further ones are counted)"))
-        else:
-            slot.raw = data
-            slot.t_raw = t
+        """Mailbox write: keep the latest frame of each stream (checked at the next cycle). The virtual-time
+        engine delivers into ``mailbox`` itself; real-time nodes call this per received frame."""
+        if self.mailbox.put(frame_id, data, t) == 2:
+            self._report_malformed()
+
+    def _report_malformed(self) -> None:
+        """The first wrong-length frame is an event; further ones are only counted."""
+        first = self.mailbox.take_first_malformed()
+        if first is not None:
+            t, index, length = first
+            codec = next(s.codec for s in self.slots.values() if s.index == index)
+            self.events.append((t, "WARN", f"{codec.name}: frame of {length} bytes, DLC is {codec.dlc}: dropped "
+                                           "(further ones are counted)"))
 
     def cycle(self, t: float) -> list[tuple[int, bytes]]:
         """Run one control cycle at time t; return the frames to send (id, data)."""
         if not self.alive:
             return []
         self.counters.cycles += 1
-        for slot in self.slots.values():
-            slot.refresh()
+        self.mailbox.refresh()
+        if self.mailbox.malformed_frames:
+            self._report_malformed()
         cmd = self.last_command = self._control(t)
         frames = [] if cmd is None else self._outputs(cmd)
         for monitor in self.monitors:
@@ -181,9 +219,7 @@ class Ecu:
     def restart(self) -> None:
         """Power-cycle: clear the controller's memory and the mailboxes, start sending again."""
         self.controller.reset()
-        for slot in self.slots.values():
-            slot.raw, slot.values, slot.t_good, slot.counter, slot.was_fresh = None, (), -INF, -1, False
-            slot.checker.reset()
+        self.mailbox.reset()
         self._samples = [None] * 16
         self.sensor_fault = False
         self.alive = True
@@ -192,14 +228,15 @@ class Ecu:
     def _control(self, t: float) -> Command | None:
         view, cfg = self.view, self.cfg
         view.t = t
-        sensor_ok = self._sensor.fresh(t, cfg.neighbour_timeout_s)
+        sensor_ok, _, values, counter, t_good = self.mailbox.read(self._sensor.index, t, cfg.neighbour_timeout_s)
+        self._sensor_counter = counter
         self._flag(t, "sensor_stale", not sensor_ok, "WARN", "own sensor data stale: service brake")
         if not sensor_ok:
             return Command(0.0, BrakeMode.SERVICE, 0.0)
         if self.sensor_fault:
             return Command(0.0, BrakeMode.SERVICE, 0.0)
-        view.x, view.v = self._sensor.values
-        self._samples[self._sensor.counter] = (view.x, view.v, self._sensor.t_good)
+        view.x, view.v = values
+        self._samples[counter] = (view.x, view.v, t_good)
         self._fill_neighbours(t)
         ref_ok = self._fill_reference(t)
         try:
@@ -222,26 +259,28 @@ class Ecu:
         return cmd
 
     def _fill_neighbours(self, t: float) -> None:
-        timeout = self.cfg.neighbour_timeout_s
-        for nv, (nl, state, aux) in zip(self.view.neighbours, self._links):
-            nv.age_s = state.age(t)
-            nv.valid = state.fresh(t, timeout)
+        timeout, read = self.cfg.neighbour_timeout_s, self.mailbox.read
+        for k, (nv, (nl, state, aux)) in enumerate(zip(self.view.neighbours, self._links)):
+            nv.valid, nv.age_s, values, counter, t_good = read(state.index, t, timeout)
+            self._link_t_good[k] = t_good
             if not nv.valid:
                 continue
-            nv.x, nv.v = state.values
-            self._align(nv, state)
-            if aux is not None and aux.values and aux.fresh(t, timeout):
-                nv.a, nv.u = aux.values
-            else:
-                nv.a = nv.u = math.nan
+            nv.x, nv.v = values
+            self._align(nv, counter, t_good)
+            if aux is not None:
+                aux_ok, _, aux_values, _, _ = read(aux.index, t, timeout)  # (never fresh before its first frame)
+                if aux_ok and aux_values:
+                    nv.a, nv.u = aux_values
+                    continue
+            nv.a = nv.u = math.nan
 
-    def _align(self, nv: NeighbourView, state: InputSlot) -> None:
+    def _align(self, nv: NeighbourView, counter: int, t_good: float) -> None:
         """Shift a neighbour's sample k by our own motion since our sample k (same-instant comparison)."""
-        own = self._samples[state.counter]
+        own = self._samples[counter]
         if own is None:
             return
         x_k, v_k, t_k = own
-        if 0.0 <= state.t_good - t_k < self._align_window_s:
+        if 0.0 <= t_good - t_k < self._align_window_s:
             nv.x += self.view.x - x_k
             nv.v += self.view.v - v_k
 
@@ -249,18 +288,19 @@ class Ecu:
         if self._ref is None:
             return True
         ref = self.view.ref
-        ref.age_s = self._ref.age(t)
-        ref.valid = self._ref.fresh(t, self.cfg.reference_timeout_s)
+        ref.valid, ref.age_s, values, _, _ = self.mailbox.read(self._ref.index, t, self.cfg.reference_timeout_s)
         if ref.valid:
-            ref.x, ref.v = self._ref.values
-            ref.a = self._ref_aux.values[0] if self._ref_aux and self._ref_aux.values else 0.0
+            ref.x, ref.v = values
+            aux = self.mailbox.values(self._ref_aux.index) if self._ref_aux else ()
+            ref.a = aux[0] if aux else 0.0
         return ref.valid
 
     def _lost_train_ahead(self, t: float) -> bool:
         """Head of a following train: contact with the train ahead lost for too long after it was made."""
-        for nl, state, _ in self._links:
-            if nl.link == "inter" and nl.side == "ahead" and state.t_good > -INF:
-                lost = state.age(t) > self.cfg.radio_contact_timeout_s
+        for k, (nl, _, _) in enumerate(self._links):
+            t_good = self._link_t_good[k]
+            if nl.link == "inter" and nl.side == "ahead" and t_good > -INF:
+                lost = t - t_good > self.cfg.radio_contact_timeout_s
                 self._flag(t, "radio_lost", lost, "ERROR", "lost contact with the train ahead: emergency brake")
                 return lost
         return False
@@ -276,9 +316,9 @@ class Ecu:
         self._cmd_counter = (self._cmd_counter + 1) & 0xF
         c = self._out_cmd
         frames = [(c.frame_id, c.encode((int(cmd.mode), cmd.force_n), self._cmd_counter))]
-        if self._flags.get("sensor_stale") or self.sensor_fault or self._sensor.counter < 0:
+        if self._flags.get("sensor_stale") or self.sensor_fault or self._sensor_counter < 0:
             return frames
-        v, k = self.view, self._sensor.counter
+        v, k = self.view, self._sensor_counter
         accel = cmd.accel_mps2 if math.isfinite(cmd.accel_mps2) else cmd.force_n / self.agent.mass_kg
         s, a = self._out_state, self._out_aux
         frames.append((s.frame_id, s.encode((v.x, v.v), k)))

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import random
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -65,3 +66,53 @@ def test_frame_length_equals_the_bit_by_bit_reference(extended, data):
 @given(st.integers(0, 255), st.binary(min_size=1, max_size=64))
 def test_e2e_crc_equals_the_python_table(data_id, payload):
     assert engine.e2e_crc(data_id, payload) == python_e2e_crc(data_id, payload)
+
+
+# ---------------------------------------------------------------------------------------------- whole runs
+
+from hil.runtime.virtual import VirtualRig  # noqa: E402
+from hil.scenario import load_scenario  # noqa: E402
+
+LOSSY_RADIO = {"radio.loss": {"model": "gilbert_elliott", "p_good_to_bad": 0.1, "p_bad_to_good": 0.3, "loss_bad": 0.8},
+               "radio.jitter_s": 0.01, "radio.latency_s": 0.05, "radio.rate_cap_hz": 150.0}
+
+
+def _schedule_and_log(network: str, scenario, seconds: float):
+    """Every frame as (bus, ID, payload, enqueue ns, start ns, end ns), per bus in time order, and the run log."""
+    rig = VirtualRig(scenario, network=network)
+    frames: list[list[tuple]] = [[] for _ in rig.buses]
+    for i, bus in enumerate(rig.buses):
+        bus.frame_listeners.append(lambda tx, rows=frames[i], i=i: rows.append(
+            (i, tx.frame_id, bytes(tx.data), tx.t_enqueue, tx.t_start, tx.t_end)))
+    return frames, rig.run(seconds)
+
+
+@pytest.mark.parametrize("name, overrides", [
+    ("seed000", {}),  # 12 ECUs at 100 Hz, 500 kbit/s, priority queues, perfect radio
+    ("seed000", {"can.queue_policy": "fifo", "can.bitrate": 125_000}),  # overloaded FIFO bus: inversion and drops
+    ("seed000", LOSSY_RADIO),  # Gilbert-Elliott loss, jitter, latency and a rate cap on the radio
+    ("seed001", {}),  # one train, 5 ms cycles, AgentAux exchange
+], ids=["seed000", "fifo-125k", "lossy-radio", "seed001"])
+def test_engine_and_python_model_give_the_same_frames_and_signals(name, overrides):
+    sc = load_scenario(name, overrides)
+    py_frames, py_log = _schedule_and_log("python", sc, 10.0 if name == "seed000" and not overrides else 4.0)
+    en_frames, en_log = _schedule_and_log("engine", sc, 10.0 if name == "seed000" and not overrides else 4.0)
+    assert sum(map(len, en_frames)) > 1000
+    for bus, (a, b) in enumerate(zip(py_frames, en_frames)):
+        assert len(a) == len(b), f"bus{bus + 1}: {len(a)} frames in the Python model, {len(b)} in the engine"
+        first = next((k for k, (x, y) in enumerate(zip(a, b)) if x != y), None)
+        assert first is None, f"bus{bus + 1} frame {first}: Python {a[first]} != engine {b[first]}"
+    assert np.array_equal(py_log.signals.array, en_log.signals.array)  # bit for bit
+    for x, y in zip(py_log.buses, en_log.buses):
+        assert np.array_equal(x.frames.array, y.frames.array) and np.array_equal(x.load.array, y.load.array)
+        assert (x.frames_sent, x.frames_dropped) == (y.frames_sent, y.frames_dropped)
+    assert py_log.e2e == en_log.e2e and py_log.radio_stats == en_log.radio_stats
+    assert py_log.frames_lost == en_log.frames_lost and py_log.codec_saturations == en_log.codec_saturations
+    assert [(e.t, e.source, e.text) for e in py_log.events] == [(e.t, e.source, e.text) for e in en_log.events]
+
+
+def test_a_fault_schedule_is_refused_by_the_engine_with_the_reason():
+    sc = load_scenario("faults")
+    assert VirtualRig(sc).network == "python"
+    with pytest.raises(ValueError, match="faults and ECU restarts need the Python bus model"):
+        VirtualRig(sc, network="engine")

@@ -42,6 +42,14 @@ class SampleTable:
             self._buf.extend(row)
         self._cache = None
 
+    def extend_bytes(self, rows: bytes) -> None:
+        """Append whole rows given as native float64 bytes (how the frame engine hands over its statistics)."""
+        if len(rows) % (8 * self.width):
+            raise ValueError(f"{len(rows)} bytes are not whole rows of {self.width} float64 values")
+        if rows:
+            self._buf.frombytes(rows)
+            self._cache = None
+
     def __len__(self) -> int:
         return len(self._buf) // self.width
 

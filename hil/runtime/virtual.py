@@ -4,11 +4,17 @@ Data path (DESIGN.md): plant --Sensor frames--> train bus --> ECU --TractionCmd-
 ECUs exchange AgentState/AgentAux on their bus; the radio gateway forwards the tail's state to the
 next train's bus and the head's state back; the wayside sends Reference frames to every bus.
 Nothing crosses between these nodes except encoded CAN frames. Same seed, same run, bit for bit.
+
+Two models of the network give the same frame schedule: the compiled frame engine (``trainhil_engine``, the
+default: no Python runs per frame) and the Python bus model (``hil/can``), which still carries CAN error
+confinement and the fault injectors, so a scenario with a fault schedule runs on it.
 """
 from __future__ import annotations
 
 import time
 from typing import Callable
+
+import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.runtime import Ecu, NeighbourLink
@@ -18,8 +24,16 @@ from hil.radio.gateway import RadioGateway, build_links, standard_routes
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.runtime.assembly import Assembly, assemble
+from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
 from hil.runtime.kernel import Kernel, to_ns
 from hil.scenario.model import Scenario
+
+NETWORK_MODELS = ("engine", "python")
+
+
+def network_model_for(scenario: Scenario) -> str:
+    """The engine, unless the scenario needs what only the Python bus model has: faults, error confinement, restarts."""
+    return "python" if scenario.faults or scenario.ecu.restart_after_s is not None else "engine"
 
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
 
@@ -27,7 +41,14 @@ ProgressFn = Callable[[float], None]  # called with the simulated time reached (
 class VirtualRig:
     """One scenario wired up over emulated CAN, ready to run in virtual time."""
 
-    def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None) -> None:
+    def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None,
+                 network: str | None = None) -> None:
+        """``network``: "engine" or "python" (default: :func:`network_model_for` the scenario)."""
+        self.network = network_model_for(scenario) if network is None else network
+        if self.network not in NETWORK_MODELS:
+            raise ValueError(f"network model must be one of {NETWORK_MODELS}, got {self.network!r}")
+        if self.network == "engine" and network_model_for(scenario) == "python":
+            raise ValueError(f"scenario {scenario.name}: faults and ECU restarts need the Python bus model (network='python')")
         self.sc = scenario
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout
@@ -35,11 +56,13 @@ class VirtualRig:
         self.db = db or TrainDb.load()
         if self.layout.units_per_train > self.db.max_units:
             raise ValueError(f"trains.units = {self.layout.units_per_train} exceeds the {self.db.max_units} unit slots of the DBC")
-        self.kernel = Kernel()
+        self.net = engine.Network() if self.network == "engine" else None
+        self.kernel = EngineKernel(self.net) if self.net is not None else Kernel()
         self.log = RunLog(self.layout)
         self.log.reference_change_times = self.parts.reference.change_times
         self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
         self.plant_io = PlantCanNode(self.db, self.layout, self.plant, self.parts.reference, self.log)
+        self._plant_inboxes: list[int] = []
         self._plant_nodes = [self._attach_plant(i) for i in range(self.layout.n_trains)]
         self._wayside_nodes = [bus.attach("Wayside") for bus in self.buses]
         self.ecus: list[Ecu] = []
@@ -55,13 +78,21 @@ class VirtualRig:
             self.faults = VirtualFaults(self)
 
     # ------------------------------------------------------------------ wiring
-    def _make_bus(self, i: int) -> VirtualCanBus:
+    def _make_bus(self, i: int) -> VirtualCanBus | EngineBus:
         c = self.sc.can
         log = BusLog(f"bus{i + 1}", c.bitrate)
         self.log.buses.append(log)
+        if self.net is not None:
+            return EngineBus(self.net, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log)
         return VirtualCanBus(self.kernel, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log=log)
 
-    def _attach_plant(self, i: int) -> CanNode:
+    def _attach_plant(self, i: int) -> CanNode | int:
+        """The plant's node on train i's bus: the engine queues its TractionCmd frames in an inbox drained at every
+        plant step (a command acts from the first step after its arrival, as with a per-frame callback)."""
+        if self.net is not None:
+            node, inbox = self.buses[i].attach_inbox("Plant", set(self.plant_io.cmd_unit[i]))
+            self._plant_inboxes.append(inbox)
+            return node
         command = self.plant_io.command
 
         def on_rx(frame_id: int, data: bytes, t_ns: int) -> None:
@@ -72,8 +103,12 @@ class VirtualRig:
     def _attach_ecu(self, u: int) -> None:
         train, unit = self.layout.train_unit(u)
         ecu = build_ecu(self.parts, self.db, u)
-        on_frame = ecu.on_frame
-        node = self.buses[train].attach(f"ECU_U{unit + 1:02d}", lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
+        name, bus = f"ECU_U{unit + 1:02d}", self.buses[train]
+        if isinstance(bus, EngineBus):
+            node = bus.attach_ecu(name, ecu)
+        else:
+            on_frame = ecu.on_frame
+            node = bus.attach(name, lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
         self.ecus.append(ecu)
         self._ecu_nodes.append(node)
 
@@ -81,6 +116,12 @@ class VirtualRig:
         n = self.layout.n_trains
         if n < 2:
             return None, []
+        if self.net is not None:
+            links = build_links(self.sc.radio, n, self.parts.streams["radio"])
+            position_codecs = [self.db.agent_state(k) for k in range(self.layout.units_per_train)]
+            attach_radio(self.net, self.buses, links, self.layout.units_per_train, self.sc.radio.forward_aux,  # type: ignore[arg-type]
+                         position_codecs)
+            return RadioGateway([], links, lambda fid, data: None), []  # its links carry the statistics
         gateway = build_gateway(self.sc, self.db, self.parts.streams["radio"])
         nodes = []
         for i, bus in enumerate(self.buses):
@@ -111,7 +152,10 @@ class VirtualRig:
             k.every(phase, cycle, lambda t, u=u: self._ecu_tick(u, t))
 
     def _plant_tick(self, t_ns: int) -> None:
-        """Publish sensors and record at their periods (state at t), then integrate to t + step."""
+        """Apply the commands that arrived, publish sensors and record at their periods (state at t), then
+        integrate to t + step."""
+        if self._plant_inboxes:
+            self._apply_commands()
         tick, plant = self._tick, self.plant
         self._tick += 1
         if tick % self._sensor_every == 0:
@@ -124,6 +168,13 @@ class VirtualRig:
             for t, level, text in plant.events:
                 self.log.event(t, level, "plant", text)
             plant.events.clear()
+
+    def _apply_commands(self) -> None:
+        """The TractionCmd frames the engine delivered to the plant since the last step, in arrival order."""
+        command, drain = self.plant_io.command, self.net.drain_inbox  # type: ignore[union-attr]
+        for train, inbox in enumerate(self._plant_inboxes):
+            for frame_id, data, t_ns in drain(inbox):
+                command(train, frame_id, data, t_ns * 1e-9)
 
     def _publish_sensors(self) -> None:
         for train, _, frame_id, data in self.plant_io.sensor_frames():
@@ -155,11 +206,15 @@ class VirtualRig:
         duration = self.sc.duration_s if duration_s is None else duration_s
         end_ns, chunk_ns = to_ns(duration), to_ns(chunk_s)
         wall0 = time.perf_counter()
+        if self.net is not None:
+            for bus in self.buses:
+                bus.trace_if_listened()  # type: ignore[union-attr]
         try:
             t = self.kernel.now
             while t < end_ns:
                 t = min(t + chunk_ns, end_ns)
                 self.kernel.run(t)
+                self._collect()
                 if progress:
                     progress(t * 1e-9)
                 if on_chunk:
@@ -171,10 +226,22 @@ class VirtualRig:
             self._finish(time.perf_counter() - wall0)
         return self.log
 
+    def _collect(self) -> None:
+        """Bring the engine's bus statistics and traced frames into the log and the frame listeners."""
+        if self.net is not None:
+            for bus in self.buses:
+                bus.collect()  # type: ignore[union-attr]
+
     def _finish(self, wall_s: float) -> None:
         log, now = self.log, self.kernel.now
-        for bus in self.buses:
-            bus.finish(now)
+        if self.net is not None:
+            self.net.finish(now)
+            self._collect()
+            if self.gateway is not None:
+                copy_link_stats(self.net, self.gateway.links)
+        else:
+            for bus in self.buses:
+                bus.finish(now)
         radio = {name: dict(link.stats) for name, link in (self.gateway.links.items() if self.gateway else [])}
         log.radio_stats = radio
         not_delivered = sum(s.get("offered", 0) - s.get("delivered", 0) for s in radio.values())

@@ -1,0 +1,145 @@
+"""The virtual-time network on the compiled frame engine: buses, radio and delivery run in Rust, Python only per task.
+
+``EngineKernel`` has the interface of :class:`hil.runtime.kernel.Kernel` (``at``, ``every``, ``run``, ``now``), but
+its queue is the engine's: every CAN frame event (arbitration, end of transmission, delivery into the mailboxes,
+radio forwarding) is handled inside ``trainhil_engine.Network.advance``, which returns to Python only when one of
+the rig's own tasks is due (a plant step, an ECU cycle, a wayside tick). Events at equal times keep their
+scheduling order across both kinds, so the frame schedule is the one of the Python bus model.
+
+``EngineBus`` is one train bus as the rig sees it: attach nodes, send frames, and ``frame_listeners`` (CAN logs,
+frame rows) that are fed from the engine's trace once per chunk instead of once per frame.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import trainhil_engine as engine
+
+from ecu_sim.runtime import Ecu
+from hil.can.bus import Transmission
+from hil.radio.gateway import link_name, standard_routes
+from hil.radio.link import RadioLink
+from hil.record.runlog import BusLog
+
+LOAD_WINDOW_NS = 100_000_000  # the bus model's load window (0.1 s), as the Python model's default
+
+
+class EngineKernel:
+    """The rig's tasks on the engine's event queue (SimPy-like: callbacks at integer-ns times)."""
+
+    def __init__(self, net: engine.Network) -> None:
+        self.net = net
+        self._handlers: dict[int, tuple[Callable[[Any], None], Any, bool]] = {}
+
+    @property
+    def now(self) -> int:
+        return self.net.now
+
+    def at(self, t_ns: int, fn: Callable[[Any], None], arg: Any = None) -> None:
+        """Run ``fn(arg)`` once when the clock reaches t_ns."""
+        self._handlers[self.net.every(t_ns, 0)] = (fn, arg, False)
+
+    def every(self, first_ns: int, period_ns: int, fn: Callable[[int], None]) -> None:
+        """Run ``fn(t)`` at first_ns, first_ns + period_ns, ... (rescheduled after each run)."""
+        if period_ns <= 0:
+            raise ValueError(f"period must be positive, got {period_ns} ns")
+        self._handlers[self.net.every(first_ns, period_ns)] = (fn, None, True)
+
+    def run(self, until_ns: int) -> None:
+        """Process every event with time < until_ns (frames in the engine, tasks here), then set the clock to it."""
+        net, handlers = self.net, self._handlers
+        while (token := net.advance(until_ns)) is not None:
+            fn, arg, periodic = handlers[token] if token in handlers else (None, None, False)
+            if periodic:
+                fn(net.now)  # type: ignore[misc]
+            else:
+                handlers.pop(token, None)
+                fn(arg)  # type: ignore[misc]
+
+
+class EngineBus:
+    """One train bus in the engine: nodes are integer indices; statistics land in ``log`` at ``collect``."""
+
+    errors = None  # CAN error confinement and bus faults run on the Python bus model (hil/can/errors.py)
+
+    def __init__(self, net: engine.Network, name: str, bitrate: int, policy: str, depth: int, extended: bool,
+                 log: BusLog) -> None:
+        self.net = net
+        self.name = name
+        self.bitrate = bitrate
+        self.log = log
+        self.index = net.add_bus(name, bitrate, policy, depth, extended, LOAD_WINDOW_NS)
+        self.frame_listeners: list[Callable[[Transmission], None]] = []
+        self._tracing = False
+
+    def attach(self, name: str) -> int:
+        """A node that only sends (the wayside, a test's sender)."""
+        return self.net.attach_sender(self.index, name)
+
+    def attach_ecu(self, name: str, ecu: Ecu) -> int:
+        """A node delivering into the ECU's mailboxes, behind their IDs as acceptance filter."""
+        return self.net.attach_mailbox(self.index, name, ecu.mailbox)
+
+    def attach_inbox(self, name: str, rx_ids: set[int]) -> tuple[int, int]:
+        """A node delivering into an inbox the rig drains: (node, inbox)."""
+        return self.net.attach_inbox(self.index, name, sorted(rx_ids))
+
+    def send(self, node: int, frame_id: int, data: bytes) -> bool:
+        """Queue a frame at the current time (False: the node's TX queue was full, counted)."""
+        return self.net.send(self.index, node, frame_id, data)
+
+    def trace_if_listened(self) -> None:
+        """Keep the completed frames in the engine when someone listens (called before the run goes on)."""
+        if self.frame_listeners and not self._tracing:
+            self.net.set_trace(self.index, True)
+            self._tracing = True
+
+    def collect(self) -> None:
+        """Move the statistics and the traced frames gathered since the last call into the log and the listeners."""
+        frames, load, sent, dropped = self.net.take_stats(self.index)
+        self.log.frames.extend_bytes(frames)
+        self.log.load.extend_bytes(load)
+        self.log.frames_sent, self.log.frames_dropped = sent, dropped
+        if self._tracing:
+            for frame_id, data, ext, t_enq, t_start, t_end, _ in self.net.take_trace(self.index):
+                tx = Transmission(None, frame_id, data, t_enq, t_start, t_end, ext)  # type: ignore[arg-type]
+                for listener in self.frame_listeners:
+                    listener(tx)
+
+
+def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, RadioLink], units_per_train: int,
+                 forward_aux: bool, position_codecs) -> None:
+    """The radio gateway in the engine: the links (their random numbers drawn by the Python ``RadioLink`` objects,
+    so both models see the same losses and jitter), the routing table, and one gateway node per bus."""
+    index: dict[str, int] = {}
+    for name, link in links.items():
+        cfg = link.cfg
+        loss = cfg.loss
+        index[name] = net.add_link(
+            name, cfg.range_m, [(b.start_m, b.end_m) for b in cfg.blackouts], link._latency_ns, link._period_ns,
+            loss.model, loss.p, loss.p_good_to_bad, loss.p_bad_to_good, loss.loss_good, loss.loss_bad, link._bad,
+            _refill(link))
+    for route in standard_routes(len(buses), units_per_train, forward_aux):
+        src, dst = (int(t) - 1 for t in route.link.split(">"))
+        net.add_route(route.src_bus, route.src_id, route.dst_bus, route.dst_id, index[route.link],
+                      index.get(link_name(dst, src)))
+    for codec in position_codecs:
+        net.set_position_codec(codec)
+    for bus in buses:
+        net.attach_gateway(bus.index, "RadioGW")
+
+
+def _refill(link: RadioLink) -> Callable[[], tuple[list[float], list[float], list[int]]]:
+    """The next block of a link's per-frame draws, from its own numpy stream."""
+    def refill() -> tuple[list[float], list[float], list[int]]:
+        link._refill()
+        return link._u_step, link._u_loss, link._jit
+
+    return refill
+
+
+def copy_link_stats(net: engine.Network, links: dict[str, RadioLink]) -> None:
+    """The engine's link counters into the Python links (what the run log reports)."""
+    for i, link in enumerate(links.values()):
+        link.stats.update(net.link_stats(i))
