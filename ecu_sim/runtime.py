@@ -207,8 +207,7 @@ class Ecu:
         if not self.alive:
             return []
         self.counters.cycles += 1
-        self.mailbox.refresh()
-        if self.mailbox.malformed_frames:
+        if self.mailbox.refresh():  # some wrong-length frames: the first is reported once
             self._report_malformed()
         cmd = self.last_command = self._control(t)
         frames = [] if cmd is None else self._outputs(cmd)

@@ -51,7 +51,8 @@ class Mailbox:
     def add_slot(self, codec: MessageCodec, max_delta: int) -> int: ...
     def put(self, frame_id: int, data: bytes | bytearray, t: float) -> int:
         """0 stored, 1 unknown ID, 2 known ID of the wrong length (dropped, counted)."""
-    def refresh(self) -> None: ...
+    def refresh(self) -> int:
+        """Check and decode what arrived since the last call; returns the wrong-length frames counted so far."""
     def read(self, slot: int, t: float, timeout: float) -> tuple[bool, float, tuple[float, ...], int, float]:
         """(fresh, age s, values, alive counter, reception time of the last good frame); counts TIMEOUTs."""
     def values(self, slot: int) -> tuple[float, ...]: ...
@@ -67,6 +68,7 @@ class Network:
     """Every train bus, the radio gateway and the mailboxes on one virtual-time event queue."""
 
     now: int
+    busy_s: float  # wall time spent inside advance and send (the engine's own cost)
 
     def __init__(self) -> None: ...
     def add_bus(self, name: str, bitrate: int, policy_name: str = "priority", depth: int = 64, extended: bool = False,
@@ -87,7 +89,8 @@ class Network:
         """Run the frame events before until_ns; the token of a due task (clock at its time), or None."""
     def send(self, bus: int, node: int, frame_id: int, data: bytes | bytearray) -> bool: ...
     def send_frames(self, bus: int, node: int, frames: Sequence[tuple[int, bytes]]) -> None: ...
-    def drain_inbox(self, inbox: int) -> list[tuple[int, bytes, int]]: ...
+    def drain_inboxes(self) -> list[tuple[int, int, bytes, int]]:
+        """(inbox, frame_id, data, t_end) of every frame delivered into an inbox since the last call, in order."""
     def take_stats(self, bus: int) -> tuple[bytes, bytes, int, int]:
         """(frame rows, load rows) as float64 bytes since the last call, and the totals (sent, dropped)."""
     def set_trace(self, bus: int, on: bool) -> None: ...

@@ -141,7 +141,9 @@ pub struct Bus {
     pub nodes: Vec<Node>,
     heap: BinaryHeap<Reverse<Item>>,
     seq: u64,
-    receivers: HashMap<u32, Vec<usize>>,
+    /// Receiver lists by frame ID (standard IDs indexed directly, extended ones hashed), built lazily.
+    receivers_std: Vec<Option<Vec<usize>>>,
+    receivers_ext: HashMap<u32, Vec<usize>>,
     pub busy_until: u64,
     pub current: Option<Transmission>,
     window_ns: u64,
@@ -156,7 +158,7 @@ impl Bus {
     pub fn new(name: &str, timing: BitTiming, policy: Policy, depth: usize, extended: bool, load_window_ns: u64) -> Bus {
         Bus {
             name: name.to_string(), timing, policy, depth, extended, nodes: Vec::new(), heap: BinaryHeap::new(), seq: 0,
-            receivers: HashMap::new(), busy_until: 0, current: None, window_ns: load_window_ns,
+            receivers_std: vec![None; 1 << 11], receivers_ext: HashMap::new(), busy_until: 0, current: None, window_ns: load_window_ns,
             window_end: load_window_ns, window_busy: 0, stats: BusStats::default(), trace: None,
         }
     }
@@ -164,20 +166,44 @@ impl Bus {
     /// Attach a node; returns its index on this bus.
     pub fn attach(&mut self, name: &str, sink: Sink, rx_ids: Option<Vec<u32>>, receive_own: bool) -> usize {
         self.nodes.push(Node { name: name.to_string(), sink, rx_ids, receive_own, queued: 0, fifo: VecDeque::new(), sent: 0, dropped: 0 });
-        self.receivers.clear();
+        self.receivers_std.iter_mut().for_each(|r| *r = None);
+        self.receivers_ext.clear();
         self.nodes.len() - 1
+    }
+
+    fn find_receivers(nodes: &[Node], frame_id: u32) -> Vec<usize> {
+        let mut found: Vec<usize> = (0..nodes.len())
+            .filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.as_ref().is_some_and(|ids| ids.contains(&frame_id)))
+            .collect();
+        found.extend((0..nodes.len()).filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.is_none()));
+        found
     }
 
     /// Nodes that receive `frame_id`: filtered nodes in attach order, then the catch-all ones.
     pub fn receivers(&mut self, frame_id: u32) -> &[usize] {
         let nodes = &self.nodes;
-        self.receivers.entry(frame_id).or_insert_with(|| {
-            let mut found: Vec<usize> = (0..nodes.len())
-                .filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.as_ref().is_some_and(|ids| ids.contains(&frame_id)))
-                .collect();
-            found.extend((0..nodes.len()).filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.is_none()));
-            found
-        })
+        if let Some(slot) = self.receivers_std.get_mut(frame_id as usize) {
+            return slot.get_or_insert_with(|| Self::find_receivers(nodes, frame_id));
+        }
+        self.receivers_ext.entry(frame_id).or_insert_with(|| Self::find_receivers(nodes, frame_id))
+    }
+
+    /// Move the receiver list of `frame_id` out of the cache (no copy per frame); give it back with `put_receivers`.
+    pub fn take_receivers(&mut self, frame_id: u32) -> Vec<usize> {
+        self.receivers(frame_id);
+        match self.receivers_std.get_mut(frame_id as usize) {
+            Some(slot) => slot.take().unwrap_or_default(),
+            None => self.receivers_ext.remove(&frame_id).unwrap_or_default(),
+        }
+    }
+
+    pub fn put_receivers(&mut self, frame_id: u32, list: Vec<usize>) {
+        match self.receivers_std.get_mut(frame_id as usize) {
+            Some(slot) => *slot = Some(list),
+            None => {
+                self.receivers_ext.insert(frame_id, list);
+            }
+        }
     }
 
     /// Queue a frame at time t; false (and counted as a drop) when the node's queue is full.

@@ -146,11 +146,66 @@ pub fn stuffed_bits(can_id: u32, data: &[u8], extended: bool) -> Bits {
     stuff(&unstuffed_bits(can_id, data, extended).0)
 }
 
-/// Exact bits on the wire of a classical data frame, SOF through the intermission.
+/// The bit stream of a frame as it is sent, counted on the fly: CRC-15 register, stuffing run and stuff bits.
+struct Counter {
+    crc: u16,
+    last: u8,
+    run: u32,
+    stuffed: u32,
+    bits: u32,
+}
+
+impl Counter {
+    fn new() -> Counter {
+        Counter { crc: 0, last: 2, run: 0, stuffed: 0, bits: 0 }
+    }
+
+    /// Send `width` bits of `value`, MSB first; `crc`: whether they enter the CRC.
+    fn feed(&mut self, value: u64, width: u32, crc: bool) {
+        for i in (0..width).rev() {
+            let bit = ((value >> i) & 1) as u8;
+            if crc {
+                let next = bit ^ ((self.crc >> 14) & 1) as u8;
+                self.crc = (self.crc << 1) & 0x7FFF;
+                if next == 1 {
+                    self.crc ^= CRC15_POLY;
+                }
+            }
+            if bit == self.last {
+                self.run += 1;
+            } else {
+                self.last = bit;
+                self.run = 1;
+            }
+            if self.run == 5 {
+                self.last = 1 - bit;
+                self.run = 1;
+                self.stuffed += 1;
+            }
+        }
+        self.bits += width;
+    }
+}
+
+/// Exact bits on the wire of a classical data frame, SOF through the intermission: the same count as stuffing
+/// `unstuffed_bits` bit by bit (a unit test checks both), without building the bit list.
 pub fn frame_bits(can_id: u32, data: &[u8], extended: bool) -> Result<u32, FrameError> {
     validate(can_id, data.len(), extended)?;
-    let raw = unstuffed_bits(can_id, data, extended);
-    Ok(raw.0.len() as u32 + stuff_count(&raw.0) + TRAILER_BITS)
+    let mut c = Counter::new();
+    if extended {
+        // SOF, base ID, SRR, IDE, ID extension, RTR, r1, r0
+        c.feed(((can_id >> 18) as u64) << 2 | 0b11, 1 + 11 + 2, true);
+        c.feed(((can_id & 0x3FFFF) as u64) << 3, 18 + 3, true);
+    } else {
+        c.feed((can_id as u64) << 3, 1 + 11 + 3, true); // SOF, ID, RTR, IDE, r0
+    }
+    c.feed(data.len() as u64, 4, true);
+    for &byte in data {
+        c.feed(byte as u64, 8, true);
+    }
+    let crc = c.crc;
+    c.feed(crc as u64, 15, false);
+    Ok(c.bits + c.stuffed + TRAILER_BITS)
 }
 
 /// Worst-case classical frame length incl. the 3-bit IFS (Davis et al. 2007, eq. 1).
@@ -208,6 +263,22 @@ mod tests {
         // SOF(0) 11111 [0] 11111 [0] 1 then RTR IDE r0 DLC = 0000000 -> run of 7 zeros after the '1': one stuff bit
         assert_eq!(&stuffed.0[..14], &[0, 1, 1, 1, 1, 1, 0, 1, 1, 1, 1, 1, 0, 1]);
         assert_eq!(stuffed.0.len() as u32 - 34, stuff_count(&raw.0));
+    }
+
+    #[test]
+    fn fast_count_equals_bit_by_bit_stuffing() {
+        let mut x: u64 = 0x9E37_79B9_7F4A_7C15;
+        for k in 0..20_000u32 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let extended = k % 3 == 0;
+            let id = if extended { (x >> 7) as u32 & 0x1FFF_FFFF } else { (x >> 11) as u32 & 0x7FF };
+            let len = (x % 9) as usize;
+            let data: Vec<u8> = (0..len).map(|i| (x >> (8 * i)) as u8).collect();
+            let reference = stuffed_bits(id, &data, extended).0.len() as u32 + TRAILER_BITS;
+            assert_eq!(frame_bits(id, &data, extended).unwrap(), reference, "id {id:#x} data {data:02X?}");
+        }
     }
 
     #[test]

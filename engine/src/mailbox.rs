@@ -2,7 +2,6 @@
 //! the E2E check. Delivery only stores the frame; the firmware reads every mailbox once per cycle
 //! (`refresh`), which checks and decodes the frame that arrived since the last cycle, if any.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use crate::codec::MessageLayout;
@@ -82,7 +81,8 @@ pub enum Delivery {
 #[derive(Debug, Clone, Default)]
 pub struct Mailbox {
     pub slots: Vec<Slot>,
-    by_id: HashMap<u32, usize>,
+    /// Frame ID of each slot, in slot order (an ECU has a handful: a linear scan beats hashing).
+    ids: Vec<u32>,
     pub unknown_frames: u64,
     pub malformed_frames: u64,
     /// The first wrong-length frame (time, slot, length): the firmware reports it once.
@@ -93,19 +93,19 @@ impl Mailbox {
     /// Add the mailbox of one stream; returns its index.
     pub fn add_slot(&mut self, layout: Arc<MessageLayout>, max_delta: u8) -> usize {
         let index = self.slots.len();
-        self.by_id.insert(layout.frame_id, index);
+        self.ids.push(layout.frame_id);
         self.slots.push(Slot::new(layout, max_delta));
         index
     }
 
     /// The frame IDs with a mailbox (the ECU's acceptance filter).
     pub fn ids(&self) -> Vec<u32> {
-        self.slots.iter().map(|s| s.layout.frame_id).collect()
+        self.ids.clone()
     }
 
     /// Store a frame received at `t` (s): the latest frame of its stream replaces an unread one.
     pub fn put(&mut self, frame_id: u32, data: &[u8], t: f64) -> Delivery {
-        let Some(&i) = self.by_id.get(&frame_id) else {
+        let Some(i) = self.ids.iter().position(|&id| id == frame_id) else {
             self.unknown_frames += 1;
             return Delivery::UnknownId;
         };

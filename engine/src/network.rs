@@ -24,8 +24,8 @@ pub enum Event {
     External { token: u64, period: u64 },
 }
 
-/// A frame delivered into an inbox: (frame id, payload, end of transmission in ns).
-pub type InboxFrame = (u32, Payload, u64);
+/// A frame delivered into an inbox: (inbox, frame id, payload, end of transmission in ns).
+pub type InboxFrame = (usize, u32, Payload, u64);
 
 #[derive(Default)]
 pub struct Network {
@@ -33,7 +33,9 @@ pub struct Network {
     pub buses: Vec<Bus>,
     arbitration_pending: Vec<bool>,
     pub mailboxes: Vec<Rc<RefCell<Mailbox>>>,
-    pub inboxes: Vec<Vec<InboxFrame>>,
+    /// Frames delivered into any inbox, in arrival order (the rig drains them once per plant step).
+    pub inbox: Vec<InboxFrame>,
+    inboxes: usize,
     pub gateway: Gateway,
     gateway_nodes: Vec<Option<usize>>,
     position_layouts: HashMap<u32, Arc<MessageLayout>>,
@@ -55,8 +57,8 @@ impl Network {
     }
 
     pub fn add_inbox(&mut self) -> usize {
-        self.inboxes.push(Vec::new());
-        self.inboxes.len() - 1
+        self.inboxes += 1;
+        self.inboxes - 1
     }
 
     /// Attach the radio gateway's node on `bus` (its filter: the routed IDs of that bus).
@@ -105,8 +107,8 @@ impl Network {
 
     fn end<E: From<FrameError>>(&mut self, bus: usize, refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
         let tx = self.buses[bus].complete();
-        let receivers = self.buses[bus].receivers(tx.frame_id).to_vec();
-        for node in receivers {
+        let receivers = self.buses[bus].take_receivers(tx.frame_id);
+        for &node in &receivers {
             let n = &self.buses[bus].nodes[node];
             if node == tx.node && !n.receive_own {
                 continue;
@@ -116,10 +118,16 @@ impl Network {
                 Sink::Mailbox(m) => {
                     self.mailboxes[m].borrow_mut().put(tx.frame_id, tx.data.as_slice(), tx.t_end as f64 * 1e-9);
                 }
-                Sink::Inbox(i) => self.inboxes[i].push((tx.frame_id, tx.data, tx.t_end)),
-                Sink::Gateway(b) => self.forward(b, tx.frame_id, tx.data, tx.t_end, refill)?,
+                Sink::Inbox(i) => self.inbox.push((i, tx.frame_id, tx.data, tx.t_end)),
+                Sink::Gateway(b) => {
+                    if let Err(e) = self.forward(b, tx.frame_id, tx.data, tx.t_end, refill) {
+                        self.buses[bus].put_receivers(tx.frame_id, receivers);
+                        return Err(e);
+                    }
+                }
             }
         }
+        self.buses[bus].put_receivers(tx.frame_id, receivers);
         if self.arbitration_pending[bus] || !self.buses[bus].pending() {
             return Ok(());
         }
@@ -207,7 +215,8 @@ mod tests {
         net.send(b, sender, 0x010, &[0; 8]).unwrap();
         net.send(b, sender, 0x030, &[0; 8]).unwrap();
         assert_eq!(net.advance(10_000_000, &mut no_draws).unwrap(), None);
-        let got: Vec<u32> = net.inboxes[inbox].iter().map(|f| f.0).collect();
+        assert!(net.inbox.iter().all(|f| f.0 == inbox));
+        let got: Vec<u32> = net.inbox.iter().map(|f| f.1).collect();
         assert_eq!(got, vec![0x010, 0x020]); // lowest ID first; 0x030 is not in the plant's filter
         assert_eq!(net.buses[b].stats.frames_sent, 3);
         assert_eq!(net.advance(20_000_000, &mut no_draws).unwrap(), Some(tick));

@@ -235,9 +235,12 @@ impl Mailbox {
         }
     }
 
-    /// Check and decode the frame of every slot that arrived since the last call.
-    fn refresh(&self) {
-        self.inner.borrow_mut().refresh();
+    /// Check and decode the frame of every slot that arrived since the last call; returns the count of
+    /// wrong-length frames so far (the firmware reports the first).
+    fn refresh(&self) -> u64 {
+        let mut mb = self.inner.borrow_mut();
+        mb.refresh();
+        mb.malformed_frames
     }
 
     /// One slot at time t: (fresh within `timeout`, age s, values, alive counter, reception time of the last good
@@ -328,6 +331,8 @@ impl Mailbox {
 pub struct Network {
     core: CoreNetwork,
     refills: Vec<Py<PyAny>>,
+    /// Wall time spent inside `advance` and `send` (the engine's own cost, for the benchmarks).
+    busy: std::time::Duration,
 }
 
 fn policy(name: &str) -> PyResult<Policy> {
@@ -342,7 +347,7 @@ fn policy(name: &str) -> PyResult<Policy> {
 impl Network {
     #[new]
     fn new() -> Self {
-        Network { core: CoreNetwork::default(), refills: Vec::new() }
+        Network { core: CoreNetwork::default(), refills: Vec::new(), busy: std::time::Duration::ZERO }
     }
 
     /// Add a bus; returns its index.
@@ -421,6 +426,7 @@ impl Network {
 
     /// Run every frame event before `until_ns`; the token of a task that is due (the clock at its time), or None.
     fn advance(&mut self, py: Python<'_>, until_ns: u64) -> PyResult<Option<u64>> {
+        let started = std::time::Instant::now();
         let refills = &self.refills;
         let mut refill = |link: usize| -> Result<Draws, EngineError> {
             let block = refills[link].call0(py).map_err(EngineError)?;
@@ -430,7 +436,15 @@ impl Network {
             }
             Ok(Draws { u_step, u_loss, jitter_ns, next: 0 })
         };
-        self.core.advance(until_ns, &mut refill).map_err(|e| e.0)
+        let out = self.core.advance(until_ns, &mut refill).map_err(|e| e.0);
+        self.busy += started.elapsed();
+        out
+    }
+
+    /// Seconds of wall time spent inside `advance`, `send` and `send_frames` so far (radio refills included).
+    #[getter]
+    fn busy_s(&self) -> f64 {
+        self.busy.as_secs_f64()
     }
 
     /// The clock (ns).
@@ -442,23 +456,29 @@ impl Network {
     /// Queue a frame at the current time; False when the node's TX queue is full (counted).
     fn send(&mut self, bus: usize, node: usize, frame_id: u32, data: PyBackedBytes) -> PyResult<bool> {
         self.check_node(bus, node)?;
-        self.core.send(bus, node, frame_id, &data).map_err(frame_err)
+        let started = std::time::Instant::now();
+        let out = self.core.send(bus, node, frame_id, &data).map_err(frame_err);
+        self.busy += started.elapsed();
+        out
     }
 
     /// Queue several (frame_id, data) frames from one node.
     fn send_frames(&mut self, bus: usize, node: usize, frames: Vec<(u32, PyBackedBytes)>) -> PyResult<()> {
         self.check_node(bus, node)?;
+        let started = std::time::Instant::now();
         for (frame_id, data) in frames {
             self.core.send(bus, node, frame_id, &data).map_err(frame_err)?;
         }
+        self.busy += started.elapsed();
         Ok(())
     }
 
-    /// Take the frames delivered into an inbox: [(frame_id, data, t_end_ns)].
-    fn drain_inbox<'py>(&mut self, py: Python<'py>, inbox: usize) -> PyResult<Bound<'py, PyList>> {
-        let frames = std::mem::take(self.core.inboxes.get_mut(inbox).ok_or_else(|| PyIndexError::new_err(format!("no inbox {inbox}")))?);
+    /// Take the frames delivered into every inbox since the last call, in arrival order:
+    /// [(inbox, frame_id, data, t_end_ns)] (an empty list costs next to nothing).
+    fn drain_inboxes<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+        let frames = std::mem::take(&mut self.core.inbox);
         let items: Vec<Bound<'py, PyTuple>> = frames.iter()
-            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
+            .map(|(inbox, id, data, t)| (inbox, id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
             .collect::<PyResult<_>>()?;
         PyList::new(py, items)
     }

@@ -259,6 +259,11 @@ class VirtualCanBus(CanBusModel):
             self.kernel.at(max(self.kernel.now, self.busy_until), self._arbitrate_event)
         return ok
 
+    def send_frames(self, node: CanNode, frames: list[tuple[int, bytes]]) -> None:
+        """Queue several frames of one node at the kernel's current time, in order."""
+        for frame_id, data in frames:
+            self.send(node, frame_id, data)
+
     def _arbitrate_event(self, _: object = None) -> None:
         self._arbitration_pending = False
         tx = self.arbitrate(self.kernel.now)

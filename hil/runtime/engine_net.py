@@ -95,6 +95,10 @@ class EngineBus:
             self.net.set_trace(self.index, True)
             self._tracing = True
 
+    def send_frames(self, node: int, frames: list[tuple[int, bytes]]) -> None:
+        """Queue several frames of one node at the current time (one call for an ECU's outputs)."""
+        self.net.send_frames(self.index, node, frames)
+
     def collect(self) -> None:
         """Move the statistics and the traced frames gathered since the last call into the log and the listeners."""
         frames, load, sent, dropped = self.net.take_stats(self.index)

@@ -63,9 +63,11 @@ class VirtualRig:
         self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
         self.plant_io = PlantCanNode(self.db, self.layout, self.plant, self.parts.reference, self.log)
         self._plant_inboxes: list[int] = []
+        self._inbox_train: dict[int, int] = {}  # engine inbox -> train (bus) index
         self._plant_nodes = [self._attach_plant(i) for i in range(self.layout.n_trains)]
         self._wayside_nodes = [bus.attach("Wayside") for bus in self.buses]
         self.ecus: list[Ecu] = []
+        self._train_of = [self.layout.train_unit(u)[0] for u in range(self.layout.n_units)]
         self._ecu_nodes: list[CanNode] = []
         for u in range(self.layout.n_units):
             self._attach_ecu(u)
@@ -92,6 +94,7 @@ class VirtualRig:
         if self.net is not None:
             node, inbox = self.buses[i].attach_inbox("Plant", set(self.plant_io.cmd_unit[i]))
             self._plant_inboxes.append(inbox)
+            self._inbox_train[inbox] = i
             return node
         command = self.plant_io.command
 
@@ -171,14 +174,16 @@ class VirtualRig:
 
     def _apply_commands(self) -> None:
         """The TractionCmd frames the engine delivered to the plant since the last step, in arrival order."""
-        command, drain = self.plant_io.command, self.net.drain_inbox  # type: ignore[union-attr]
-        for train, inbox in enumerate(self._plant_inboxes):
-            for frame_id, data, t_ns in drain(inbox):
-                command(train, frame_id, data, t_ns * 1e-9)
+        frames = self.net.drain_inboxes()  # type: ignore[union-attr]
+        if frames:
+            command, train_of = self.plant_io.command, self._inbox_train
+            for inbox, frame_id, data, t_ns in frames:
+                command(train_of[inbox], frame_id, data, t_ns * 1e-9)
 
     def _publish_sensors(self) -> None:
+        buses, nodes = self.buses, self._plant_nodes
         for train, _, frame_id, data in self.plant_io.sensor_frames():
-            self.buses[train].send(self._plant_nodes[train], frame_id, data)
+            buses[train].send(nodes[train], frame_id, data)
 
     def _wayside_tick(self, t_ns: int) -> None:
         frames = self.plant_io.reference_frames(t_ns * 1e-9)
@@ -189,9 +194,9 @@ class VirtualRig:
     def _ecu_tick(self, u: int, t_ns: int) -> None:
         ecu = self.ecus[u]
         frames = ecu.cycle(t_ns * 1e-9)
-        bus, node = self.buses[self.layout.train_unit(u)[0]], self._ecu_nodes[u]
-        for frame_id, data in frames:
-            bus.send(node, frame_id, data)
+        bus, node = self.buses[self._train_of[u]], self._ecu_nodes[u]
+        if frames:
+            bus.send_frames(node, frames)
         if ecu.events:
             for t, level, text in ecu.events:
                 self.log.event(t, level, ecu.name, text)
@@ -227,8 +232,11 @@ class VirtualRig:
         return self.log
 
     def _collect(self) -> None:
-        """Bring the engine's bus statistics and traced frames into the log and the frame listeners."""
+        """Bring the engine's bus statistics and traced frames into the log and the frame listeners, and apply the
+        commands that arrived since the last plant step (at the end of a chunk, as a per-frame callback would have:
+        no plant step lies between their arrival and now)."""
         if self.net is not None:
+            self._apply_commands()
             for bus in self.buses:
                 bus.collect()  # type: ignore[union-attr]
 
