@@ -38,6 +38,8 @@ from ecu_sim.view import AgentInfo, BrakeMode, Command, LocalView, NeighbourView
 from hil.scenario.model import EcuConfig
 
 INF = float("inf")
+_EMERGENCY = BrakeMode.EMERGENCY
+_SERVICE = BrakeMode.SERVICE
 
 
 class SlotChecker:
@@ -161,6 +163,11 @@ class Ecu:
         self._flags: dict[str, bool] = {}
         self._sensor_counter = -1  # alive counter (sample number) of the own sensor frame read this cycle
         self._link_t_good = [-INF] * len(self._links)  # reception time of each neighbour's last good state
+        # per cycle: (view, state slot, aux slot or -1) of each neighbour, and which one is the train ahead
+        self._neighbour_io = [(nv, state.index, aux.index if aux is not None else -1)
+                              for nv, (_, state, aux) in zip(self.view.neighbours, self._links)]
+        self._ahead = next((k for k, (nl, _, _) in enumerate(self._links) if nl.link == "inter" and nl.side == "ahead"), None)
+        self._timeouts = (float(cfg.neighbour_timeout_s), float(cfg.reference_timeout_s), float(cfg.radio_contact_timeout_s))
         self.sensor_fault = False  # own sensor judged implausible (stuck, noisy) by a monitor: service brake
         self.monitors: list = []  # callables monitor(ecu, t) run after every cycle (ecu_sim.diagnostics)
         self.last_command: Command | None = None  # what the last cycle commanded (None: the ECU stopped)
@@ -225,15 +232,14 @@ class Ecu:
 
     # ---- internals
     def _control(self, t: float) -> Command | None:
-        view, cfg = self.view, self.cfg
+        view = self.view
         view.t = t
-        sensor_ok, _, values, counter, t_good = self.mailbox.read(self._sensor.index, t, cfg.neighbour_timeout_s)
+        sensor_ok, _, values, counter, t_good = self.mailbox.read(self._sensor.index, t, self._timeouts[0])
         self._sensor_counter = counter
-        self._flag(t, "sensor_stale", not sensor_ok, "WARN", "own sensor data stale: service brake")
-        if not sensor_ok:
-            return Command(0.0, BrakeMode.SERVICE, 0.0)
-        if self.sensor_fault:
-            return Command(0.0, BrakeMode.SERVICE, 0.0)
+        if self._flags.get("sensor_stale", False) is sensor_ok:  # changed: log it
+            self._flag(t, "sensor_stale", not sensor_ok, "WARN", "own sensor data stale: service brake")
+        if not sensor_ok or self.sensor_fault:
+            return Command(0.0, _SERVICE, 0.0)
         view.x, view.v = values
         self._samples[counter] = (view.x, view.v, t_good)
         self._fill_neighbours(t)
@@ -250,28 +256,28 @@ class Ecu:
         if self.agent.has_reference:
             self._flag(t, "ref_stale", not ref_ok, "WARN", "reference stale: service brake")
             if not ref_ok:
-                cmd = Command(0.0, BrakeMode.SERVICE, 0.0)
-        if self._lost_train_ahead(t):
-            cmd = Command(0.0, BrakeMode.EMERGENCY, 0.0)
-        if cmd.mode == BrakeMode.EMERGENCY:
+                cmd = Command(0.0, _SERVICE, 0.0)
+        if self._ahead is not None and self._lost_train_ahead(t):
+            cmd = Command(0.0, _EMERGENCY, 0.0)
+        if cmd.mode == _EMERGENCY:
             self._flag(t, "emergency", True, "ERROR", "emergency brake commanded")
         return cmd
 
     def _fill_neighbours(self, t: float) -> None:
-        timeout, read = self.cfg.neighbour_timeout_s, self.mailbox.read
-        for k, (nv, (nl, state, aux)) in enumerate(zip(self.view.neighbours, self._links)):
-            nv.valid, nv.age_s, values, counter, t_good = read(state.index, t, timeout)
-            self._link_t_good[k] = t_good
+        timeout, read, t_goods, nan = self._timeouts[0], self.mailbox.read, self._link_t_good, math.nan
+        for k, (nv, state, aux) in enumerate(self._neighbour_io):
+            nv.valid, nv.age_s, values, counter, t_good = read(state, t, timeout)
+            t_goods[k] = t_good
             if not nv.valid:
                 continue
             nv.x, nv.v = values
             self._align(nv, counter, t_good)
-            if aux is not None:
-                aux_ok, _, aux_values, _, _ = read(aux.index, t, timeout)  # (never fresh before its first frame)
+            if aux >= 0:
+                aux_ok, _, aux_values, _, _ = read(aux, t, timeout)  # (never fresh before its first frame)
                 if aux_ok and aux_values:
                     nv.a, nv.u = aux_values
                     continue
-            nv.a = nv.u = math.nan
+            nv.a = nv.u = nan
 
     def _align(self, nv: NeighbourView, counter: int, t_good: float) -> None:
         """Shift a neighbour's sample k by our own motion since our sample k (same-instant comparison)."""
@@ -287,7 +293,7 @@ class Ecu:
         if self._ref is None:
             return True
         ref = self.view.ref
-        ref.valid, ref.age_s, values, _, _ = self.mailbox.read(self._ref.index, t, self.cfg.reference_timeout_s)
+        ref.valid, ref.age_s, values, _, _ = self.mailbox.read(self._ref.index, t, self._timeouts[1])
         if ref.valid:
             ref.x, ref.v = values
             aux = self.mailbox.values(self._ref_aux.index) if self._ref_aux else ()
@@ -296,13 +302,12 @@ class Ecu:
 
     def _lost_train_ahead(self, t: float) -> bool:
         """Head of a following train: contact with the train ahead lost for too long after it was made."""
-        for k, (nl, _, _) in enumerate(self._links):
-            t_good = self._link_t_good[k]
-            if nl.link == "inter" and nl.side == "ahead" and t_good > -INF:
-                lost = t - t_good > self.cfg.radio_contact_timeout_s
-                self._flag(t, "radio_lost", lost, "ERROR", "lost contact with the train ahead: emergency brake")
-                return lost
-        return False
+        t_good = self._link_t_good[self._ahead]  # type: ignore[index]
+        if t_good == -INF:
+            return False
+        lost = t - t_good > self._timeouts[2]
+        self._flag(t, "radio_lost", lost, "ERROR", "lost contact with the train ahead: emergency brake")
+        return lost
 
     def _flag(self, t: float, key: str, on: bool, level: str, text: str) -> None:
         """Log a condition when it starts and when it clears (not every cycle)."""

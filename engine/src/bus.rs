@@ -17,8 +17,10 @@ pub enum Sink {
     None,
     /// An ECU's mailboxes (index into the driver's mailboxes).
     Mailbox(usize),
-    /// A queue the driver drains from Python (the plant's commands).
+    /// A queue the driver drains from Python.
     Inbox(usize),
+    /// The plant's actuator commands: checked (length, E2E CRC, mode) and decoded on delivery.
+    Commands(usize),
     /// The radio gateway's end on this bus.
     Gateway(usize),
 }

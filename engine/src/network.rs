@@ -27,6 +27,33 @@ pub enum Event {
 /// A frame delivered into an inbox: (inbox, frame id, payload, end of transmission in ns).
 pub type InboxFrame = (usize, u32, Payload, u64);
 
+/// An actuator command decoded on delivery: (unit, force N, mode, arrival time s).
+pub type Command = (usize, f64, i64, f64);
+
+/// What a command inbox accepts: per frame ID the unit it drives and the message layout (signals Mode, Force).
+#[derive(Default)]
+pub struct CommandTable {
+    pub by_id: HashMap<u32, (usize, Arc<MessageLayout>)>,
+    pub valid_modes: Vec<i64>,
+}
+
+impl CommandTable {
+    /// The command a frame carries, or None when it must be rejected (wrong length, CRC, unknown mode).
+    fn decode(&self, frame_id: u32, data: &[u8], t_ns: u64, scratch: &mut Vec<f64>) -> Option<Command> {
+        let (unit, layout) = self.by_id.get(&frame_id)?;
+        if data.len() != layout.dlc || !crate::e2e::crc_ok(layout.data_id, data) {
+            return None;
+        }
+        layout.decode_into(data, scratch).ok()?;
+        let (mode, force) = (scratch[0], scratch[1]);
+        let m = mode as i64;
+        if m as f64 != mode || !self.valid_modes.contains(&m) {
+            return None;
+        }
+        Some((*unit, force, m, t_ns as f64 * 1e-9))
+    }
+}
+
 #[derive(Default)]
 pub struct Network {
     pub queue: EventQueue<Event>,
@@ -36,6 +63,12 @@ pub struct Network {
     /// Frames delivered into any inbox, in arrival order (the rig drains them once per plant step).
     pub inbox: Vec<InboxFrame>,
     inboxes: usize,
+    /// Commands accepted by the command inboxes, in arrival order.
+    pub commands: Vec<Command>,
+    /// Frames a command inbox rejected, as (table, frame id, payload, t_end ns): the rig reports them.
+    pub rejected: Vec<InboxFrame>,
+    pub command_tables: Vec<CommandTable>,
+    scratch: Vec<f64>,
     pub gateway: Gateway,
     gateway_nodes: Vec<Option<usize>>,
     position_layouts: HashMap<u32, Arc<MessageLayout>>,
@@ -59,6 +92,16 @@ impl Network {
     pub fn add_inbox(&mut self) -> usize {
         self.inboxes += 1;
         self.inboxes - 1
+    }
+
+    /// A node that checks and decodes actuator commands on delivery (filter: the table's IDs); returns the node
+    /// and the table's index (which `rejected` names).
+    pub fn attach_commands(&mut self, bus: usize, name: &str, table: CommandTable) -> (usize, usize) {
+        let mut ids: Vec<u32> = table.by_id.keys().copied().collect();
+        ids.sort_unstable();
+        self.command_tables.push(table);
+        let index = self.command_tables.len() - 1;
+        (self.buses[bus].attach(name, Sink::Commands(index), Some(ids), false), index)
     }
 
     /// Attach the radio gateway's node on `bus` (its filter: the routed IDs of that bus).
@@ -119,6 +162,12 @@ impl Network {
                     self.mailboxes[m].borrow_mut().put(tx.frame_id, tx.data.as_slice(), tx.t_end as f64 * 1e-9);
                 }
                 Sink::Inbox(i) => self.inbox.push((i, tx.frame_id, tx.data, tx.t_end)),
+                Sink::Commands(i) => {
+                    match self.command_tables[i].decode(tx.frame_id, tx.data.as_slice(), tx.t_end, &mut self.scratch) {
+                        Some(cmd) => self.commands.push(cmd),
+                        None => self.rejected.push((i, tx.frame_id, tx.data, tx.t_end)),
+                    }
+                }
                 Sink::Gateway(b) => {
                     if let Err(e) = self.forward(b, tx.frame_id, tx.data, tx.t_end, refill) {
                         self.buses[bus].put_receivers(tx.frame_id, receivers);

@@ -379,6 +379,33 @@ impl Network {
         Ok((self.core.buses[bus].attach(name, Sink::Inbox(inbox), rx_ids, false), inbox))
     }
 
+    /// The plant's node on a bus: TractionCmd frames are checked (length, E2E CRC, a mode in `valid_modes`) and
+    /// decoded on delivery. `commands`: (frame_id, codec with signals (Mode, Force), unit index). Returns
+    /// (node, table) where the table index is what `drain_commands` names a rejected frame by.
+    fn attach_commands(&mut self, bus: usize, name: &str, commands: Vec<(u32, PyRef<'_, MessageCodec>, usize)>,
+                       valid_modes: Vec<i64>) -> PyResult<(usize, usize)> {
+        self.bus_mut(bus)?;
+        let mut table = crate::network::CommandTable { valid_modes, ..Default::default() };
+        for (frame_id, codec, unit) in commands {
+            if codec.layout.signals.len() != 2 {
+                return Err(PyValueError::new_err(format!("{}: a command needs the signals (Mode, Force)", codec.name)));
+            }
+            table.by_id.insert(frame_id, (unit, codec.layout.clone()));
+        }
+        Ok(self.core.attach_commands(bus, name, table))
+    }
+
+    /// The commands accepted since the last call, in arrival order: ([(unit, force, mode, t_s)], [(table,
+    /// frame_id, data, t_end_ns)] of the frames rejected).
+    fn drain_commands<'py>(&mut self, py: Python<'py>) -> PyResult<(Vec<(usize, f64, i64, f64)>, Bound<'py, PyList>)> {
+        let commands = std::mem::take(&mut self.core.commands);
+        let rejected = std::mem::take(&mut self.core.rejected);
+        let items: Vec<Bound<'py, PyTuple>> = rejected.iter()
+            .map(|(table, id, data, t)| (table, id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        Ok((commands, PyList::new(py, items)?))
+    }
+
     /// The radio gateway's node on a bus (add the links and routes first).
     fn attach_gateway(&mut self, bus: usize, name: &str) -> PyResult<usize> {
         self.bus_mut(bus)?;

@@ -25,6 +25,7 @@ class PlantCanNode:
         #: per train bus: TractionCmd frame id -> flat unit index (the plant's acceptance filter)
         self.cmd_unit = [{db.traction_cmd(layout.train_unit(u)[1]).frame_id: u for u in units} for units in per_train]
         self.sensor_counter = [0] * layout.n_units  # alive counter = sample number of each unit's Sensor frames
+        self._sensor_out = [(layout.train_unit(u)[0], db.sensor(layout.train_unit(u)[1])) for u in range(layout.n_units)]
         self.ref_counter = 0
         self.e2e_errors = 0
         self.malformed_frames = 0  # TractionCmd frames of the wrong length
@@ -52,12 +53,10 @@ class PlantCanNode:
     def sensor_frames(self) -> list[tuple[int, int, int, bytes]]:
         """Sample every unit now: (train, unit index, frame id, data) per unit, numbered by sample."""
         xs, vs = self.plant.measure()
-        L, db, out = self.layout, self.db, []
-        for u in range(L.n_units):
-            train, unit = L.train_unit(u)
-            codec = db.sensor(unit)
-            self.sensor_counter[u] = c = (self.sensor_counter[u] + 1) & 0xF
-            out.append((train, u, codec.frame_id, codec.encode((xs[u], vs[u]), c)))
+        counters, out = self.sensor_counter, []
+        for u, ((train, codec), x, v) in enumerate(zip(self._sensor_out, xs.tolist(), vs.tolist())):
+            counters[u] = c = (counters[u] + 1) & 0xF
+            out.append((train, u, codec.frame_id, codec.encode((x, v), c)))
         return out
 
     def reference_frames(self, t: float) -> list[tuple[int, bytes]]:

@@ -30,7 +30,8 @@ class EngineKernel:
 
     def __init__(self, net: engine.Network) -> None:
         self.net = net
-        self._handlers: dict[int, tuple[Callable[[Any], None], Any, bool]] = {}
+        self._handlers: dict[int, Callable[[int], None]] = {}  # token -> fn(t_ns)
+        self._once: set[int] = set()  # tokens of one-shot events (forgotten after they ran)
 
     @property
     def now(self) -> int:
@@ -38,24 +39,24 @@ class EngineKernel:
 
     def at(self, t_ns: int, fn: Callable[[Any], None], arg: Any = None) -> None:
         """Run ``fn(arg)`` once when the clock reaches t_ns."""
-        self._handlers[self.net.every(t_ns, 0)] = (fn, arg, False)
+        token = self.net.every(t_ns, 0)
+        self._handlers[token] = lambda _t: fn(arg)
+        self._once.add(token)
 
     def every(self, first_ns: int, period_ns: int, fn: Callable[[int], None]) -> None:
         """Run ``fn(t)`` at first_ns, first_ns + period_ns, ... (rescheduled after each run)."""
         if period_ns <= 0:
             raise ValueError(f"period must be positive, got {period_ns} ns")
-        self._handlers[self.net.every(first_ns, period_ns)] = (fn, None, True)
+        self._handlers[self.net.every(first_ns, period_ns)] = fn
 
     def run(self, until_ns: int) -> None:
         """Process every event with time < until_ns (frames in the engine, tasks here), then set the clock to it."""
-        net, handlers = self.net, self._handlers
-        while (token := net.advance(until_ns)) is not None:
-            fn, arg, periodic = handlers[token] if token in handlers else (None, None, False)
-            if periodic:
-                fn(net.now)  # type: ignore[misc]
-            else:
-                handlers.pop(token, None)
-                fn(arg)  # type: ignore[misc]
+        advance, handlers, once = self.net.advance, self._handlers, self._once
+        while (token := advance(until_ns)) is not None:
+            handlers[token](self.net.now)
+            if once and token in once:
+                once.discard(token)
+                del handlers[token]
 
 
 class EngineBus:

@@ -12,6 +12,7 @@ confinement and the fault injectors, so a scenario with a fault schedule runs on
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import Callable
 
 import trainhil_engine as engine
@@ -21,7 +22,7 @@ from ecu_sim.runtime import Ecu, NeighbourLink
 from hil.can.bus import CanNode, VirtualCanBus
 from hil.layout import TrainLayout
 from hil.radio.gateway import RadioGateway, build_links, standard_routes
-from hil.plant.can_node import PlantCanNode
+from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.runtime.assembly import Assembly, assemble
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
@@ -62,8 +63,7 @@ class VirtualRig:
         self.log.reference_change_times = self.parts.reference.change_times
         self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
         self.plant_io = PlantCanNode(self.db, self.layout, self.plant, self.parts.reference, self.log)
-        self._plant_inboxes: list[int] = []
-        self._inbox_train: dict[int, int] = {}  # engine inbox -> train (bus) index
+        self._command_train: dict[int, int] = {}  # the engine's command table -> train (bus) index
         self._plant_nodes = [self._attach_plant(i) for i in range(self.layout.n_trains)]
         self._wayside_nodes = [bus.attach("Wayside") for bus in self.buses]
         self.ecus: list[Ecu] = []
@@ -92,9 +92,9 @@ class VirtualRig:
         """The plant's node on train i's bus: the engine queues its TractionCmd frames in an inbox drained at every
         plant step (a command acts from the first step after its arrival, as with a per-frame callback)."""
         if self.net is not None:
-            node, inbox = self.buses[i].attach_inbox("Plant", set(self.plant_io.cmd_unit[i]))
-            self._plant_inboxes.append(inbox)
-            self._inbox_train[inbox] = i
+            commands = [(fid, self.db.by_id[fid], u) for fid, u in self.plant_io.cmd_unit[i].items()]
+            node, table = self.net.attach_commands(self.buses[i].index, "Plant", commands, sorted(int(m) for m in VALID_MODES))
+            self._command_train[table] = i
             return node
         command = self.plant_io.command
 
@@ -152,12 +152,12 @@ class VirtualRig:
         for u, ecu in enumerate(self.ecus):
             unit = self.layout.train_unit(u)[1]
             phase = to_ns(sc.ecu.phase_s + unit * sc.ecu.stagger_s)
-            k.every(phase, cycle, lambda t, u=u: self._ecu_tick(u, t))
+            k.every(phase, cycle, partial(self._ecu_tick, u))
 
     def _plant_tick(self, t_ns: int) -> None:
         """Apply the commands that arrived, publish sensors and record at their periods (state at t), then
         integrate to t + step."""
-        if self._plant_inboxes:
+        if self.net is not None:
             self._apply_commands()
         tick, plant = self._tick, self.plant
         self._tick += 1
@@ -173,17 +173,22 @@ class VirtualRig:
             plant.events.clear()
 
     def _apply_commands(self) -> None:
-        """The TractionCmd frames the engine delivered to the plant since the last step, in arrival order."""
-        frames = self.net.drain_inboxes()  # type: ignore[union-attr]
-        if frames:
-            command, train_of = self.plant_io.command, self._inbox_train
-            for inbox, frame_id, data, t_ns in frames:
-                command(train_of[inbox], frame_id, data, t_ns * 1e-9)
+        """The TractionCmd frames the engine delivered to the plant since the last step, in arrival order: checked
+        and decoded in the engine; the rejected ones go through the plant node, which logs why."""
+        commands, rejected = self.net.drain_commands()  # type: ignore[union-attr]
+        if commands:
+            command = self.plant.command
+            for u, force, mode, t in commands:
+                command(u, force, mode, t)
+        for table, frame_id, data, t_ns in rejected:
+            self.plant_io.command(self._command_train[table], frame_id, data, t_ns * 1e-9)
 
     def _publish_sensors(self) -> None:
-        buses, nodes = self.buses, self._plant_nodes
+        per_train: list[list[tuple[int, bytes]]] = [[] for _ in self.buses]
         for train, _, frame_id, data in self.plant_io.sensor_frames():
-            buses[train].send(nodes[train], frame_id, data)
+            per_train[train].append((frame_id, data))
+        for bus, node, frames in zip(self.buses, self._plant_nodes, per_train):
+            bus.send_frames(node, frames)
 
     def _wayside_tick(self, t_ns: int) -> None:
         frames = self.plant_io.reference_frames(t_ns * 1e-9)
