@@ -15,3 +15,12 @@ def rt(monkeypatch):
     monkeypatch.setenv("XDG_RUNTIME_DIR", d)
     yield Path(d)
     shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture(params=["python", "native"])
+def server_cls(request):
+    """Each bus-server test runs on the Python server and on the engine's native one: the same behaviour."""
+    from hil.realtime.busserver import BusServer
+    from hil.realtime.native_server import NativeBusServer
+
+    return BusServer if request.param == "python" else NativeBusServer

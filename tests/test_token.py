@@ -24,8 +24,8 @@ DATA = bytes(range(8))
 
 
 @pytest.fixture
-def server(rt):
-    with BusServer("r1", "bus1", 500_000, tcp=True) as srv:
+def server(rt, server_cls):
+    with server_cls("r1", "bus1", 500_000, tcp=True) as srv:
         yield srv
 
 
@@ -106,21 +106,21 @@ def test_refused_connections_do_not_disturb_the_other_nodes(server):
     assert server.stats.auth_failures == 20
 
 
-def test_only_loopback_can_be_bound(rt):
+def test_only_loopback_can_be_bound(rt, server_cls):
     for host in ("0.0.0.0", "::", "192.168.1.10", "localhost", "example.com"):
         with pytest.raises(ValueError, match="loopback only"):
-            BusServer("r1", "bus1", 500_000, tcp=True, tcp_host=host)
+            server_cls("r1", "bus1", 500_000, tcp=True, tcp_host=host)
         assert not (rt / "trainhil" / "r1" / "bus1.sock").exists()  # nothing left behind
     for channel in ("tcp://0.0.0.0:5000", "tcp://10.1.2.3:5000"):
         with pytest.raises(can.CanInitializationError, match="loopback only"):
             TrainhilBus(channel, token="00" * 16)
 
 
-def test_ipv6_loopback_works(rt):
+def test_ipv6_loopback_works(rt, server_cls):
     if not socket.has_ipv6:
         pytest.skip("no IPv6")
     try:
-        srv = BusServer("r1", "bus1", 500_000, tcp=True, tcp_host="::1").start()
+        srv = server_cls("r1", "bus1", 500_000, tcp=True, tcp_host="::1").start()
     except OSError as exc:
         pytest.skip(f"::1 not available: {exc}")
     try:
@@ -140,8 +140,8 @@ def test_a_token_file_others_can_read_is_refused(server, rt):
         pass
 
 
-def test_a_socket_others_can_use_is_refused_by_clients(rt):
-    with BusServer("r1", "bus1", 500_000) as srv:
+def test_a_socket_others_can_use_is_refused_by_clients(rt, server_cls):
+    with server_cls("r1", "bus1", 500_000) as srv:
         os.chmod(srv.path, 0o666)
         with pytest.raises(can.CanInitializationError, match="group/others can use it"):
             TrainhilBus("r1/bus1")
@@ -150,8 +150,8 @@ def test_a_socket_others_can_use_is_refused_by_clients(rt):
             pass
 
 
-def test_the_token_file_goes_away_with_the_server(rt):
-    srv = BusServer("r1", "bus1", 500_000, tcp=True).start()
+def test_the_token_file_goes_away_with_the_server(rt, server_cls):
+    srv = server_cls("r1", "bus1", 500_000, tcp=True).start()
     tok = srv.token_file
     assert tok.exists()
     srv.close()
@@ -160,8 +160,8 @@ def test_the_token_file_goes_away_with_the_server(rt):
         TrainhilBus("tcp:r1/bus1")
 
 
-def test_unix_sockets_need_no_token_and_an_unexpected_auth_is_a_protocol_error(rt):
-    with BusServer("r1", "bus1", 500_000) as srv:
+def test_unix_sockets_need_no_token_and_an_unexpected_auth_is_a_protocol_error(rt, server_cls):
+    with server_cls("r1", "bus1", 500_000) as srv:
         assert srv.token is None and srv.stats.tcp_port is None
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
             s.connect(str(srv.path))

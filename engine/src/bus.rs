@@ -108,6 +108,8 @@ pub struct Node {
     pub fifo: VecDeque<Item>,
     pub sent: u64,
     pub dropped: u64,
+    /// False once the node left the bus (its index stays taken; it neither sends nor receives).
+    pub attached: bool,
 }
 
 /// A frame on the wire.
@@ -167,7 +169,8 @@ impl Bus {
 
     /// Attach a node; returns its index on this bus.
     pub fn attach(&mut self, name: &str, sink: Sink, rx_ids: Option<Vec<u32>>, receive_own: bool) -> usize {
-        self.nodes.push(Node { name: name.to_string(), sink, rx_ids, receive_own, queued: 0, fifo: VecDeque::new(), sent: 0, dropped: 0 });
+        self.nodes.push(Node { name: name.to_string(), sink, rx_ids, receive_own, queued: 0, fifo: VecDeque::new(), sent: 0,
+                               dropped: 0, attached: true });
         self.receivers_std.iter_mut().for_each(|r| *r = None);
         self.receivers_ext.clear();
         self.nodes.len() - 1
@@ -211,7 +214,7 @@ impl Bus {
     /// Queue a frame at time t; false (and counted as a drop) when the node's queue is full.
     pub fn enqueue(&mut self, node: usize, frame_id: u32, data: &[u8], t: u64, extended: Option<bool>) -> bool {
         let n = &mut self.nodes[node];
-        if n.queued >= self.depth {
+        if n.queued >= self.depth || !n.attached {
             n.dropped += 1;
             return false;
         }
@@ -299,6 +302,26 @@ impl Bus {
         self.close_windows(t, true);
     }
 
+    /// Remove a node (it disconnected): its queued frames are dropped and counted, how many is returned; a frame
+    /// of it already on the wire completes.
+    pub fn detach(&mut self, node: usize) -> usize {
+        let lost = self.nodes[node].queued;
+        if lost > 0 && self.policy == Policy::Priority {
+            let items: Vec<Reverse<Item>> = std::mem::take(&mut self.heap).into_vec();
+            self.heap = items.into_iter().filter(|Reverse(item)| item.node != node).collect();
+        }
+        let n = &mut self.nodes[node];
+        n.fifo.clear();
+        n.queued = 0;
+        n.dropped += lost as u64;
+        n.attached = false;
+        n.sink = Sink::None;
+        n.rx_ids = Some(Vec::new());
+        self.receivers_std.iter_mut().for_each(|r| *r = None);
+        self.receivers_ext.clear();
+        lost
+    }
+
     /// Frames dropped at full TX queues, over all nodes.
     pub fn frames_dropped(&self) -> u64 {
         self.nodes.iter().map(|n| n.dropped).sum()
@@ -350,6 +373,24 @@ mod tests {
             t = end;
         }
         assert_eq!(order, vec![0x200, 0x300, 0x010]); // 0x010 waits behind A's 0x300: priority inversion
+    }
+
+    #[test]
+    fn a_detached_node_loses_its_queue_but_not_the_frame_on_the_wire() {
+        let mut b = bus(Policy::Priority);
+        let a = b.attach("A", Sink::None, None, false);
+        let c = b.attach("C", Sink::None, None, false);
+        b.enqueue(a, 1, &[], 0, None);
+        b.enqueue(a, 2, &[], 0, None);
+        b.enqueue(c, 3, &[], 0, None);
+        b.arbitrate(0).unwrap();
+        assert_eq!(b.detach(a), 1);
+        assert_eq!(b.complete().frame_id, 1);
+        let end = b.busy_until;
+        b.arbitrate(end).unwrap();
+        assert_eq!(b.complete().frame_id, 3);
+        assert_eq!(b.frames_dropped(), 1);
+        assert!(!b.pending());
     }
 
     #[test]

@@ -6,7 +6,8 @@
 //! * `mailbox`: an ECU's input mailboxes, read once per cycle;
 //! * `bus`: the CAN bus model (TX queues, arbitration, filters, statistics);
 //! * `radio`: the train-to-train links and the routing gateway;
-//! * `kernel` and `network`: the virtual-time event queue and the network it drives.
+//! * `kernel` and `network`: the virtual-time event queue and the network it drives;
+//! * `server`: the real-time bus server, one OS thread per bus.
 //!
 //! `py` (feature `python`) is the Python surface, `trainhil_engine._native`.
 
@@ -18,6 +19,7 @@ pub mod kernel;
 pub mod mailbox;
 pub mod network;
 pub mod radio;
+pub mod server;
 
 #[cfg(feature = "python")]
 mod py;

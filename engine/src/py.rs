@@ -592,6 +592,300 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<MessageCodec>()?;
     m.add_class::<Mailbox>()?;
     m.add_class::<Network>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "e2e_crc", "MessageCodec", "Mailbox", "Network"])?;
+    m.add_class::<BusServerCore>()?;
+    m.add_class::<FrameLink>()?;
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "e2e_crc", "MessageCodec", "Mailbox", "Network",
+                          "BusServerCore", "FrameLink"])?;
     Ok(())
+}
+
+// ------------------------------------------------------------------------------------------------ real time
+
+/// One emulated CAN bus served in wall-clock time by a native thread (see engine/src/server.rs).
+#[pyclass(module = "trainhil_engine._native")]
+pub struct BusServerCore {
+    handle: Option<crate::server::ServerHandle>,
+    bitrate: u64,
+}
+
+fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns: u64) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("now_ns", now_ns)?;
+    d.set_item("clients", s.clients)?;
+    d.set_item("frames", s.frames)?;
+    d.set_item("busy_ns", s.busy_ns)?;
+    d.set_item("frames_dropped", s.bus.frames_dropped())?;
+    d.set_item("frames_rejected", s.rejected)?;
+    d.set_item("rx_overruns", s.overruns)?;
+    for (name, h) in [("latency", &s.latency), ("lateness", &s.lateness)] {
+        d.set_item(format!("{name}_p50_s"), h.quantile_s(0.5))?;
+        d.set_item(format!("{name}_p99_s"), h.quantile_s(0.99))?;
+        d.set_item(format!("{name}_max_s"), if h.n > 0 { Some(h.max_ns as f64 * 1e-9) } else { None })?;
+    }
+    d.set_item("protocol_errors", s.bad.protocol_errors)?;
+    d.set_item("truncated_records", s.bad.truncated_records)?;
+    d.set_item("auth_failures", s.bad.auth_failures)?;
+    d.set_item("clients_refused", s.bad.clients_refused)?;
+    let load = &s.bus.stats.load;
+    d.set_item("load_last_window", if load.len() >= 2 { Some(load[load.len() - 1]) } else { None })?;
+    Ok(d)
+}
+
+#[pymethods]
+impl BusServerCore {
+    /// Serve on listening sockets the caller made (their fds are taken over: pass duplicates).
+    #[new]
+    #[pyo3(signature = (channel, listener_fd, tcp_fd, token, bitrate, policy_name, depth, extended, load_window_ns, pace,
+                        spin_ns, max_clients, hello_timeout_s, keep_log))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(channel: String, listener_fd: i32, tcp_fd: Option<i32>, token: Option<Vec<u8>>, bitrate: u64, policy_name: &str,
+           depth: usize, extended: bool, load_window_ns: u64, pace: f64, spin_ns: u64, max_clients: usize,
+           hello_timeout_s: f64, keep_log: bool) -> PyResult<Self> {
+        let token = match token {
+            None => None,
+            Some(t) => Some(<[u8; 16]>::try_from(t.as_slice()).map_err(|_| PyValueError::new_err("a bus token is 16 bytes"))?),
+        };
+        if !(pace.is_finite() && pace > 0.0) || load_window_ns == 0 {
+            return Err(PyValueError::new_err("pace and load_window_ns must be positive"));
+        }
+        let cfg = crate::server::ServerConfig {
+            channel, bitrate, policy: policy(policy_name)?, depth, extended, load_window_ns, pace, spin_ns, max_clients,
+            hello_timeout: std::time::Duration::from_secs_f64(hello_timeout_s.max(0.0)), keep_log, token,
+        };
+        let handle = crate::server::start(cfg, listener_fd, tcp_fd)
+            .map_err(|e| PyValueError::new_err(format!("bus server cannot start: {e}")))?;
+        Ok(BusServerCore { handle: Some(handle), bitrate })
+    }
+
+    /// Epoch nanoseconds of the bus's time zero.
+    #[getter]
+    fn epoch0_ns(&self) -> u64 {
+        self.handle.as_ref().map_or(0, |h| h.epoch0_ns)
+    }
+
+    #[getter]
+    fn bitrate(&self) -> u64 {
+        self.bitrate
+    }
+
+    /// Model time now (ns since the bus's zero).
+    fn now_ns(&self) -> u64 {
+        self.handle.as_ref().map_or(0, |h| h.now_ns())
+    }
+
+    /// A consistent snapshot of the counters and histograms (the load windows are closed up to now first).
+    fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let h = self.handle.as_ref().ok_or_else(|| PyValueError::new_err("bus server is closed"))?;
+        let now = h.now_ns();
+        let mut s = h.shared.lock().unwrap();
+        let t = match s.bus.current {
+            None => now,
+            Some(tx) => now.min(tx.t_end.saturating_sub(1)),
+        };
+        s.bus.finish(t);
+        stats_dict(py, &s, now)
+    }
+
+    /// Take the bus log rows since the last call: (frames rows, load rows) as float64 bytes, and (sent, dropped).
+    fn take_log<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>, u64, u64)> {
+        let h = self.handle.as_ref().ok_or_else(|| PyValueError::new_err("bus server is closed"))?;
+        let mut s = h.shared.lock().unwrap();
+        let frames = std::mem::take(&mut s.bus.stats.frames);
+        let load = std::mem::take(&mut s.bus.stats.load);
+        let as_bytes = |v: &[f64]| -> Vec<u8> { v.iter().flat_map(|x| x.to_ne_bytes()).collect() };
+        Ok((PyBytes::new(py, &as_bytes(&frames)), PyBytes::new(py, &as_bytes(&load)), s.bus.stats.frames_sent, s.bus.frames_dropped()))
+    }
+
+    /// Keep completed transmissions for `take_trace` (CAN logs).
+    fn set_trace(&self, on: bool) {
+        if let Some(h) = self.handle.as_ref() {
+            let mut s = h.shared.lock().unwrap();
+            s.bus.trace = if on { Some(s.bus.trace.take().unwrap_or_default()) } else { None };
+        }
+    }
+
+    /// [(frame_id, data, extended, t_enqueue, t_start, t_end)] completed since the last call (model ns).
+    fn take_trace<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+        let Some(h) = self.handle.as_ref() else { return Ok(PyList::empty(py)) };
+        let trace = {
+            let mut s = h.shared.lock().unwrap();
+            s.bus.trace.as_mut().map(std::mem::take).unwrap_or_default()
+        };
+        let items: Vec<Bound<'py, PyTuple>> = trace.iter()
+            .map(|tx| (tx.frame_id, PyBytes::new(py, tx.data.as_slice()), tx.extended, tx.t_enqueue, tx.t_start, tx.t_end).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        PyList::new(py, items)
+    }
+
+    /// Whether the serving thread runs.
+    #[getter]
+    fn serving(&self) -> bool {
+        self.handle.as_ref().is_some_and(|h| h.running())
+    }
+
+    /// The frame on the wire: (frame_id, t_end ns), or None while the bus is idle.
+    fn current(&self) -> Option<(u32, u64)> {
+        let h = self.handle.as_ref()?;
+        let s = h.shared.lock().unwrap();
+        s.bus.current.map(|tx| (tx.frame_id, tx.t_end))
+    }
+
+    /// Log lines since the last call: [(level, text)].
+    fn take_messages(&self) -> Vec<(String, String)> {
+        self.handle.as_ref().map_or_else(Vec::new, |h| std::mem::take(&mut h.shared.lock().unwrap().messages))
+    }
+
+    /// Stop serving (disconnects every node) and join the thread; idempotent.
+    fn shutdown(&mut self, py: Python<'_>) {
+        if let Some(h) = self.handle.as_mut() {
+            py.allow_threads(|| h.shutdown());
+        }
+    }
+}
+
+/// A node's receive path without python-can: frames read from a bus server's socket go straight into ECU
+/// mailboxes (stamped in simulated time); the node sends its frames through it too.
+#[pyclass(module = "trainhil_engine._native", unsendable)]
+pub struct FrameLink {
+    fd: i32,
+    t0: f64,
+    pace: f64,
+    mono0: f64,
+    routes: std::collections::HashMap<u32, Vec<Rc<RefCell<mailbox::Mailbox>>>>,
+    partial: Vec<u8>,
+    received: u64,
+}
+
+fn monotonic_s() -> f64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes into the timespec we own.
+    unsafe {
+        libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts);
+    }
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+#[pymethods]
+impl FrameLink {
+    /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). Simulated time
+    /// is (epoch - t0) * pace; `mono0` is the monotonic instant (Python's time.monotonic) of simulated t = 0.
+    #[new]
+    fn new(fd: i32, t0: f64, pace: f64, mono0: f64) -> PyResult<Self> {
+        if !(pace.is_finite() && pace > 0.0) {
+            return Err(PyValueError::new_err(format!("pace={pace} must be positive")));
+        }
+        Ok(FrameLink { fd, t0, pace, mono0, routes: Default::default(), partial: Vec::new(), received: 0 })
+    }
+
+    /// Deliver frames of `frame_id` into `mailbox` (several mailboxes may take one ID).
+    fn route(&mut self, frame_id: u32, mailbox: &Mailbox) {
+        self.routes.entry(frame_id).or_default().push(mailbox.inner.clone());
+    }
+
+    /// Simulated seconds now.
+    fn now(&self) -> f64 {
+        (monotonic_s() - self.mono0) * self.pace
+    }
+
+    /// Frames put into mailboxes so far.
+    #[getter]
+    fn received(&self) -> u64 {
+        self.received
+    }
+
+    /// Receive until simulated time `sim_t` (sleeping in ppoll, the GIL released), at most `max_wait_s` wall seconds
+    /// in one go; returns True once `sim_t` is reached. Frames whose ID has no route are dropped (the filters).
+    fn wait_until(&mut self, py: Python<'_>, sim_t: f64, max_wait_s: f64) -> PyResult<bool> {
+        let limit = monotonic_s() + max_wait_s;
+        loop {
+            let now = monotonic_s();
+            let rem = (sim_t - (now - self.mono0) * self.pace) / self.pace;
+            if rem <= 0.0 {
+                self.pump()?;
+                return Ok(true);
+            }
+            let wait = rem.min(limit - now);
+            if wait <= 0.0 {
+                return Ok(false);
+            }
+            let fd = self.fd;
+            let ready = py.allow_threads(move || {
+                let mut pfd = libc::pollfd { fd, events: libc::POLLIN, revents: 0 };
+                let ts = libc::timespec { tv_sec: wait as libc::time_t, tv_nsec: ((wait.fract()) * 1e9) as libc::c_long };
+                // SAFETY: one pollfd we own, for the duration of the call.
+                unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) }
+            });
+            if ready > 0 {
+                self.pump()?;
+            }
+        }
+    }
+
+    /// Read every record waiting on the socket; returns how many frames went into mailboxes.
+    fn pump(&mut self) -> PyResult<u64> {
+        let mut buf = [0u8; 64 * crate::server::RECORD_SIZE];
+        let before = self.received;
+        loop {
+            // SAFETY: reading into our own buffer from the node's socket.
+            let n = unsafe { libc::recv(self.fd, buf.as_mut_ptr() as *mut libc::c_void, buf.len(), libc::MSG_DONTWAIT) };
+            if n < 0 {
+                let err = std::io::Error::last_os_error();
+                if err.kind() == std::io::ErrorKind::WouldBlock || err.kind() == std::io::ErrorKind::Interrupted {
+                    return Ok(self.received - before);
+                }
+                return Err(pyo3::exceptions::PyOSError::new_err(format!("bus link: receive failed: {err}")));
+            }
+            if n == 0 {
+                return Err(pyo3::exceptions::PyConnectionError::new_err("bus link: the bus server closed the connection"));
+            }
+            self.partial.extend_from_slice(&buf[..n as usize]);
+            let end = self.partial.len() - self.partial.len() % crate::server::RECORD_SIZE;
+            for off in (0..end).step_by(crate::server::RECORD_SIZE) {
+                let r = &self.partial[off..off + crate::server::RECORD_SIZE];
+                if r[0] != 1 {
+                    continue; // FILTERS_ACK and the like: nothing for the mailboxes
+                }
+                let dlc = (r[2] as usize).min(8);
+                let id = u32::from_le_bytes(r[4..8].try_into().unwrap());
+                let stamp = f64::from_le_bytes(r[8..16].try_into().unwrap());
+                if let Some(boxes) = self.routes.get(&id) {
+                    let t = (stamp - self.t0) * self.pace;
+                    for mb in boxes {
+                        mb.borrow_mut().put(id, &r[16..16 + dlc], t);
+                    }
+                    self.received += 1;
+                }
+            }
+            self.partial.drain(..end);
+        }
+    }
+
+    /// Send frames [(frame_id, data)] (classical; `extended` for 29-bit IDs) as FRAME records.
+    #[pyo3(signature = (frames, extended = false))]
+    fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool) -> PyResult<()> {
+        let mut out = Vec::with_capacity(frames.len() * crate::server::RECORD_SIZE);
+        for (id, data) in &frames {
+            if data.len() > 8 {
+                return Err(PyValueError::new_err(format!("frame {id:#x}: {} data bytes > 8", data.len())));
+            }
+            out.extend_from_slice(&crate::server::pack_frame(*id, data, if extended { 1 } else { 0 }, 0.0));
+        }
+        let mut sent = 0;
+        while sent < out.len() {
+            // SAFETY: writing our own buffer to the node's socket.
+            let n = unsafe { libc::send(self.fd, out[sent..].as_ptr() as *const libc::c_void, out.len() - sent, libc::MSG_NOSIGNAL) };
+            if n < 0 {
+                let err = std::io::Error::last_os_error();
+                if err.kind() == std::io::ErrorKind::WouldBlock || err.kind() == std::io::ErrorKind::Interrupted {
+                    let mut pfd = libc::pollfd { fd: self.fd, events: libc::POLLOUT, revents: 0 };
+                    // SAFETY: one pollfd we own.
+                    unsafe { libc::poll(&mut pfd, 1, 100) };
+                    continue;
+                }
+                return Err(pyo3::exceptions::PyOSError::new_err(format!("bus link: send failed: {err}")));
+            }
+            sent += n as usize;
+        }
+        Ok(())
+    }
 }

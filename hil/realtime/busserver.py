@@ -211,6 +211,27 @@ class _Client:
         self.rejected = 0
 
 
+def listen_tcp(host: str, port: int, path: Path) -> tuple[socket.socket, bytes, tuple[str, int], Path]:
+    """A non-blocking loopback TCP listener for the bus at ``path``, with a fresh token published beside the socket
+    (``<bus>.tcp``, mode 0o600): (socket, token, (host, port), token file)."""
+    check_loopback(host)
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(128)
+        sock.setblocking(False)
+        token = secrets.token_bytes(TOKEN_BYTES)
+        address = (host, sock.getsockname()[1])
+        token_file = token_path(path)
+        write_token_file(token_file, host, address[1], token)
+    except BaseException:
+        sock.close()
+        raise
+    return sock, token, address, token_file
+
+
 class BusServer:
     """One CAN bus served on ``<run dir>/<bus>.sock`` in wall-clock time (see the module docstring).
 
@@ -311,25 +332,33 @@ class BusServer:
 
     def _listen_tcp(self, host: str, port: int) -> None:
         """Listen on loopback ``host``:``port`` (0: any free port) and publish host, port and token (mode 0o600)."""
-        check_loopback(host)
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        sock = socket.socket(family, socket.SOCK_STREAM)
         try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            sock.bind((host, port))
-            sock.listen(128)
-            sock.setblocking(False)
-            self.token = secrets.token_bytes(TOKEN_BYTES)
-            self.tcp_address = (host, sock.getsockname()[1])
-            self.token_file = token_path(self.path)
-            write_token_file(self.token_file, host, self.tcp_address[1], self.token)
+            sock, self.token, self.tcp_address, self.token_file = listen_tcp(host, port, self.path)
         except BaseException:
-            sock.close()
             self._listener.close()
             os.unlink(self.path)
             raise
         self._tcp_listener = sock
         self._sel.register(sock, selectors.EVENT_READ, self._accept_tcp)
+
+    @property
+    def bitrate(self) -> int:
+        return self.model.bitrate
+
+    @property
+    def serving(self) -> bool:
+        """Whether the serving loop runs."""
+        return self._serving.is_set()
+
+    @property
+    def transmitting(self) -> bool:
+        """Whether a frame is on the wire now."""
+        return self.model.current is not None
+
+    @property
+    def frame_listeners(self) -> list:
+        """Called with each completed transmission, in the serving thread (CAN logs)."""
+        return self.model.frame_listeners
 
     # ---- time
     def _now(self) -> int:

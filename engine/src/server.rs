@@ -1,0 +1,822 @@
+//! The real-time bus server: one emulated CAN bus in wall-clock time, served in its own OS thread (no Python
+//! interpreter lock), with the unix-socket protocol of `hil/realtime/protocol.py` (24-byte records).
+//!
+//! Each loop turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends or a node
+//! writes; complete every transmission that ended, hand it to every node whose acceptance filters take it
+//! (python-can semantics, applied here), read the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP),
+//! arbitrate when the bus is idle, write the output. The last `spin_ns` before an end are polled, not slept.
+//! Bad input never stops the server: frames the bus cannot carry are counted and dropped, a record that breaks
+//! the protocol disconnects that node, and both are counted and reported (the first few of each kind).
+//! The listening sockets are made (owner-only paths, loopback TCP, token file) by the Python side.
+
+use std::io::{ErrorKind, Read, Write};
+use std::net::TcpListener;
+use std::os::fd::{AsRawFd, FromRawFd, RawFd};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use crate::bus::{Bus, Policy, Sink, Transmission};
+use crate::frame::BitTiming;
+
+pub const RECORD_SIZE: usize = 24;
+pub const PROTOCOL_VERSION: u8 = 1;
+const KIND_FRAME: u8 = 1;
+const KIND_HELLO: u8 = 2;
+const KIND_WELCOME: u8 = 3;
+const KIND_FILTERS: u8 = 4;
+const KIND_FILTER: u8 = 5;
+const KIND_FILTERS_ACK: u8 = 6;
+const KIND_AUTH: u8 = 7;
+const FLAG_EXTENDED: u8 = 0x01;
+const FLAG_REMOTE: u8 = 0x02;
+const FLAG_ERROR: u8 = 0x04;
+const FLAG_ECHO: u8 = 0x08;
+const MAX_FILTERS: usize = 1024;
+const READ_RECORDS: usize = 32; // per node and turn: a babbling node cannot stall the loop
+const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames beyond this (overruns)
+const LOG_FIRST: u64 = 10;
+
+/// Durations in log-linear bins (1 us wide below 1.024 ms, then 1/512 of the value): bounded memory, exact max.
+#[derive(Debug, Clone)]
+pub struct Histogram {
+    counts: Vec<u64>,
+    pub n: u64,
+    pub max_ns: u64,
+}
+
+impl Default for Histogram {
+    fn default() -> Self {
+        Histogram { counts: vec![0; 1024 + 40 * 512], n: 0, max_ns: 0 }
+    }
+}
+
+impl Histogram {
+    pub fn add(&mut self, ns: i64) {
+        let ns = ns.max(0) as u64;
+        let us = ns / 1000;
+        let i = if us < 1024 {
+            us as usize
+        } else {
+            let e = (64 - us.leading_zeros()) as u64 - 10;
+            (1024 + (e - 1) * 512 + (us >> e) - 512) as usize
+        };
+        let last = self.counts.len() - 1;
+        self.counts[i.min(last)] += 1;
+        self.n += 1;
+        self.max_ns = self.max_ns.max(ns);
+    }
+
+    fn upper_us(i: usize) -> u64 {
+        if i < 1024 {
+            return i as u64 + 1;
+        }
+        let (e, m) = ((i - 1024) / 512, (i - 1024) % 512);
+        ((m + 512 + 1) as u64) << (e + 1)
+    }
+
+    /// Upper edge of the bin holding quantile q (capped at the maximum), in seconds.
+    pub fn quantile_s(&self, q: f64) -> Option<f64> {
+        if self.n == 0 {
+            return None;
+        }
+        let rank = q * self.n as f64;
+        let mut seen = 0u64;
+        for (i, &c) in self.counts.iter().enumerate() {
+            seen += c;
+            if c > 0 && seen as f64 >= rank {
+                return Some((Self::upper_us(i) as f64 * 1e-6).min(self.max_ns as f64 * 1e-9));
+            }
+        }
+        Some(self.max_ns as f64 * 1e-9)
+    }
+}
+
+/// python-can acceptance filter: matches when (id ^ can_id) & can_mask == 0 and the format fits `matching`
+/// (0 any, 1 standard only, 2 extended only).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Filter {
+    pub can_id: u32,
+    pub can_mask: u32,
+    pub matching: u8,
+}
+
+pub fn filters_accept(filters: &Option<Vec<Filter>>, can_id: u32, extended: bool) -> bool {
+    let Some(filters) = filters else { return true };
+    filters.iter().any(|f| (f.matching == 0 || (f.matching == 2) == extended) && (can_id ^ f.can_id) & f.can_mask == 0)
+}
+
+/// Why a frame from a node cannot go on the emulated bus.
+pub fn frame_error(can_id: u32, dlc: u8, flags: u8) -> Option<String> {
+    if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO) != 0 {
+        return Some(format!("flags {flags:#04x}: only classical data frames can be sent (no remote, error or echo frames)"));
+    }
+    if dlc > 8 {
+        return Some(format!("dlc {dlc} > 8 (CAN FD is not emulated)"));
+    }
+    let extended = flags & FLAG_EXTENDED != 0;
+    let limit = if extended { 1u32 << 29 } else { 1u32 << 11 };
+    if can_id >= limit {
+        return Some(format!("can_id {can_id:#x} out of range for a {}-bit identifier", if extended { 29 } else { 11 }));
+    }
+    None
+}
+
+/// A FRAME record as the server sends it.
+pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_FRAME;
+    r[1] = flags;
+    r[2] = data.len() as u8;
+    r[4..8].copy_from_slice(&can_id.to_le_bytes());
+    r[8..16].copy_from_slice(&stamp.to_le_bytes());
+    r[16..16 + data.len()].copy_from_slice(data);
+    r
+}
+
+fn pack_welcome(bitrate: u32, epoch0: f64, client_id: u32) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_WELCOME;
+    r[1] = PROTOCOL_VERSION;
+    r[4..8].copy_from_slice(&bitrate.to_le_bytes());
+    r[8..16].copy_from_slice(&epoch0.to_le_bytes());
+    r[16..20].copy_from_slice(&client_id.to_le_bytes());
+    r
+}
+
+fn pack_filters_ack(generation: u32) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_FILTERS_ACK;
+    r[4..8].copy_from_slice(&generation.to_le_bytes());
+    r
+}
+
+fn u32_at(r: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(r[at..at + 4].try_into().unwrap())
+}
+
+/// Settings of one server.
+#[derive(Debug, Clone)]
+pub struct ServerConfig {
+    pub channel: String,
+    pub bitrate: u64,
+    pub policy: Policy,
+    pub depth: usize,
+    pub extended: bool,
+    pub load_window_ns: u64,
+    pub pace: f64,
+    pub spin_ns: u64,
+    pub max_clients: usize,
+    pub hello_timeout: Duration,
+    pub keep_log: bool,
+    pub token: Option<[u8; 16]>,
+}
+
+/// Counters of bad input, by kind.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct BadInput {
+    pub protocol_errors: u64,
+    pub truncated_records: u64,
+    pub auth_failures: u64,
+    pub clients_refused: u64,
+}
+
+/// What the serving thread shares with its owner (under one lock, taken once per loop turn).
+pub struct Shared {
+    pub bus: Bus,
+    pub frames: u64,
+    pub busy_ns: u64,
+    pub rejected: u64,
+    pub overruns: u64,
+    pub latency: Histogram,
+    pub lateness: Histogram,
+    pub bad: BadInput,
+    pub clients: usize,
+    pub now_ns: u64,
+    /// Log lines for the owner to report (bad input, joins and leaves).
+    pub messages: Vec<(String, String)>,
+}
+
+enum Stream {
+    Unix(UnixStream),
+    Tcp(std::net::TcpStream),
+}
+
+impl Stream {
+    fn fd(&self) -> RawFd {
+        match self {
+            Stream::Unix(s) => s.as_raw_fd(),
+            Stream::Tcp(s) => s.as_raw_fd(),
+        }
+    }
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        match self {
+            Stream::Unix(s) => s.read(buf),
+            Stream::Tcp(s) => s.read(buf),
+        }
+    }
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match self {
+            Stream::Unix(s) => s.write(buf),
+            Stream::Tcp(s) => s.write(buf),
+        }
+    }
+}
+
+struct Client {
+    stream: Stream,
+    cid: u32,
+    name: String,
+    node: Option<usize>,
+    rx: Vec<u8>,
+    out: Vec<u8>,
+    closed: bool,
+    receive_own: bool,
+    filters: Option<Vec<Filter>>,
+    pending: Option<Vec<Filter>>,
+    pending_left: usize,
+    pending_gen: u32,
+    rejected: u64,
+    authed: bool,
+    t_open: Instant,
+}
+
+enum Fault {
+    Protocol(String),
+    Refused(String),
+}
+
+/// The serving loop (runs in its own thread; see the module docstring).
+pub struct Server {
+    cfg: ServerConfig,
+    shared: Arc<Mutex<Shared>>,
+    stop: Arc<AtomicBool>,
+    listener: UnixListener,
+    tcp: Option<TcpListener>,
+    wake: UnixStream,
+    clients: Vec<Client>,
+    next_cid: u32,
+    mono0: Instant,
+    epoch0_ns: u64,
+    next_window: u64,
+    ended: Vec<u64>,
+    rx_cache: std::collections::HashMap<(u32, bool), Vec<usize>>,
+}
+
+/// A handle to a running server: stop it, read its state.
+pub struct ServerHandle {
+    pub shared: Arc<Mutex<Shared>>,
+    pub stop: Arc<AtomicBool>,
+    wake: UnixStream,
+    thread: Option<std::thread::JoinHandle<()>>,
+    pub epoch0_ns: u64,
+    pub mono0: Instant,
+    pub pace: f64,
+}
+
+impl ServerHandle {
+    /// Model time now (ns since the server's zero): wall time x pace.
+    pub fn now_ns(&self) -> u64 {
+        (self.mono0.elapsed().as_nanos() as f64 * self.pace) as u64
+    }
+
+    /// Whether the serving thread is alive.
+    pub fn running(&self) -> bool {
+        self.thread.as_ref().is_some_and(|t| !t.is_finished())
+    }
+
+    /// Stop the loop and wait for its thread.
+    pub fn shutdown(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        let _ = (&self.wake).write(b"x");
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+fn set_timer_slack() {
+    // SAFETY: prctl(PR_SET_TIMERSLACK) only changes this thread's timer slack.
+    unsafe {
+        libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0);
+    }
+}
+
+/// Start serving on already-listening sockets (raw fds the server takes ownership of).
+pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> std::io::Result<ServerHandle> {
+    let timing = BitTiming::new(cfg.bitrate, cfg.bitrate)
+        .ok_or_else(|| std::io::Error::new(ErrorKind::InvalidInput, format!("bitrate {} has no whole-ns bit time", cfg.bitrate)))?;
+    // SAFETY: the caller hands over fds of listening sockets it no longer uses.
+    let listener = unsafe { UnixListener::from_raw_fd(listener_fd) };
+    listener.set_nonblocking(true)?;
+    let tcp = match tcp_fd {
+        // SAFETY: as above.
+        Some(fd) => {
+            let l = unsafe { TcpListener::from_raw_fd(fd) };
+            l.set_nonblocking(true)?;
+            Some(l)
+        }
+        None => None,
+    };
+    let (wake_r, wake_w) = UnixStream::pair()?;
+    wake_r.set_nonblocking(true)?;
+    wake_w.set_nonblocking(true)?;
+    let bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns);
+    let shared = Arc::new(Mutex::new(Shared {
+        bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
+        bad: BadInput::default(), clients: 0, now_ns: 0, messages: Vec::new(),
+    }));
+    let stop = Arc::new(AtomicBool::new(false));
+    let mono0 = Instant::now();
+    let epoch0_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
+    let pace = cfg.pace;
+    let mut server = Server {
+        next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
+        clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
+    };
+    let name = format!("bus-server {}", server.cfg.channel);
+    let thread = std::thread::Builder::new().name(name).spawn(move || server.serve())?;
+    Ok(ServerHandle { shared, stop, wake: wake_w, thread: Some(thread), epoch0_ns, mono0, pace })
+}
+
+impl Server {
+    fn now(&self) -> u64 {
+        let wall = self.mono0.elapsed().as_nanos() as u64;
+        if self.cfg.pace == 1.0 { wall } else { (wall as f64 * self.cfg.pace) as u64 }
+    }
+
+    fn serve(&mut self) {
+        set_timer_slack();
+        while !self.stop.load(Ordering::SeqCst) {
+            self.turn();
+        }
+        let shared_arc = self.shared.clone();
+        let mut shared = shared_arc.lock().unwrap();
+        for i in 0..self.clients.len() {
+            self.drop_client(&mut shared, i, "server closing");
+        }
+        let now = self.now();
+        Self::close_windows(&mut shared, now, self.cfg.keep_log);
+    }
+
+    fn timeout_ns(&self, shared: &Shared) -> i64 {
+        match shared.bus.current {
+            None => (self.cfg.load_window_ns as f64 / self.cfg.pace) as i64,
+            Some(tx) => {
+                let remaining = ((tx.t_end as f64 - self.now() as f64) / self.cfg.pace) as i64;
+                if remaining > self.cfg.spin_ns as i64 { remaining - self.cfg.spin_ns as i64 } else { 0 }
+            }
+        }
+    }
+
+    fn turn(&mut self) {
+        let timeout = {
+            let shared = self.shared.lock().unwrap();
+            self.timeout_ns(&shared)
+        };
+        let mut fds: Vec<libc::pollfd> = Vec::with_capacity(self.clients.len() + 3);
+        fds.push(libc::pollfd { fd: self.wake.as_raw_fd(), events: libc::POLLIN, revents: 0 });
+        fds.push(libc::pollfd { fd: self.listener.as_raw_fd(), events: libc::POLLIN, revents: 0 });
+        fds.push(libc::pollfd { fd: self.tcp.as_ref().map_or(-1, |l| l.as_raw_fd()), events: libc::POLLIN, revents: 0 });
+        for c in &self.clients {
+            let events = libc::POLLIN | if c.out.is_empty() { 0 } else { libc::POLLOUT };
+            fds.push(libc::pollfd { fd: c.stream.fd(), events, revents: 0 });
+        }
+        let ts = libc::timespec { tv_sec: (timeout / 1_000_000_000) as libc::time_t, tv_nsec: (timeout % 1_000_000_000) as libc::c_long };
+        // SAFETY: fds is a valid array of pollfd for the duration of the call.
+        unsafe {
+            libc::ppoll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, &ts, std::ptr::null());
+        }
+        let now = self.now();
+        let shared_arc = self.shared.clone();
+        let mut shared = shared_arc.lock().unwrap();
+        shared.now_ns = now;
+        self.advance(&mut shared, now);
+        self.flush(&mut shared);
+        if fds[0].revents != 0 {
+            let mut buf = [0u8; 64];
+            while let Ok(n) = self.wake.read(&mut buf) {
+                if n == 0 {
+                    break;
+                }
+            }
+        }
+        let n_clients = self.clients.len();
+        for (k, pfd) in fds.iter().enumerate().skip(3).take(n_clients) {
+            let i = k - 3;
+            if pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 && !self.clients[i].closed {
+                self.read(&mut shared, i, now);
+            }
+        }
+        if fds[1].revents != 0 {
+            self.accept(&mut shared, false);
+        }
+        if fds[2].revents != 0 {
+            self.accept(&mut shared, true);
+        }
+        if shared.bus.current.is_none() {
+            let _ = shared.bus.arbitrate(now);
+        }
+        self.flush(&mut shared);
+        self.clients.retain(|c| !c.closed);
+        if now >= self.next_window {
+            Self::close_windows(&mut shared, now, self.cfg.keep_log);
+            self.next_window = (now / self.cfg.load_window_ns + 1) * self.cfg.load_window_ns;
+            self.expire_handshakes(&mut shared);
+            self.clients.retain(|c| !c.closed);
+        }
+        shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
+    }
+
+    /// Complete every transmission that ended by `now`; frames waiting at an end start right at it.
+    fn advance(&mut self, shared: &mut Shared, now: u64) {
+        while let Some(tx) = shared.bus.current {
+            if tx.t_end > now {
+                break;
+            }
+            shared.bus.complete();
+            self.deliver(shared, &tx);
+            let _ = shared.bus.arbitrate(tx.t_end);
+        }
+    }
+
+    fn deliver(&mut self, shared: &mut Shared, tx: &Transmission) {
+        let flags = if tx.extended { FLAG_EXTENDED } else { 0 };
+        let stamp = (self.epoch0_ns as f64 + tx.t_end as f64 / self.cfg.pace) / 1e9;
+        let record = pack_frame(tx.frame_id, tx.data.as_slice(), flags, stamp);
+        let key = (tx.frame_id, tx.extended);
+        if !self.rx_cache.contains_key(&key) {
+            let found: Vec<usize> = (0..self.clients.len())
+                .filter(|&i| self.clients[i].node.is_some() && !self.clients[i].closed
+                        && filters_accept(&self.clients[i].filters, tx.frame_id, tx.extended))
+                .collect();
+            self.rx_cache.insert(key, found);
+        }
+        let receivers = self.rx_cache.get(&key).cloned().unwrap_or_default();
+        for i in receivers {
+            let c = &mut self.clients[i];
+            let mut rec = record;
+            if c.node == Some(tx.node) {
+                if !c.receive_own {
+                    continue;
+                }
+                rec[1] |= FLAG_ECHO;
+            }
+            if c.out.len() >= OUT_CAP_BYTES {
+                shared.overruns += 1;
+                continue;
+            }
+            c.out.extend_from_slice(&rec);
+        }
+        shared.frames += 1;
+        shared.busy_ns += tx.t_end - tx.t_start;
+        shared.latency.add((tx.t_end - tx.t_enqueue) as i64);
+        self.ended.push(tx.t_end);
+    }
+
+    fn flush(&mut self, shared: &mut Shared) {
+        for i in 0..self.clients.len() {
+            if self.clients[i].closed || self.clients[i].out.is_empty() {
+                continue;
+            }
+            let c = &mut self.clients[i];
+            match c.stream.write(&c.out) {
+                Ok(n) => {
+                    c.out.drain(..n);
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock || e.kind() == ErrorKind::Interrupted => {}
+                Err(e) => self.drop_client(shared, i, &format!("send failed: {e}")),
+            }
+        }
+        if !self.ended.is_empty() {
+            let t = self.now() as i64;
+            for &t_end in &self.ended {
+                shared.lateness.add(((t - t_end as i64) as f64 / self.cfg.pace) as i64);
+            }
+            self.ended.clear();
+        }
+    }
+
+    fn close_windows(shared: &mut Shared, now: u64, keep_log: bool) {
+        let t = match shared.bus.current {
+            None => now,
+            Some(tx) => now.min(tx.t_end.saturating_sub(1)),
+        };
+        shared.bus.finish(t);
+        if !keep_log && shared.bus.stats.frames.len() >= 4 << 16 {
+            shared.bus.stats.frames.clear(); // bounded memory: the histograms keep the statistics
+        }
+    }
+
+    fn bad_input(&self, shared: &mut Shared, kind: &str, text: String) {
+        let counter = match kind {
+            "protocol_errors" => &mut shared.bad.protocol_errors,
+            "truncated_records" => &mut shared.bad.truncated_records,
+            "auth_failures" => &mut shared.bad.auth_failures,
+            _ => &mut shared.bad.clients_refused,
+        };
+        *counter += 1;
+        let n = *counter;
+        if n <= LOG_FIRST || n % 1000 == 0 {
+            shared.messages.push(("WARNING".into(), format!("bus {}: {text} ({kind} #{n})", self.cfg.channel)));
+        }
+    }
+
+    fn accept(&mut self, shared: &mut Shared, tcp: bool) {
+        loop {
+            let accepted = if tcp {
+                match self.tcp.as_ref().unwrap().accept() {
+                    Ok((s, addr)) => Ok((Stream::Tcp(s), Some(addr.ip()))),
+                    Err(e) => Err(e),
+                }
+            } else {
+                self.listener.accept().map(|(s, _)| (Stream::Unix(s), None))
+            };
+            let (stream, ip) = match accepted {
+                Ok(x) => x,
+                Err(e) if e.kind() == ErrorKind::WouldBlock || e.kind() == ErrorKind::Interrupted => return,
+                Err(e) => {
+                    self.bad_input(shared, "clients_refused", format!("accept failed: {e}"));
+                    return;
+                }
+            };
+            let why = if ip.is_some_and(|ip| !ip.is_loopback() && ip.to_string() != "::ffff:127.0.0.1") {
+                Some(format!("TCP peer {} is not loopback", ip.unwrap()))
+            } else if self.clients.len() >= self.cfg.max_clients {
+                Some(format!("more than {} connections", self.cfg.max_clients))
+            } else {
+                None
+            };
+            if let Some(why) = why {
+                drop(stream);
+                self.bad_input(shared, "clients_refused", format!("connection refused: {why}"));
+                continue;
+            }
+            match &stream {
+                Stream::Unix(s) => {
+                    let _ = s.set_nonblocking(true);
+                }
+                Stream::Tcp(s) => {
+                    let _ = s.set_nonblocking(true);
+                    let _ = s.set_nodelay(true);
+                }
+            }
+            let cid = self.next_cid;
+            self.next_cid += 1;
+            self.clients.push(Client {
+                stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
+                receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
+                authed: !tcp, t_open: Instant::now(),
+            });
+        }
+    }
+
+    fn expire_handshakes(&mut self, shared: &mut Shared) {
+        let limit = self.cfg.hello_timeout;
+        for i in 0..self.clients.len() {
+            let c = &self.clients[i];
+            if !c.closed && c.node.is_none() && c.t_open.elapsed() > limit {
+                let text = format!("connection #{} sent no HELLO within {} s", c.cid, limit.as_secs_f64());
+                self.bad_input(shared, "protocol_errors", text);
+                self.drop_client(shared, i, "handshake timeout");
+            }
+        }
+    }
+
+    fn read(&mut self, shared: &mut Shared, i: usize, now: u64) {
+        let mut chunk = [0u8; READ_RECORDS * RECORD_SIZE];
+        let n = match self.clients[i].stream.read(&mut chunk) {
+            Ok(n) => n,
+            Err(e) if e.kind() == ErrorKind::WouldBlock || e.kind() == ErrorKind::Interrupted => return,
+            Err(e) => {
+                self.drop_client(shared, i, &format!("receive failed: {e}"));
+                return;
+            }
+        };
+        if n == 0 {
+            let c = &self.clients[i];
+            if !c.rx.is_empty() {
+                let text = format!("node {} (#{}) disconnected inside a record ({} of {RECORD_SIZE} bytes, discarded)",
+                                   c.name, c.cid, c.rx.len());
+                self.bad_input(shared, "truncated_records", text);
+            }
+            self.drop_client(shared, i, "disconnected");
+            return;
+        }
+        let mut buf = std::mem::take(&mut self.clients[i].rx);
+        buf.extend_from_slice(&chunk[..n]);
+        let end = buf.len() - buf.len() % RECORD_SIZE;
+        for off in (0..end).step_by(RECORD_SIZE) {
+            if let Err(fault) = self.record(shared, i, &buf[off..off + RECORD_SIZE], now) {
+                match fault {
+                    Fault::Protocol(why) => {
+                        let c = &self.clients[i];
+                        let text = format!("node {} (#{}) dropped: {why}", c.name, c.cid);
+                        self.bad_input(shared, "protocol_errors", text);
+                        self.drop_client(shared, i, &format!("protocol error: {why}"));
+                    }
+                    Fault::Refused(why) => self.drop_client(shared, i, &format!("refused: {why}")),
+                }
+                return;
+            }
+        }
+        self.clients[i].rx = buf[end..].to_vec();
+    }
+
+    fn record(&mut self, shared: &mut Shared, i: usize, r: &[u8], now: u64) -> Result<(), Fault> {
+        let kind = r[0];
+        if !self.clients[i].authed {
+            let ok = kind == KIND_AUTH && self.cfg.token.is_some_and(|t| constant_time_eq(&r[4..20], &t));
+            if !ok {
+                let why = if kind == KIND_AUTH { "a wrong token" } else { "no token" };
+                let text = format!("TCP connection #{} refused: {why}", self.clients[i].cid);
+                self.bad_input(shared, "auth_failures", text);
+                return Err(Fault::Refused(why.into()));
+            }
+            self.clients[i].authed = true;
+            return Ok(());
+        }
+        let has_node = self.clients[i].node.is_some();
+        match kind {
+            KIND_FRAME if has_node => {
+                let (flags, dlc, can_id) = (r[1], r[2], u32_at(r, 4));
+                match frame_error(can_id, dlc, flags) {
+                    None => {
+                        let node = self.clients[i].node.unwrap();
+                        shared.bus.enqueue(node, can_id, &r[16..16 + dlc as usize], now, Some(flags & FLAG_EXTENDED != 0));
+                    }
+                    Some(why) => {
+                        let c = &mut self.clients[i];
+                        c.rejected += 1;
+                        shared.rejected += 1;
+                        if c.rejected == 1 {
+                            shared.messages.push(("WARNING".into(), format!(
+                                "bus {}: node {} sent a frame the bus cannot carry ({why}); dropped and counted",
+                                self.cfg.channel, c.name)));
+                        }
+                    }
+                }
+                Ok(())
+            }
+            KIND_HELLO if !has_node => self.hello(shared, i, r),
+            KIND_FILTERS if has_node && self.clients[i].pending.is_none() => {
+                let count = u16::from_le_bytes([r[2], r[3]]) as usize;
+                if count > MAX_FILTERS {
+                    return Err(Fault::Protocol(format!("FILTERS: {count} filters > {MAX_FILTERS}")));
+                }
+                let c = &mut self.clients[i];
+                c.pending_gen = u32_at(r, 4);
+                c.pending = Some(Vec::new());
+                c.pending_left = count;
+                if count == 0 {
+                    self.apply_filters(i);
+                }
+                Ok(())
+            }
+            KIND_FILTER if self.clients[i].pending.is_some() => {
+                let matching = r[1];
+                if matching > 2 {
+                    return Err(Fault::Protocol(format!("FILTER: match {matching} is not 0, 1 or 2")));
+                }
+                let c = &mut self.clients[i];
+                c.pending.as_mut().unwrap().push(Filter { can_id: u32_at(r, 4), can_mask: u32_at(r, 8), matching });
+                c.pending_left -= 1;
+                if c.pending_left == 0 {
+                    self.apply_filters(i);
+                }
+                Ok(())
+            }
+            _ => Err(Fault::Protocol(format!("unexpected record kind {kind} from node {}", self.clients[i].name))),
+        }
+    }
+
+    fn hello(&mut self, shared: &mut Shared, i: usize, r: &[u8]) -> Result<(), Fault> {
+        let (version, options) = (r[1], r[2]);
+        let raw = &r[4..24];
+        let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());
+        let name = std::str::from_utf8(&raw[..end]).map_err(|_| Fault::Protocol(format!("HELLO: node name {:?} is not UTF-8", &raw[..end])))?;
+        let name = if name.is_empty() { "?".to_string() } else { name.to_string() };
+        let welcome = pack_welcome(self.cfg.bitrate as u32, self.epoch0_ns as f64 * 1e-9, self.clients[i].cid);
+        if version != PROTOCOL_VERSION {
+            let _ = self.clients[i].stream.write(&welcome); // tells the node our version before we hang up
+            return Err(Fault::Protocol(format!("node {name} speaks protocol version {version}, this server {PROTOCOL_VERSION}")));
+        }
+        let node = shared.bus.attach(&name, Sink::None, None, false);
+        let c = &mut self.clients[i];
+        c.name = name;
+        c.receive_own = options & 1 != 0;
+        c.node = Some(node);
+        c.out.extend_from_slice(&welcome);
+        self.rx_cache.clear();
+        shared.messages.push(("INFO".into(), format!("bus {}: node {} (#{}) joined", self.cfg.channel, c.name, c.cid)));
+        Ok(())
+    }
+
+    fn apply_filters(&mut self, i: usize) {
+        let c = &mut self.clients[i];
+        let set = c.pending.take().unwrap_or_default();
+        c.filters = if set.is_empty() { None } else { Some(set) };
+        c.out.extend_from_slice(&pack_filters_ack(c.pending_gen));
+        self.rx_cache.clear();
+    }
+
+    fn drop_client(&mut self, shared: &mut Shared, i: usize, why: &str) {
+        let c = &mut self.clients[i];
+        if c.closed {
+            return;
+        }
+        c.closed = true;
+        // SAFETY: shutting down our own socket; the stream is dropped when the client is removed.
+        unsafe {
+            libc::shutdown(c.stream.fd(), libc::SHUT_RDWR);
+        }
+        self.rx_cache.clear();
+        if let Some(node) = c.node {
+            let lost = shared.bus.detach(node);
+            shared.messages.push(("INFO".into(), format!("bus {}: node {} (#{}) left ({why}); {lost} queued frames dropped",
+                                                         self.cfg.channel, c.name, c.cid)));
+        }
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn histogram_quantiles_and_max() {
+        let mut h = Histogram::default();
+        for us in 1..=100 {
+            h.add(us * 1000);
+        }
+        assert_eq!(h.n, 100);
+        assert!((h.quantile_s(0.5).unwrap() - 50e-6).abs() < 2e-6);
+        assert_eq!(h.quantile_s(1.0).unwrap(), 100e-6);
+        h.add(5_000_000);
+        assert_eq!(h.max_ns, 5_000_000);
+    }
+
+    #[test]
+    fn python_can_filter_semantics() {
+        let f = Some(vec![Filter { can_id: 0x100, can_mask: 0x7F0, matching: 1 }]);
+        assert!(filters_accept(&f, 0x10F, false));
+        assert!(!filters_accept(&f, 0x10F, true)); // standard only
+        assert!(!filters_accept(&f, 0x110, false));
+        assert!(filters_accept(&None, 0x123, true));
+    }
+
+    #[test]
+    fn frames_the_bus_cannot_carry_are_named() {
+        assert!(frame_error(0x800, 8, 0).unwrap().contains("11-bit"));
+        assert!(frame_error(0x100, 9, 0).unwrap().contains("CAN FD"));
+        assert!(frame_error(0x100, 8, FLAG_REMOTE).is_some());
+        assert!(frame_error(0x1FFF_FFFF, 8, FLAG_EXTENDED).is_none());
+    }
+
+    #[test]
+    fn a_node_hears_the_other_nodes_frames_at_their_end_time() {
+        let dir = std::env::temp_dir().join(format!("th-srv-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("b.sock");
+        let _ = std::fs::remove_file(&path);
+        let listener = UnixListener::bind(&path).unwrap();
+        let cfg = ServerConfig {
+            channel: "t/b".into(), bitrate: 500_000, policy: Policy::Priority, depth: 8, extended: false,
+            load_window_ns: 100_000_000, pace: 1.0, spin_ns: 0, max_clients: 8, hello_timeout: Duration::from_secs(5),
+            keep_log: true, token: None,
+        };
+        use std::os::fd::IntoRawFd;
+        let mut handle = start(cfg, listener.into_raw_fd(), None).unwrap();
+        let hello = |name: &str| {
+            let mut r = [0u8; RECORD_SIZE];
+            r[0] = KIND_HELLO;
+            r[1] = PROTOCOL_VERSION;
+            r[4..4 + name.len()].copy_from_slice(name.as_bytes());
+            r
+        };
+        let mut a = UnixStream::connect(&path).unwrap();
+        let mut b = UnixStream::connect(&path).unwrap();
+        a.write_all(&hello("A")).unwrap();
+        b.write_all(&hello("B")).unwrap();
+        let mut rec = [0u8; RECORD_SIZE];
+        a.read_exact(&mut rec).unwrap();
+        assert_eq!(rec[0], KIND_WELCOME);
+        b.read_exact(&mut rec).unwrap();
+        a.write_all(&pack_frame(0x123, &[1, 2, 3], 0, 0.0)).unwrap();
+        b.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+        b.read_exact(&mut rec).unwrap();
+        assert_eq!((rec[0], u32_at(&rec, 4), &rec[16..19]), (KIND_FRAME, 0x123, &[1u8, 2, 3][..]));
+        a.write_all(&[99u8; RECORD_SIZE]).unwrap(); // garbage: A is dropped, the server goes on
+        std::thread::sleep(Duration::from_millis(50));
+        let bad = handle.shared.lock().unwrap().bad;
+        assert_eq!(bad.protocol_errors, 1);
+        handle.shutdown();
+        assert_eq!(handle.shared.lock().unwrap().frames, 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,202 @@
+"""The real-time bus server on the frame engine: the same bus, protocol and statistics as ``BusServer``, served by a
+native thread outside the interpreter lock (``trainhil_engine.BusServerCore``, engine/src/server.rs).
+
+This side makes the sockets exactly as ``BusServer`` does (owner-only run directory, the socket bound under a
+temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file) and hands
+their file descriptors to the engine. A small Python thread wakes a few times a second to report the engine's log
+lines through ``logging`` and to feed ``frame_listeners`` (CAN logs). Fault injection (``apply``) needs the Python
+server: a run with a fault schedule uses ``BusServer``.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from pathlib import Path
+
+import trainhil_engine as engine
+
+from hil.can.bus import Transmission
+from hil.realtime.busserver import (DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServer, BusServerStats,
+                                    listen_tcp)
+from hil.realtime.paths import check_loopback, socket_path, validate_name
+from hil.record.runlog import BusLog
+
+LOG = logging.getLogger("hil.realtime.busserver")
+PUMP_S = 0.2  # how often the Python side collects log lines and traced frames
+
+
+class NativeBusServer:
+    """One CAN bus on ``<run dir>/<bus>.sock`` served by the engine (see the module docstring); the interface of
+    ``BusServer``: ``start``, ``shutdown``, ``close``, ``stats``, ``log``, ``epoch0``, ``frame_listeners``."""
+
+    def __init__(self, run: str, bus: str, bitrate: int, policy: str = "priority", depth: int = 64, *,
+                 path: Path | str | None = None, extended: bool = False, load_window_s: float = 0.1,
+                 spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
+                 pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
+                 max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S) -> None:
+        validate_name(run, "run")
+        validate_name(bus, "bus")
+        if tcp:
+            check_loopback(tcp_host)
+        if spin_us < 0:
+            raise ValueError(f"spin_us={spin_us!r} must be >= 0")
+        if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
+            raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
+        if policy not in ("priority", "fifo"):
+            raise ValueError(f"queue policy must be 'priority' or 'fifo', got {policy!r}")
+        if not isinstance(bitrate, int) or bitrate <= 0 or 1_000_000_000 % bitrate:
+            raise ValueError(f"bitrate {bitrate!r} has no whole-nanosecond bit time")
+        self.path = Path(path) if path is not None else socket_path(run, bus, create=True)
+        self.channel = f"{run}/{bus}" if path is None else str(self.path)
+        self._pace = float(pace)
+        self._log = log if log is not None else BusLog(bus, bitrate)
+        self._listener = BusServer._bind(self.path)
+        self._inode = os.lstat(self.path).st_ino
+        self.token: bytes | None = None
+        self.token_file: Path | None = None
+        tcp_sock = None
+        if tcp:
+            try:
+                tcp_sock, self.token, self.tcp_address, self.token_file = listen_tcp(tcp_host, tcp_port, self.path)
+            except BaseException:
+                self._listener.close()
+                os.unlink(self.path)
+                raise
+        self._core = engine.BusServerCore(
+            self.channel, os.dup(self._listener.fileno()), None if tcp_sock is None else os.dup(tcp_sock.fileno()),
+            self.token, bitrate, policy, depth, extended, int(load_window_s * 1e9), self._pace, int(spin_us * 1000),
+            max_clients, hello_timeout_s, keep_log)
+        self._listener.close()  # the engine owns its duplicate
+        if tcp_sock is not None:
+            tcp_sock.close()
+        self._tcp = tcp
+        self.frame_listeners: list = []
+        self._tracing = False
+        self._stop = threading.Event()
+        self._pump: threading.Thread | None = None
+        self._closed = False
+        self._lock = threading.Lock()
+
+    # ---- the BusServer interface
+    @property
+    def pace(self) -> float:
+        return self._pace
+
+    @property
+    def epoch0(self) -> float:
+        """Epoch seconds of the bus's time zero: a BusLog time t happened at epoch0 + t / pace."""
+        return self._core.epoch0_ns * 1e-9
+
+    @property
+    def log(self) -> BusLog:
+        """The bus's frames and load windows so far (taken over from the engine on each access)."""
+        self._collect_log()
+        return self._log
+
+    @property
+    def bitrate(self) -> int:
+        return self._core.bitrate
+
+    @property
+    def serving(self) -> bool:
+        """Whether the engine's serving thread runs."""
+        return self._core.serving
+
+    @property
+    def transmitting(self) -> bool:
+        """Whether a frame is on the wire now."""
+        return self._core.current() is not None
+
+    def start(self) -> "NativeBusServer":
+        """The engine serves from construction on; this starts the Python side's log and trace pump."""
+        if self._pump is None:
+            self._pump = threading.Thread(target=self._pump_loop, name=f"bus-server pump {self.channel}", daemon=True)
+            self._pump.start()
+        return self
+
+    def serve_forever(self) -> None:
+        """Block until shutdown() (the CLI's foreground mode)."""
+        self.start()
+        self._stop.wait()
+
+    def shutdown(self, wait: bool = True) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        """Stop serving, disconnect every node, collect what is left and remove the socket (if it is still ours)."""
+        if self._closed:
+            return
+        self._stop.set()
+        if self._pump is not None and self._pump is not threading.current_thread():
+            self._pump.join()
+        self._core.shutdown()
+        self._report()
+        self._feed_listeners()
+        self._collect_log()
+        self._closed = True
+        if self.token_file is not None:
+            try:
+                os.unlink(self.token_file)
+            except FileNotFoundError:
+                pass
+        try:
+            if os.lstat(self.path).st_ino == self._inode:
+                os.unlink(self.path)
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self) -> "NativeBusServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def stats(self) -> BusServerStats:
+        """A consistent snapshot (thread-safe); reports the engine's pending log lines first."""
+        self._report()
+        s = self._core.stats()
+        up = max(s["now_ns"], 1) * 1e-9
+        return BusServerStats(
+            self.channel, self._core.bitrate, up, s["clients"], s["frames"], s["frames"] / up, s["busy_ns"] / max(s["now_ns"], 1),
+            s["load_last_window"], s["frames_dropped"], s["frames_rejected"], s["rx_overruns"],
+            s["latency_p50_s"], s["latency_p99_s"], s["latency_max_s"], s["lateness_p50_s"], s["lateness_p99_s"],
+            s["lateness_max_s"], protocol_errors=s["protocol_errors"], truncated_records=s["truncated_records"],
+            auth_failures=s["auth_failures"], clients_refused=s["clients_refused"],
+            tcp_port=self.tcp_address[1] if self._tcp else None)
+
+    def apply(self, fn):
+        raise NotImplementedError("fault injection needs the Python bus server (hil.realtime.busserver.BusServer)")
+
+    # ---- the pump
+    def _pump_loop(self) -> None:
+        while not self._stop.wait(PUMP_S):
+            self._report()
+            self._feed_listeners()
+            self._collect_log()
+
+    def _report(self) -> None:
+        for level, text in self._core.take_messages():
+            LOG.log(logging.WARNING if level == "WARNING" else logging.INFO, "%s", text)
+
+    def _feed_listeners(self) -> None:
+        with self._lock:
+            if self.frame_listeners and not self._tracing:
+                self._core.set_trace(True)
+                self._tracing = True
+            if not self._tracing:
+                return
+            for frame_id, data, ext, t_enq, t_start, t_end in self._core.take_trace():
+                tx = Transmission(None, frame_id, data, t_enq, t_start, t_end, ext)  # type: ignore[arg-type]
+                for listener in self.frame_listeners:
+                    listener(tx)
+
+    def _collect_log(self) -> None:
+        if self._closed:
+            return
+        with self._lock:
+            frames, load, sent, dropped = self._core.take_log()
+            self._log.frames.extend_bytes(frames)
+            self._log.load.extend_bytes(load)
+            self._log.frames_sent, self._log.frames_dropped = sent, dropped
