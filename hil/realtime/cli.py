@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 
 from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError, set_fifo_priority
+from hil.realtime.native_server import NativeBusServer
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
                "can.Bus(interface='trainhil', channel='<run>/<bus>').")
@@ -35,6 +36,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--stats-json", help="write the final statistics to this JSON file")
     p.add_argument("--verbose", action="store_true", help="log nodes joining and leaving")
+    p.add_argument("--python-server", action="store_true",
+                   help="serve with the Python bus model instead of the engine's native server (same protocol)")
 
 
 def add_bus_server_parser(subparsers) -> argparse.ArgumentParser:
@@ -58,15 +61,16 @@ def cmd_bus_server(args: argparse.Namespace) -> int:
     """Serve until a signal or the duration; exit 2 with one message on bad arguments or a taken socket."""
     if args.verbose:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if args.fifo is not None and not set_fifo_priority(args.fifo):  # before the serving thread starts: it inherits it
+        print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here; running as a normal "
+              "process", file=sys.stderr)
+    server_cls = BusServer if args.python_server else NativeBusServer
     try:
-        server = BusServer(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=args.spin_us,
-                           keep_log=False, pace=args.pace)
+        server = server_cls(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=args.spin_us,
+                            keep_log=False, pace=args.pace)
     except (ValueError, OSError, BusServerError) as exc:
         print(f"hil bus-server: error: {exc}", file=sys.stderr)
         return 2
-    if args.fifo is not None and not set_fifo_priority(args.fifo):
-        print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here; running as a normal "
-              "process", file=sys.stderr)
     previous = {s: signal.signal(s, lambda *_: server.shutdown(wait=False)) for s in (signal.SIGINT, signal.SIGTERM)}
     timer = threading.Timer(args.duration, server.shutdown) if args.duration else None
     try:

@@ -3,11 +3,15 @@
     python -m hil.realtime.ecu_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR --unit U [--unit U2 ...]
 
 ``--unit`` is a flat unit index (front to back, 0-based). Each unit cycles at ``ecu.cycle_s`` with the phase
-``ecu.phase_s + unit_in_train * ecu.stagger_s`` as in virtual time. Between deadlines the process sleeps in
-``select`` on its buses (one per train it hosts, acceptance filters = the units' rx ids, applied by the server)
-and files every frame into the firmware's mailboxes stamped with its simulated arrival time; at a deadline the
-unit's ``cycle`` runs and its frames are sent. Never spins. A unit more than one cycle late counts a deadline
-miss and skips to its next future deadline. At exit it writes ``DIR/ecu_<train>_<unit>.json`` per unit.
+``ecu.phase_s + unit_in_train * ecu.stagger_s`` as in virtual time. Between deadlines the process sleeps on its
+buses (one per train it hosts, acceptance filters = the units' rx ids, applied by the server); every frame goes
+into the firmware's mailboxes stamped with its simulated arrival time (the end of its transmission); at a
+deadline the unit's ``cycle`` runs and its frames are sent. Never spins. A unit more than one cycle late counts a
+deadline miss and skips to its next future deadline. At exit it writes ``DIR/ecu_<train>_<unit>.json`` per unit.
+
+On the emulated buses the frames never pass through Python: python-can opens the connection (handshake,
+filters), then the engine's ``FrameLink`` reads the socket straight into the mailboxes and writes the outputs.
+On SocketCAN the frames come through python-can.
 """
 from __future__ import annotations
 
@@ -18,6 +22,7 @@ from pathlib import Path
 
 import can
 import numpy as np
+import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
@@ -57,7 +62,9 @@ def main(argv: list[str] | None = None) -> int:
     bus_of = {u: trains.index(layout.train_unit(u)[0]) for u in ecus}
     try:
         clock = SimClock(handshake(stop), args.pace)
-        stats = run(clock, sc, layout, ecus, buses, routes, bus_of, args.duration, stop, args.join_late)
+        io = FrameLinks(clock, buses, routes, sc.can.extended_ids) if sc.can.transport == "emulated" else \
+            PythonCanIo(clock, buses, routes, sc.can.extended_ids)
+        stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late)
     finally:
         for b in buses:
             b.shutdown()
@@ -72,7 +79,50 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def run(clock: SimClock, sc, layout, ecus: dict, buses: list, routes: list, bus_of: dict, duration: float,
+class FrameLinks:
+    """The engine reads each bus socket into the hosted ECUs' mailboxes and writes their frames (no Python per frame)."""
+
+    def __init__(self, clock: SimClock, buses: list, routes: list[dict], extended: bool) -> None:
+        self.extended = extended
+        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, clock.mono0) for bus in buses]
+        for link, table in zip(self.links, routes):
+            for frame_id, listeners in table.items():
+                for ecu in listeners:
+                    link.route(frame_id, ecu.mailbox)
+
+    def wait_until(self, sim_t: float, stop: StopFlag) -> None:
+        """Sleep to ``sim_t`` (waking at least every 50 ms for a stop request), with every frame delivered by then."""
+        first, others = self.links[0], self.links[1:]
+        while not first.wait_until(sim_t, 0.05) and not stop:
+            for link in others:
+                link.pump()
+        for link in others:
+            link.pump()
+
+    def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
+        self.links[bus].send(frames, self.extended)
+
+
+class PythonCanIo:
+    """python-can in both directions (SocketCAN): each received message is filed into the mailboxes that take it."""
+
+    def __init__(self, clock: SimClock, buses: list, routes: list[dict], extended: bool) -> None:
+        self.clock, self.buses, self.routes, self.extended = clock, buses, routes, extended
+
+    def _on_msg(self, i: int, msg: can.Message) -> None:
+        t = self.clock.from_epoch(msg.timestamp)
+        for ecu in self.routes[i].get(msg.arbitration_id, ()):
+            ecu.on_frame(msg.arbitration_id, bytes(msg.data), t)
+
+    def wait_until(self, sim_t: float, stop: StopFlag) -> None:
+        wait_until(self.clock, sim_t, self.buses, self._on_msg)
+
+    def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
+        for frame_id, data in frames:
+            self.buses[bus].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended))
+
+
+def run(clock: SimClock, sc, layout, ecus: dict, io: FrameLinks | PythonCanIo, bus_of: dict, duration: float,
         stop: StopFlag, join_late: bool = False) -> dict[int, LatenessStats]:
     """The paced loop: earliest deadline first over the hosted units (``join_late``: from the first cycle after now).
 
@@ -87,24 +137,18 @@ def run(clock: SimClock, sc, layout, ecus: dict, buses: list, routes: list, bus_
         queue.append((phase + max(0, math.ceil((start - phase) / cycle)) * cycle, u))
     heapq.heapify(queue)
     watchdog, stopped_at = sc.ecu.restart_after_s, {}
-    extended = sc.can.extended_ids
-
-    def on_msg(i: int, msg: can.Message) -> None:
-        t = clock.from_epoch(msg.timestamp)
-        for ecu in routes[i].get(msg.arbitration_id, ()):
-            ecu.on_frame(msg.arbitration_id, bytes(msg.data), t)
-
     while queue and not stop:
         deadline, u = queue[0]
         if deadline >= duration:
             break
-        wait_until(clock, deadline, buses, on_msg)
+        io.wait_until(deadline, stop)
         if stop:
             break
         now = clock.now()
         ecu = ecus[u]
-        for frame_id, data in ecu.cycle(now):
-            buses[bus_of[u]].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=extended))
+        frames = ecu.cycle(now)
+        if frames:
+            io.send(bus_of[u], frames)
         if watchdog is not None and not ecu.alive:
             if now - stopped_at.setdefault(u, now) >= watchdog:
                 del stopped_at[u]

@@ -4,8 +4,9 @@
 the same ``run.rrd`` and ``metrics.json`` (same keys, ``runtime = "realtime"``) plus the timing figures of the
 real-time rig. Steps:
 
-1. One ``BusServer`` per train bus, as threads of this process (sleep-only: ``spin_us = 0``, so several
-   servers do not fight over the GIL and the plant stays the rig's only spinner), paced by ``pace``.
+1. One bus server per train bus, paced by ``pace``: the engine's ``NativeBusServer`` (a native thread each,
+   outside the interpreter lock), or the Python ``BusServer`` when the scenario injects faults. Sleep-only
+   (``spin_us = 0``), so the plant stays the rig's only spinner.
 2. Node processes (same Python): the radio bridge, the plant + wayside, and the ECUs (``ecus_per_process``
    units per process). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
@@ -45,6 +46,7 @@ import numpy as np
 
 from hil.layout import TrainLayout
 from hil.realtime.busserver import BusServer
+from hil.realtime.native_server import NativeBusServer
 from hil.realtime.paths import remove_run_dir
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import asc_listener, open_asc
@@ -173,9 +175,10 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     asc: list = []
     try:
         with _StopRequest() as stop:
+            server_cls = _server_class(scenario)
             for i in range(0 if socketcan else layout.n_trains):
-                server = BusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
-                                   extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate))
+                server = server_cls(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
+                                    extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate))
                 if can_log:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace))
                 servers.append(server.start())
@@ -238,8 +241,16 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
         return (epoch0 + t_end_ns * 1e-9 / pace - clock["t0"]) * pace
 
     writer = open_asc(out_dir / f"bus{i + 1}.asc", i, "real time")
-    server.model.frame_listeners.append(asc_listener(writer, i, to_seconds))
+    server.frame_listeners.append(asc_listener(writer, i, to_seconds))
     return writer
+
+
+def _server_class(scenario: Scenario):
+    """The engine's native bus server (its own thread, outside the interpreter lock), unless the scenario injects
+    faults, which act on the Python bus model under the server's lock (hil/faults/realtime.py)."""
+    from hil.faults.realtime import wanted
+
+    return BusServer if wanted(scenario) else NativeBusServer
 
 
 # --------------------------------------------------------------------------- processes
