@@ -582,6 +582,18 @@ impl Network {
     }
 }
 
+/// Sleep until one of `fds` is readable or `timeout_s` (wall) passed, the GIL released; whether one is.
+#[pyfunction]
+fn wait_readable(py: Python<'_>, fds: Vec<i32>, timeout_s: f64) -> bool {
+    let timeout = timeout_s.max(0.0);
+    py.allow_threads(move || {
+        let mut pfds: Vec<libc::pollfd> = fds.iter().map(|&fd| libc::pollfd { fd, events: libc::POLLIN, revents: 0 }).collect();
+        let ts = libc::timespec { tv_sec: timeout as libc::time_t, tv_nsec: (timeout.fract() * 1e9) as libc::c_long };
+        // SAFETY: an array of pollfd we own, for the duration of the call.
+        unsafe { libc::ppoll(pfds.as_mut_ptr(), pfds.len() as libc::nfds_t, &ts, std::ptr::null()) > 0 }
+    })
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("VERSION", env!("CARGO_PKG_VERSION"))?;
@@ -589,13 +601,14 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(frame_bits, m)?)?;
     m.add_function(wrap_pyfunction!(frame_duration_ns, m)?)?;
     m.add_function(wrap_pyfunction!(e2e_crc, m)?)?;
+    m.add_function(wrap_pyfunction!(wait_readable, m)?)?;
     m.add_class::<MessageCodec>()?;
     m.add_class::<Mailbox>()?;
     m.add_class::<Network>()?;
     m.add_class::<BusServerCore>()?;
     m.add_class::<FrameLink>()?;
     m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "e2e_crc", "MessageCodec", "Mailbox", "Network",
-                          "BusServerCore", "FrameLink"])?;
+                          "BusServerCore", "FrameLink", "wait_readable"])?;
     Ok(())
 }
 
@@ -754,6 +767,9 @@ pub struct FrameLink {
     routes: std::collections::HashMap<u32, Vec<Rc<RefCell<mailbox::Mailbox>>>>,
     partial: Vec<u8>,
     received: u64,
+    /// Keep the frames that have no route for `take` (a node that handles its frames itself).
+    keep: bool,
+    kept: Vec<(u32, crate::bus::Payload, f64)>,
 }
 
 fn monotonic_s() -> f64 {
@@ -769,12 +785,31 @@ fn monotonic_s() -> f64 {
 impl FrameLink {
     /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). Simulated time
     /// is (epoch - t0) * pace; `mono0` is the monotonic instant (Python's time.monotonic) of simulated t = 0.
+    /// `keep`: frames without a route are kept for `take` instead of dropped.
     #[new]
-    fn new(fd: i32, t0: f64, pace: f64, mono0: f64) -> PyResult<Self> {
+    #[pyo3(signature = (fd, t0, pace, mono0, keep = false))]
+    fn new(fd: i32, t0: f64, pace: f64, mono0: f64, keep: bool) -> PyResult<Self> {
         if !(pace.is_finite() && pace > 0.0) {
             return Err(PyValueError::new_err(format!("pace={pace} must be positive")));
         }
-        Ok(FrameLink { fd, t0, pace, mono0, routes: Default::default(), partial: Vec::new(), received: 0 })
+        Ok(FrameLink { fd, t0, pace, mono0, routes: Default::default(), partial: Vec::new(), received: 0, keep,
+                       kept: Vec::new() })
+    }
+
+    /// The socket's file descriptor (for `wait_readable`).
+    #[getter]
+    fn fd(&self) -> i32 {
+        self.fd
+    }
+
+    /// The kept frames received since the last call, in arrival order: [(frame_id, data, t_sim)].
+    fn take<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+        self.pump()?;
+        let kept = std::mem::take(&mut self.kept);
+        let items: Vec<Bound<'py, PyTuple>> = kept.iter()
+            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        PyList::new(py, items)
     }
 
     /// Deliver frames of `frame_id` into `mailbox` (several mailboxes may take one ID).
@@ -848,11 +883,14 @@ impl FrameLink {
                 let dlc = (r[2] as usize).min(8);
                 let id = u32::from_le_bytes(r[4..8].try_into().unwrap());
                 let stamp = f64::from_le_bytes(r[8..16].try_into().unwrap());
+                let t = (stamp - self.t0) * self.pace;
                 if let Some(boxes) = self.routes.get(&id) {
-                    let t = (stamp - self.t0) * self.pace;
                     for mb in boxes {
                         mb.borrow_mut().put(id, &r[16..16 + dlc], t);
                     }
+                    self.received += 1;
+                } else if self.keep {
+                    self.kept.push((id, crate::bus::Payload::new(&r[16..16 + dlc]), t));
                     self.received += 1;
                 }
             }

@@ -10,8 +10,8 @@ deadline the unit's ``cycle`` runs and its frames are sent. Never spins. A unit 
 deadline miss and skips to its next future deadline. At exit it writes ``DIR/ecu_<train>_<unit>.json`` per unit.
 
 On the emulated buses the frames never pass through Python: python-can opens the connection (handshake,
-filters), then the engine's ``FrameLink`` reads the socket straight into the mailboxes and writes the outputs.
-On SocketCAN the frames come through python-can.
+filters), then the engine reads the socket straight into the mailboxes and writes the outputs
+(``hil.realtime.frame_io``). On SocketCAN the frames come through python-can.
 """
 from __future__ import annotations
 
@@ -20,13 +20,12 @@ import math
 import sys
 from pathlib import Path
 
-import can
 import numpy as np
-import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
+from hil.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
-from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack, wait_until
+from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
 from hil.runtime.virtual import build_ecu
 
@@ -62,8 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     bus_of = {u: trains.index(layout.train_unit(u)[0]) for u in ecus}
     try:
         clock = SimClock(handshake(stop), args.pace)
-        io = FrameLinks(clock, buses, routes, sc.can.extended_ids) if sc.can.transport == "emulated" else \
-            PythonCanIo(clock, buses, routes, sc.can.extended_ids)
+        io = node_frames(clock, buses, sc.can)
+        for i, table in enumerate(routes):
+            for frame_id, listeners in table.items():
+                for ecu in listeners:
+                    io.route(i, frame_id, ecu.mailbox)
         stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late)
     finally:
         for b in buses:
@@ -79,50 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-class FrameLinks:
-    """The engine reads each bus socket into the hosted ECUs' mailboxes and writes their frames (no Python per frame)."""
-
-    def __init__(self, clock: SimClock, buses: list, routes: list[dict], extended: bool) -> None:
-        self.extended = extended
-        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, clock.mono0) for bus in buses]
-        for link, table in zip(self.links, routes):
-            for frame_id, listeners in table.items():
-                for ecu in listeners:
-                    link.route(frame_id, ecu.mailbox)
-
-    def wait_until(self, sim_t: float, stop: StopFlag) -> None:
-        """Sleep to ``sim_t`` (waking at least every 50 ms for a stop request), with every frame delivered by then."""
-        first, others = self.links[0], self.links[1:]
-        while not first.wait_until(sim_t, 0.05) and not stop:
-            for link in others:
-                link.pump()
-        for link in others:
-            link.pump()
-
-    def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
-        self.links[bus].send(frames, self.extended)
-
-
-class PythonCanIo:
-    """python-can in both directions (SocketCAN): each received message is filed into the mailboxes that take it."""
-
-    def __init__(self, clock: SimClock, buses: list, routes: list[dict], extended: bool) -> None:
-        self.clock, self.buses, self.routes, self.extended = clock, buses, routes, extended
-
-    def _on_msg(self, i: int, msg: can.Message) -> None:
-        t = self.clock.from_epoch(msg.timestamp)
-        for ecu in self.routes[i].get(msg.arbitration_id, ()):
-            ecu.on_frame(msg.arbitration_id, bytes(msg.data), t)
-
-    def wait_until(self, sim_t: float, stop: StopFlag) -> None:
-        wait_until(self.clock, sim_t, self.buses, self._on_msg)
-
-    def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
-        for frame_id, data in frames:
-            self.buses[bus].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended))
-
-
-def run(clock: SimClock, sc, layout, ecus: dict, io: FrameLinks | PythonCanIo, bus_of: dict, duration: float,
+def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFrames, bus_of: dict, duration: float,
         stop: StopFlag, join_late: bool = False) -> dict[int, LatenessStats]:
     """The paced loop: earliest deadline first over the hosted units (``join_late``: from the first cycle after now).
 
@@ -141,7 +100,7 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: FrameLinks | PythonCanIo, b
         deadline, u = queue[0]
         if deadline >= duration:
             break
-        io.wait_until(deadline, stop)
+        io.wait(deadline, None, stop)
         if stop:
             break
         now = clock.now()

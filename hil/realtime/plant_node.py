@@ -31,12 +31,12 @@ from array import array
 from pathlib import Path
 from typing import Callable
 
-import can
 import numpy as np
 
 from ecu_sim.codec import TrainDb
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
-from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, drain, handshake, linger, set_timer_slack, wait_until
+from hil.realtime.frame_io import node_frames
+from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
@@ -63,6 +63,7 @@ class PlantNode:
         self.e2e_t = array("d")  # ... and the command arrival times they end at
         self.extended = sc.can.extended_ids
         self.clock: SimClock | None = None
+        self.frames = None  # the node's frame I/O (hil/realtime/frame_io.py), once the clock runs
         self.tick = 0  # the plant's state is at simulated time tick * plant.step_s
         self.target = 0  # tick of the next publication
         self.every = {"record": max(1, round(sc.recording.period_s / sc.plant.step_s))}
@@ -82,9 +83,10 @@ class PlantNode:
         return set(self.io.cmd_unit[i]) | set(self.state_unit[i])
 
     # ---- receiving
-    def on_msg(self, i: int, msg: can.Message) -> None:
-        t = self.clock.from_epoch(msg.timestamp)
-        fid, data = msg.arbitration_id, bytes(msg.data)
+    def on_frame(self, i: int, fid: int, data: bytes, t: float) -> None:
+        """A frame heard on train i's bus at simulated time t (a TractionCmd, or an AgentState for the latency)."""
+        if i >= self.layout.n_trains:
+            return  # the wayside's connections hear nothing
         if fid in self.io.cmd_unit[i]:
             # first step starting at or after the arrival; never past a pending publication (its sample must be
             # taken at its own time: only a lagging plant receives commands stamped beyond it)
@@ -104,18 +106,18 @@ class PlantNode:
 
     # ---- sending
     def publish_sensors(self, t: float) -> None:
+        per_train: list[list[tuple[int, bytes]]] = [[] for _ in self.buses]
         for train, u, frame_id, data in self.io.sensor_frames():
             self.sensor_pub[u, data[1] & 0xF] = t
-            self._send(self.buses[train], frame_id, data)
+            per_train[train].append((frame_id, data))
+        for train, frames in enumerate(per_train):
+            self.frames.send(train, frames)
 
     def publish_reference(self, t: float) -> None:
         frames = self.io.reference_frames(t)
-        for bus in self.wayside:
-            for frame_id, data in frames:
-                self._send(bus, frame_id, data)
-
-    def _send(self, bus, frame_id: int, data: bytes) -> None:
-        bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended))
+        n = self.layout.n_trains
+        for k in range(len(self.wayside)):
+            self.frames.send(n + k, frames)  # the wayside's connections follow the plant's
 
     # ---- the paced loop
     def run(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float,
@@ -125,6 +127,7 @@ class PlantNode:
         Only publications are paced: the loop sleeps to the next Sensor/Reference tick and integrates lazily in
         between (see :meth:`advance_to`), so the plant costs its steps and no per-step wake-ups."""
         self.clock = clock
+        self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can)
         sc = self.sc
         step = sc.plant.step_s
         self.every = {name: max(1, round(period / step)) for name, period in
@@ -136,8 +139,7 @@ class PlantNode:
         target = self.target = 0
         while target < n_steps and not stop:
             t = target * step
-            wait_until(clock, t, self.buses, self.on_msg, spin_s)
-            drain(self.buses, self.on_msg, 0.0)
+            self.frames.wait(t, self.on_frame, stop, spin_s)
             self.advance_to(target)
             stats.add(clock.now() - t, t)
             if self.faults is not None:
@@ -154,8 +156,7 @@ class PlantNode:
             target = self.target = target + publish_every
         self.target = n_steps
         if not stop:
-            wait_until(clock, n_steps * step, self.buses, self.on_msg, spin_s)
-            drain(self.buses, self.on_msg, 0.0)
+            self.frames.wait(n_steps * step, self.on_frame, stop, spin_s)
             self.advance_to(n_steps)
         self.log.sim_time_s = self.tick * step
         self.log.interrupted = self.tick < n_steps

@@ -15,11 +15,10 @@ import itertools
 import sys
 from pathlib import Path
 
-import can
-
 from ecu_sim.codec import TrainDb
+from hil.realtime.frame_io import node_frames
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
-from hil.realtime.pacing import SimClock, StopFlag, drain, handshake, linger, set_timer_slack
+from hil.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import random_streams
 from hil.runtime.virtual import build_gateway
 
@@ -39,7 +38,6 @@ def main(argv: list[str] | None = None) -> int:
 
         faults = RadioNodeFaults(sc, gateway, args.seed)
         stop.on_line = faults.on_line
-    ext = sc.can.extended_ids
     buses = []
     try:
         for i in range(sc.trains.count):
@@ -48,22 +46,23 @@ def main(argv: list[str] | None = None) -> int:
         queue: list[tuple[int, int, int, int, bytes]] = []  # (deliver_ns, seq, bus, id, data)
         seq = itertools.count()
 
-        def on_msg(i: int, msg: can.Message) -> None:
-            t_ns = round(clock.from_epoch(msg.timestamp) * 1e9)
-            for dst_bus, dst_id, payload, t_deliver in gateway.on_frame(i, msg.arbitration_id, bytes(msg.data), t_ns):
+        frames = node_frames(clock, buses, sc.can)
+
+        def on_frame(i: int, frame_id: int, data: bytes, t: float) -> None:
+            for dst_bus, dst_id, payload, t_deliver in gateway.on_frame(i, frame_id, data, round(t * 1e9)):
                 heapq.heappush(queue, (t_deliver, next(seq), dst_bus, dst_id, payload))
 
         while not stop and clock.now() < args.duration:
             wait = IDLE_WAIT_S / clock.pace
             if queue:
                 wait = min(wait, clock.wall_until(queue[0][0] * 1e-9))
-            drain(buses, on_msg, wait)  # returns as soon as a frame arrives: its delivery may be due first
+            frames.wait_any(wait, on_frame)  # returns as soon as a frame arrives: its delivery may be due first
             if faults is not None:
                 faults.apply_pending()
             now_ns = clock.now() * 1e9
             while queue and queue[0][0] <= now_ns:
                 _, _, dst_bus, dst_id, payload = heapq.heappop(queue)
-                buses[dst_bus].send(can.Message(arbitration_id=dst_id, data=payload, is_extended_id=ext))
+                frames.send(dst_bus, [(dst_id, payload)])
         linger(clock)
     finally:
         for b in buses:
