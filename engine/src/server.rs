@@ -262,6 +262,7 @@ pub struct Server {
     next_window: u64,
     ended: Vec<u64>,
     rx_cache: std::collections::HashMap<(u32, bool), Vec<usize>>,
+    pollfds: Vec<libc::pollfd>,
 }
 
 /// A handle to a running server: stop it, read its state.
@@ -334,6 +335,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> st
     let mut server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
+        pollfds: Vec::new(),
     };
     let name = format!("bus-server {}", server.cfg.channel);
     let thread = std::thread::Builder::new().name(name).spawn(move || server.serve())?;
@@ -375,7 +377,8 @@ impl Server {
             let shared = self.shared.lock().unwrap();
             self.timeout_ns(&shared)
         };
-        let mut fds: Vec<libc::pollfd> = Vec::with_capacity(self.clients.len() + 3);
+        let mut fds = std::mem::take(&mut self.pollfds);
+        fds.clear();
         fds.push(libc::pollfd { fd: self.wake.as_raw_fd(), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.listener.as_raw_fd(), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.tcp.as_ref().map_or(-1, |l| l.as_raw_fd()), events: libc::POLLIN, revents: 0 });
@@ -427,6 +430,7 @@ impl Server {
             self.clients.retain(|c| !c.closed);
         }
         shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
+        self.pollfds = fds;
     }
 
     /// Complete every transmission that ended by `now`; frames waiting at an end start right at it.
@@ -453,8 +457,8 @@ impl Server {
                 .collect();
             self.rx_cache.insert(key, found);
         }
-        let receivers = self.rx_cache.get(&key).cloned().unwrap_or_default();
-        for i in receivers {
+        let receivers = self.rx_cache.remove(&key).unwrap_or_default();
+        for &i in &receivers {
             let c = &mut self.clients[i];
             let mut rec = record;
             if c.node == Some(tx.node) {
@@ -469,6 +473,7 @@ impl Server {
             }
             c.out.extend_from_slice(&rec);
         }
+        self.rx_cache.insert(key, receivers);
         shared.frames += 1;
         shared.busy_ns += tx.t_end - tx.t_start;
         shared.latency.add((tx.t_end - tx.t_enqueue) as i64);
