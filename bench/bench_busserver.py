@@ -1,6 +1,7 @@
 """Benchmark: one emulated bus at 1 Mbit/s held at ~100 % load in real time by a few python-can sender processes.
 
-Processes: the bus server (``python -m hil.realtime.busserver``), one receiver node that records every frame,
+Processes: the bus server (``python -m hil.realtime.busserver``: the engine's native server, or the Python one
+with --python-server), one receiver node that records every frame,
 and N senders. Each sender keeps ``--window`` frames in flight (it queues the next one when the server echoes
 one of its own back: receive_own_messages, with a server-side filter so it only hears its own frames) and
 draws random identifiers, so the bus always has frames waiting and no sender starves the others.
@@ -15,7 +16,7 @@ Reported:
   * the server's CPU share (it spins the last 200 us before every frame end, so at full load about one core).
 
     python bench/bench_busserver.py [--duration 10] [--senders 4] [--window 4] [--bitrate 1000000]
-                                    [--spin-us 200] [--fifo PRIORITY]
+                                    [--spin-us 200] [--fifo PRIORITY] [--python-server] [--busy-core]
 """
 from __future__ import annotations
 
@@ -107,6 +108,8 @@ def main() -> None:
     p.add_argument("--bitrate", type=int, default=1_000_000)
     p.add_argument("--spin-us", type=float, default=200.0, help="the server's spin window (0: sleep only)")
     p.add_argument("--fifo", type=int, help="run the server under SCHED_FIFO at this priority (if permitted)")
+    p.add_argument("--python-server", action="store_true", help="the Python bus server instead of the engine's")
+    p.add_argument("--busy-core", action="store_true", help="keep a busy-loop process running beside the rig")
     p.add_argument("--role", choices=("main", "sender", "receiver"), default="main", help=argparse.SUPPRESS)
     p.add_argument("--index", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--start", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -121,6 +124,8 @@ def main() -> None:
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp), "PYTHONPATH": str(ROOT)}
     stats_file, rx_file = tmp / "stats.json", tmp / "rx.npz"
     fifo = ["--fifo", str(a.fifo)] if a.fifo else []
+    fifo += ["--python-server"] if a.python_server else []
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if a.busy_core else None
     server = subprocess.Popen([sys.executable, "-m", "hil.realtime.busserver", "--run", "bench", "--bus", "bus1",
                                "--bitrate", str(a.bitrate), "--spin-us", str(a.spin_us), *fifo,
                                "--stats-json", str(stats_file)],
@@ -141,6 +146,8 @@ def main() -> None:
     receiver.wait()
     server.terminate()
     server.communicate(timeout=10)
+    if hog is not None:
+        hog.kill()
     stats = json.loads(stats_file.read_text())
     report(np.load(rx_file, allow_pickle=True), stats, a, (cpu1 - cpu0) / (wall1 - wall0))
     shutil.rmtree(tmp, ignore_errors=True)
@@ -173,8 +180,9 @@ def report(rx, stats: dict, a: argparse.Namespace, server_cpu: float) -> None:
           f"p99 {stats['latency_p99_s'] * 1e6:.0f} us")
     print(f"  dropped / rejected / rx overruns: {stats['frames_dropped']} / {stats['frames_rejected']} / "
           f"{stats['rx_overruns']}")
-    print(f"  server CPU share          {server_cpu * 100:.0f} % of one core (spin window {a.spin_us:g} us"
-          f"{f', SCHED_FIFO {a.fifo}' if a.fifo else ''})")
+    print(f"  server CPU share          {server_cpu * 100:.0f} % of one core ({'Python' if a.python_server else 'engine'} "
+          f"server, spin window {a.spin_us:g} us{f', SCHED_FIFO {a.fifo}' if a.fifo else ''}"
+          f"{', a busy loop on the other core' if a.busy_core else ''})")
     print(f"  host load average at the end: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
 
 
