@@ -187,8 +187,64 @@ impl Counter {
     }
 }
 
+/// Byte tables of the hot path: CRC-15 of a byte shifted into the register, and the stuffing automaton advanced
+/// by a whole byte (the state between bits is the last bit and its run length 1..4: `last * 4 + run - 1`).
+struct Tables {
+    crc: [u16; 256],
+    /// [state][byte] -> (next state, stuff bits inserted) for 8 bits, MSB first.
+    stuff8: [[(u8, u8); 256]; 8],
+    /// the same for the 7 low bits of a value (the CRC's last 7 bits).
+    stuff7: [[(u8, u8); 128]; 8],
+}
+
+fn stuff_step(st: u8, bit: u8) -> (u8, u8) {
+    let (last, run) = (st >> 2, (st & 3) + 1);
+    let run = if bit == last { run + 1 } else { 1 };
+    if run == 5 {
+        ((1 - bit) * 4, 1) // the stuff bit starts a run of 1 of the other value
+    } else {
+        (bit * 4 + run - 1, 0)
+    }
+}
+
+fn tables() -> &'static Tables {
+    static TABLES: std::sync::OnceLock<Tables> = std::sync::OnceLock::new();
+    TABLES.get_or_init(|| {
+        let mut t = Tables { crc: [0; 256], stuff8: [[(0, 0); 256]; 8], stuff7: [[(0, 0); 128]; 8] };
+        for b in 0..256usize {
+            let mut reg = (b as u16) << 7;
+            for _ in 0..8 {
+                reg = if reg & 0x4000 != 0 { (reg << 1) ^ CRC15_POLY } else { reg << 1 } & 0x7FFF;
+            }
+            t.crc[b] = reg;
+        }
+        for st in 0..8u8 {
+            for v in 0..256usize {
+                let (mut s8, mut n8) = (st, 0u8);
+                for i in (0..8).rev() {
+                    let (n, add) = stuff_step(s8, ((v >> i) & 1) as u8);
+                    s8 = n;
+                    n8 += add;
+                }
+                t.stuff8[st as usize][v] = (s8, n8);
+                if v < 128 {
+                    let (mut s7, mut n7) = (st, 0u8);
+                    for i in (0..7).rev() {
+                        let (n, add) = stuff_step(s7, ((v >> i) & 1) as u8);
+                        s7 = n;
+                        n7 += add;
+                    }
+                    t.stuff7[st as usize][v] = (s7, n7);
+                }
+            }
+        }
+        t
+    })
+}
+
 /// Exact bits on the wire of a classical data frame, SOF through the intermission: the same count as stuffing
-/// `unstuffed_bits` bit by bit (a unit test checks both), without building the bit list.
+/// `unstuffed_bits` bit by bit (a unit test checks both), without building the bit list. The header goes bit by
+/// bit, the data bytes and the CRC through byte tables.
 pub fn frame_bits(can_id: u32, data: &[u8], extended: bool) -> Result<u32, FrameError> {
     validate(can_id, data.len(), extended)?;
     let mut c = Counter::new();
@@ -200,12 +256,21 @@ pub fn frame_bits(can_id: u32, data: &[u8], extended: bool) -> Result<u32, Frame
         c.feed((can_id as u64) << 3, 1 + 11 + 3, true); // SOF, ID, RTR, IDE, r0
     }
     c.feed(data.len() as u64, 4, true);
+    let t = tables();
+    // the automaton's state after the header: last bit and run (the Counter never holds a run of 5)
+    let mut st = c.last * 4 + c.run as u8 - 1;
+    let (mut reg, mut stuffed) = (c.crc, c.stuffed);
     for &byte in data {
-        c.feed(byte as u64, 8, true);
+        reg = ((reg << 8) & 0x7FFF) ^ t.crc[(((reg >> 7) as u8) ^ byte) as usize];
+        let (next, add) = t.stuff8[st as usize][byte as usize];
+        st = next;
+        stuffed += add as u32;
     }
-    let crc = c.crc;
-    c.feed(crc as u64, 15, false);
-    Ok(c.bits + c.stuffed + TRAILER_BITS)
+    let (next, add) = t.stuff8[st as usize][(reg >> 7) as usize];
+    stuffed += add as u32;
+    let (_, add) = t.stuff7[next as usize][(reg & 0x7F) as usize];
+    stuffed += add as u32;
+    Ok(c.bits + 8 * data.len() as u32 + 15 + stuffed + TRAILER_BITS)
 }
 
 /// Worst-case classical frame length incl. the 3-bit IFS (Davis et al. 2007, eq. 1).
