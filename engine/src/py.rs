@@ -395,6 +395,12 @@ impl Network {
         Ok(self.core.attach_commands(bus, name, table))
     }
 
+    /// Whether commands or rejected frames wait for `drain_commands` (a cheap check once per plant step).
+    #[getter]
+    fn has_commands(&self) -> bool {
+        !self.core.commands.is_empty() || !self.core.rejected.is_empty()
+    }
+
     /// The commands accepted since the last call, in arrival order: ([(unit, force, mode, t_s)], [(table,
     /// frame_id, data, t_end_ns)] of the frames rejected).
     fn drain_commands<'py>(&mut self, py: Python<'py>) -> PyResult<(Vec<(usize, f64, i64, f64)>, Bound<'py, PyList>)> {

@@ -157,7 +157,7 @@ class VirtualRig:
     def _plant_tick(self, t_ns: int) -> None:
         """Apply the commands that arrived, publish sensors and record at their periods (state at t), then
         integrate to t + step."""
-        if self.net is not None:
+        if self.net is not None and self.net.has_commands:
             self._apply_commands()
         tick, plant = self._tick, self.plant
         self._tick += 1
