@@ -7,7 +7,7 @@ import random
 import numpy as np
 import pytest
 
-from hil.can.bus import VirtualCanBus
+from hil.runtime.python_bus import VirtualCanBus
 from hil.can.errors import (ERROR_TAIL_BITS, BusErrors, Corruption, ErrorCounters, ErrorState, FrameSelection,
                             corrupt, receive, wire_bits)
 from hil.can.frame import frame_bits

@@ -116,3 +116,15 @@ def test_a_fault_schedule_is_refused_by_the_engine_with_the_reason():
     assert VirtualRig(sc).network == "python"
     with pytest.raises(ValueError, match="faults and ECU restarts need the Python bus model"):
         VirtualRig(sc, network="engine")
+
+
+def test_the_bus_model_is_a_leaf_and_node_processes_do_not_import_the_server():
+    """hil/can imports nothing of the recording or the runtimes; the real-time nodes do not load the bus server."""
+    import subprocess
+    import sys
+
+    code = ("import sys, hil.can.bus, hil.can.errors, hil.can.frame, hil.can.stats, hil.can.wcrt; "
+            "bad = [m for m in sys.modules if m.startswith(('hil.record', 'hil.runtime'))]; assert not bad, bad; "
+            "import hil.realtime.ecu_node, hil.realtime.plant_node, hil.realtime.radio_node; "
+            "assert 'hil.realtime.busserver' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,7 +1,7 @@
 """The CAN bus model: per-node TX queues, arbitration, exact frame durations, load and latency stats.
 
 ``CanBusModel`` is clock-agnostic (it is told the time): the virtual-time runtime drives it from
-the event kernel (:class:`VirtualCanBus`), a real-time bus server can drive it from the wall clock.
+the event kernel (``hil.runtime.python_bus.VirtualCanBus``), a real-time bus server from the wall clock.
 Semantics: when the bus goes idle, every node offers the head of its TX queue (the lowest ID it holds
 under the ``priority`` policy, its oldest frame under ``fifo``) and the lowest ID wins arbitration.
 A frame's transmission ends after its last bit including the 3-bit intermission, which is the time
@@ -15,8 +15,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from hil.can.frame import frame_bits
-from hil.record.runlog import BusLog
-from hil.runtime.kernel import Kernel
+from hil.can.stats import BusLog
 
 RxCallback = Callable[[int, bytes, int], None]  # (frame_id, data, t_end_ns)
 # Queue entry: (arbitration key, seq, data, t_enqueue, node, frame_id, extended)
@@ -241,42 +240,3 @@ class CanBusModel:
             self.errors.finish(t)
         self._close_windows(t, inclusive=True)
         self.log.frames_dropped = sum(n.dropped for n in self.nodes) + self._detached_dropped
-
-
-class VirtualCanBus(CanBusModel):
-    """A CAN bus driven by the discrete-event kernel."""
-
-    def __init__(self, kernel: Kernel, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.kernel = kernel
-        self._arbitration_pending = False
-
-    def send(self, node: CanNode, frame_id: int, data: bytes) -> bool:
-        """Queue a frame at the kernel's current time. Same-time submissions all join one arbitration."""
-        ok = self.enqueue(node, frame_id, data, self.kernel.now)
-        if ok and self.current is None and not self._arbitration_pending:
-            self._arbitration_pending = True
-            self.kernel.at(max(self.kernel.now, self.busy_until), self._arbitrate_event)
-        return ok
-
-    def send_frames(self, node: CanNode, frames: list[tuple[int, bytes]]) -> None:
-        """Queue several frames of one node at the kernel's current time, in order."""
-        for frame_id, data in frames:
-            self.send(node, frame_id, data)
-
-    def _arbitrate_event(self, _: object = None) -> None:
-        self._arbitration_pending = False
-        tx = self.arbitrate(self.kernel.now)
-        if tx is not None:
-            self.kernel.at(tx.t_end, self._end_event)
-
-    def _end_event(self, _: object = None) -> None:
-        self.complete()
-        if self._arbitration_pending or not self.pending():
-            return
-        if self.kernel.next_time() == self.kernel.now:
-            # Other events at this same instant may queue frames: arbitrate after them so they compete.
-            self._arbitration_pending = True
-            self.kernel.at(self.kernel.now, self._arbitrate_event)
-        else:
-            self._arbitrate_event()

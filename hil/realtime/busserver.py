@@ -29,7 +29,6 @@ ends inside a record is counted (``truncated_records``); a connection that does 
 """
 from __future__ import annotations
 
-import ctypes
 import hmac
 import logging
 import os
@@ -50,10 +49,11 @@ from hil.realtime.protocol import (
     RECORD_SIZE, TOKEN_BYTES, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_welcome,
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
-from hil.record.runlog import BusLog, SampleTable
+from hil.can.stats import BusLog
+from hil.realtime.pacing import set_timer_slack
+from hil.tables import SampleTable
 
 LOG = logging.getLogger(__name__)
-PR_SET_TIMERSLACK = 29
 DEFAULT_SPIN_US = 200
 READ_RECORDS = 32  # per node and loop turn: a babbling node cannot stall the loop, the rest waits in its socket
 OUT_CAP_BYTES = 1 << 20  # a node that stops reading loses frames beyond this backlog (counted as overruns)
@@ -69,27 +69,6 @@ class BusServerError(RuntimeError):
 
 class _Refused(Exception):
     """A connection that failed authentication: dropped and counted as an auth failure, not a protocol error."""
-
-
-def set_timer_slack(ns: int = 1) -> bool:
-    """prctl(PR_SET_TIMERSLACK) for the calling thread so sleeps end on time; False where unavailable."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        return libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
-
-
-def set_fifo_priority(priority: int) -> bool:
-    """Run this process under SCHED_FIFO at ``priority`` (1..99) where permitted; False otherwise.
-
-    Wake-ups then preempt ordinary processes at once. Keep the spin window short with it: a real-time task that
-    spins most of the time runs into the kernel's RT throttling (by default 50 ms stalls once per second)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (AttributeError, OSError, ValueError):
-        return False
-    return True
 
 
 if hasattr(selectors, "EpollSelector"):

@@ -14,7 +14,8 @@ import sys
 import threading
 from pathlib import Path
 
-from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError, set_fifo_priority
+from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError
+from hil.realtime.pacing import set_fifo_priority
 from hil.realtime.native_server import NativeBusServer
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "

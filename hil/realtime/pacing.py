@@ -8,7 +8,9 @@ slack at 1 ns (DESIGN.md: asyncio-style sleeps are 0.3-2 ms late); only the plan
 """
 from __future__ import annotations
 
+import ctypes
 import math
+import os
 import select
 import signal
 import sys
@@ -19,9 +21,30 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from hil.realtime.busserver import set_timer_slack
+__all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "handshake", "linger", "wait_until", "set_timer_slack",
+           "set_fifo_priority"]
+PR_SET_TIMERSLACK = 29
 
-__all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "handshake", "linger", "wait_until", "set_timer_slack"]
+
+def set_timer_slack(ns: int = 1) -> bool:
+    """prctl(PR_SET_TIMERSLACK) for the calling thread so sleeps end on time; False where unavailable."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def set_fifo_priority(priority: int) -> bool:
+    """Run this process under SCHED_FIFO at ``priority`` (1..99) where permitted; False otherwise.
+
+    Wake-ups then preempt ordinary processes at once. Keep the spin window short with it: a real-time task that
+    spins most of the time runs into the kernel's RT throttling (by default 50 ms stalls once per second)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError, ValueError):
+        return False
+    return True
 
 
 class SimClock:

@@ -19,7 +19,8 @@ import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.runtime import Ecu, NeighbourLink
-from hil.can.bus import CanNode, VirtualCanBus
+from hil.can.bus import CanNode
+from hil.runtime.python_bus import VirtualCanBus
 from hil.layout import TrainLayout
 from hil.radio.gateway import RadioGateway, build_links, standard_routes
 from hil.plant.can_node import VALID_MODES, PlantCanNode

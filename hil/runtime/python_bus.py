@@ -1,0 +1,48 @@
+"""The Python bus model driven by the Python event kernel: the virtual-time network of runs with a fault schedule.
+
+The default network is the compiled engine (``hil/runtime/engine_net.py``); both give the same frame schedule
+(``tests/test_engine_differential.py``).
+"""
+from __future__ import annotations
+
+from hil.can.bus import CanBusModel, CanNode
+from hil.runtime.kernel import Kernel
+
+
+class VirtualCanBus(CanBusModel):
+    """A CAN bus driven by the discrete-event kernel."""
+
+    def __init__(self, kernel: Kernel, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.kernel = kernel
+        self._arbitration_pending = False
+
+    def send(self, node: CanNode, frame_id: int, data: bytes) -> bool:
+        """Queue a frame at the kernel's current time. Same-time submissions all join one arbitration."""
+        ok = self.enqueue(node, frame_id, data, self.kernel.now)
+        if ok and self.current is None and not self._arbitration_pending:
+            self._arbitration_pending = True
+            self.kernel.at(max(self.kernel.now, self.busy_until), self._arbitrate_event)
+        return ok
+
+    def send_frames(self, node: CanNode, frames: list[tuple[int, bytes]]) -> None:
+        """Queue several frames of one node at the kernel's current time, in order."""
+        for frame_id, data in frames:
+            self.send(node, frame_id, data)
+
+    def _arbitrate_event(self, _: object = None) -> None:
+        self._arbitration_pending = False
+        tx = self.arbitrate(self.kernel.now)
+        if tx is not None:
+            self.kernel.at(tx.t_end, self._end_event)
+
+    def _end_event(self, _: object = None) -> None:
+        self.complete()
+        if self._arbitration_pending or not self.pending():
+            return
+        if self.kernel.next_time() == self.kernel.now:
+            # Other events at this same instant may queue frames: arbitrate after them so they compete.
+            self._arbitration_pending = True
+            self.kernel.at(self.kernel.now, self._arbitrate_event)
+        else:
+            self._arbitrate_event()
