@@ -5,6 +5,7 @@ User errors (a bad scenario file, an unknown name) print one clear message and e
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import tomllib
@@ -101,9 +102,33 @@ def parse_assignment(text: str) -> tuple[str, object]:
     return key.strip(), value
 
 
+def positive_seconds(text: str) -> float:
+    """An argparse type: a positive, finite number of seconds."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive, finite number of seconds (got {text})")
+    return value
+
+
+def _check_run_options(args: argparse.Namespace) -> None:
+    """Options that do nothing in the chosen runtime are errors, not silently ignored."""
+    if not args.realtime:
+        given = [name for name, value in (("--pace", args.pace), ("--ecus-per-process", args.ecus_per_process))
+                 if value is not None]
+        if given:
+            verb = "applies" if len(given) == 1 else "apply"
+            raise ScenarioError(f"{' and '.join(given)} only {verb} with --realtime (virtual time runs as fast as it can)")
+    if args.ideal and args.can_log:
+        raise ScenarioError("--can-log has no effect with --ideal: the ideal loop has no CAN bus to log")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.session import run_scenario
 
+    _check_run_options(args)
     overrides = dict(parse_assignment(a) for a in args.set)
     if args.seed is not None:
         overrides["seed"] = args.seed
@@ -120,14 +145,39 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 130 if result.log.interrupted else 0
 
 
+RUN_DESCRIPTION = """Run one scenario and write run.rrd (the rerun recording) and metrics.json, then print a summary.
+
+By default the run is in virtual time, as fast as the machine allows and reproducible bit for bit; --realtime
+runs the same firmware, plant and buses as processes paced to the wall clock; --ideal runs the network-free
+reference loop. Exit codes: 0 done, 1 a real-time node failed to start, 2 bad input, 130 interrupted."""
+
+RUN_EXAMPLES = """examples:
+  hil run seed000                                        the main demo (800 s simulated, about a minute)
+  hil run seed000 --duration 60 --seed 3 --can-log       one ASC log per bus beside the recording
+  hil run seed000 --set radio.latency_s=0.3 --set can.bitrate=250000
+  hil run my_scenario.toml --ideal                       the ideal loop of your own scenario
+  hil run seed000 --realtime --pace 1 --duration 20 --ecus-per-process 12"""
+
+
+def _version() -> str:
+    import trainhil_engine
+
+    from hil import __version__
+
+    return f"hil (trainhil) {__version__}, frame engine {trainhil_engine.VERSION}"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hil", description="trainhil: CAN emulation rig for cooperative train control")
+    p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True)
 
-    run = sub.add_parser("run", help="run one scenario in virtual time and record it")
+    run = sub.add_parser("run", help="run one scenario (virtual time, or --realtime) and record it",
+                         description=RUN_DESCRIPTION, epilog=RUN_EXAMPLES,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
     run.add_argument("scenario", help="packaged scenario name (see `hil scenarios`) or path to a .toml file")
     run.add_argument("--out", help="output directory (default: runs/<scenario name>)")
-    run.add_argument("--duration", type=float, help="simulated seconds (default: the scenario's duration_s)")
+    run.add_argument("--duration", type=positive_seconds, help="simulated seconds (default: the scenario's duration_s)")
     run.add_argument("--seed", type=int, help="random seed (default: the scenario's seed)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario field, e.g. --set radio.latency_s=0.2 --set can.bitrate=250000 (repeatable)")

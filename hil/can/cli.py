@@ -127,6 +127,9 @@ def _period(value: float | None) -> str:
 
 
 def _analyse(args: argparse.Namespace) -> None:
+    if args.dbc and Path(args.dbc).suffix.lower() == ".toml":
+        raise CanAnalysisError(f"{args.dbc} looks like a scenario file; the positional argument is a DBC file. "
+                               f"Analyse a scenario's bus with --scenario {args.dbc}")
     db = TrainDb.load(Path(args.dbc) if args.dbc else default_dbc_path())
     bus_index = parse_bus(args.bus)
     setup, where = _setup(args, bus_index, db)

@@ -8,6 +8,7 @@ errors in OUT/traces.npz (default OUT: runs/compare-<names>).
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -23,7 +24,8 @@ def add_compare_parser(sub) -> None:
     p.add_argument("--out", help="output directory (default: runs/compare-<names>)")
     p.add_argument("--ideal", action="store_true", help="run the ideal network-free loops instead")
     p.add_argument("--family", help="metric family (default: the first that applies to every scenario)")
-    p.add_argument("--workers", type=int, default=1, help="parallel runs (local processes; default 1)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="parallel runs (local processes; default: the number of CPUs, as hil sweep)")
     p.set_defaults(func=_cmd_compare)
 
 
@@ -44,7 +46,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     items = [CompareItem(label, sc, family.name, args.ideal, args.duration) for label, sc in zip(labels, scenarios)]
     out = Path(args.out) if args.out else Path("runs") / ("compare-" + "-".join(labels))[:120]
     wall0 = time.perf_counter()
-    runs = run_items(items, args.workers, progress=lambda label: print(f"  done: {label}", flush=True))
+    workers = (os.cpu_count() or 1) if args.workers is None else args.workers
+    if workers < 1:
+        raise ScenarioError(f"--workers must be >= 1, got {args.workers}")
+    runs = run_items(items, workers, progress=lambda label: print(f"  done: {label}", flush=True))
     title = "hil compare " + " ".join(args.scenarios) + "".join(f" --set {a}" for a in args.set) + (" --ideal" if args.ideal else "")
     paths = write_outputs(runs, family, out, title)
     header, rows = table_rows(runs, family)

@@ -7,6 +7,7 @@ with ``--stats-json``, writes them. It prints ``ready <socket path>`` once nodes
 from __future__ import annotations
 
 import argparse
+import math
 import json
 import logging
 import signal
@@ -98,9 +99,9 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
     g = run.add_argument_group("real time (HIL)")
     g.add_argument("--realtime", action="store_true",
                    help="run on the real-time rig: bus servers, radio, plant and ECU processes paced to the wall clock")
-    g.add_argument("--pace", type=float, default=1.0,
-                   help="with --realtime: simulated seconds per wall second (1.0 = wall clock, 0.5 slower, 10 faster)")
-    g.add_argument("--ecus-per-process", type=int, default=1, metavar="N",
+    g.add_argument("--pace", type=float, default=None,
+                   help="with --realtime: simulated seconds per wall second (default 1.0 = wall clock; 0.5 slower, 10 faster)")
+    g.add_argument("--ecus-per-process", type=int, default=None, metavar="N",
                    help="with --realtime: host N ECUs per process (default 1: one process per ECU)")
 
 
@@ -113,9 +114,11 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
 
     if getattr(args, "ideal", False):
         raise ScenarioError("--ideal cannot be combined with --realtime (the ideal loop has no network to run in real time)")
-    if not args.pace > 0:
-        raise ScenarioError(f"--pace {args.pace}: must be > 0")
-    if args.ecus_per_process < 1:
+    pace = 1.0 if args.pace is None else args.pace
+    per_process = 1 if args.ecus_per_process is None else args.ecus_per_process
+    if not (math.isfinite(pace) and pace > 0):
+        raise ScenarioError(f"--pace {args.pace}: must be a positive finite number")
+    if per_process < 1:
         raise ScenarioError(f"--ecus-per-process {args.ecus_per_process}: must be >= 1")
     if scenario.can.transport == "socketcan":
         if getattr(args, "can_log", False):
@@ -124,7 +127,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
             check_channels(scenario.can.socketcan_channels, scenario.trains.count)
         except SocketCanUnavailable as exc:
             raise ScenarioError(str(exc)) from None
-    return run_realtime(scenario, out, pace=args.pace, duration_s=args.duration, ecus_per_process=args.ecus_per_process,
+    return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False))
 
 
