@@ -71,3 +71,17 @@ def test_the_head_alone_is_valid(tmp_path: Path) -> None:
     path = tmp_path / "sweep.toml"
     path.write_text(HEAD + '[axes]\n"radio.latency_s" = [0.0, 0.1]\n')
     assert len(load_sweep(path).points) == 2
+
+
+def test_a_metric_typo_in_the_plots_is_refused_before_any_run(tmp_path: Path) -> None:
+    from hil.sweep.runner import run_sweep
+
+    path = tmp_path / "sweep.toml"
+    path.write_text(HEAD + '[axes]\n"radio.latency_s" = [0.0, 0.1]\n'
+                    '[plots]\nlines = [{ metric = "gap_min_overal_m", x = "radio.latency_s" }]\n')
+    spec = load_sweep(path)
+    with pytest.raises(SweepError) as exc:
+        run_sweep(spec, tmp_path / "out", workers=1, progress=False)
+    msg = str(exc.value)
+    assert "plots.lines.0.metric" in msg and "gap_min_overal_m" in msg and "did you mean 'gap_min_overall_m'" in msg
+    assert not list((tmp_path / "out").rglob("metrics.json"))  # nothing ran

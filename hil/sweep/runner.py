@@ -20,6 +20,8 @@ are terminated; on a remote Dask cluster they finish and are discarded), and wha
 """
 from __future__ import annotations
 
+import difflib
+
 import hashlib
 import json
 import multiprocessing
@@ -80,6 +82,37 @@ def execute_point(scenario: Scenario) -> dict[str, Any]:
             outcome = _failure(exc)
     outcome["warnings"] = [warnings.formatwarning(w.message, w.category, w.filename, w.lineno) for w in caught]
     return outcome
+
+
+PROBE_S = 0.05  # simulated seconds of the run that tells which metric columns a sweep's runs will have
+
+
+def metric_columns(scenario: Scenario) -> set[str]:
+    """The results.csv metric columns a run of ``scenario`` gives (from a run of PROBE_S simulated seconds)."""
+    from hil.session import run_scenario
+    from hil.sweep.results import flatten_metrics
+
+    with tempfile.TemporaryDirectory(prefix="hil-sweep-probe-") as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = run_scenario(scenario, Path(tmp), duration_s=min(PROBE_S, scenario.duration_s), record=False,
+                              progress=False)
+    return set(flatten_metrics(result.metrics))
+
+
+def check_plot_metrics(spec: SweepSpec) -> None:
+    """Every plot's metric must be a metric column, checked before the first run (with a "did you mean")."""
+    plots = [("heatmaps", i, p) for i, p in enumerate(spec.plots.heatmaps)] + \
+            [("lines", i, p) for i, p in enumerate(spec.plots.lines)]
+    if not plots or not spec.points:
+        return
+    known = metric_columns(spec.points[0].scenario)
+    for kind, i, plot in plots:
+        if plot.metric in known:
+            continue
+        close = difflib.get_close_matches(plot.metric, sorted(known), n=3, cutoff=0.6)
+        hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else \
+            " (the metric columns are the keys of a run's metrics.json, nested keys joined by dots)"
+        raise SweepError(f"{spec.source}: plots.{kind}.{i}.metric: {plot.metric!r} is not a metric of these runs{hint}")
 
 
 def _failure(exc: BaseException) -> dict[str, Any]:
@@ -259,6 +292,7 @@ def run_sweep(spec: SweepSpec, out_dir: Path, workers: int | None = None, dask: 
 
     out_dir = Path(out_dir)
     _check_manifest(spec, out_dir)
+    check_plot_metrics(spec)
     todo = [p for p in spec.points if not is_done(out_dir, p)]
     reused = len(spec.points) - len(todo)
     for p in todo:
