@@ -169,3 +169,22 @@ def test_unix_sockets_need_no_token_and_an_unexpected_auth_is_a_protocol_error(r
             s.settimeout(2.0)
             assert s.recv(24) == b""
         assert wait_for(lambda: srv.stats.protocol_errors == 1)
+
+
+def test_bus_server_command_with_tcp_publishes_the_endpoint_and_accepts_the_token(rt):
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "hil.realtime.busserver", "--run", "r1", "--bus", "bus1", "--tcp",
+                             "--duration", "20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=os.environ.copy())
+    try:
+        words = proc.stdout.readline().split()
+        assert words[0] == "ready" and words[2] == "tcp" and words[3].startswith("127.0.0.1:")
+        assert Path(words[5]) == rt / "trainhil" / "r1" / "bus1.tcp"
+        with TrainhilBus("tcp:r1/bus1") as a, TrainhilBus("r1/bus1") as b:
+            a.send(can.Message(arbitration_id=0x21, data=DATA, is_extended_id=False))
+            assert b.recv(2.0).arbitration_id == 0x21
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=10)

@@ -38,6 +38,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--stats-json", help="write the final statistics to this JSON file")
     p.add_argument("--verbose", action="store_true", help="log nodes joining and leaving")
+    p.add_argument("--tcp", action="store_true",
+                   help="also listen on loopback TCP; host, port and the run's token go to <run dir>/<bus>.tcp (mode 0600)")
+    p.add_argument("--tcp-host", default="127.0.0.1", help="with --tcp: 127.0.0.1 (default) or ::1; nothing else")
     p.add_argument("--python-server", action="store_true",
                    help="serve with the Python bus model instead of the engine's native server (same protocol)")
 
@@ -69,14 +72,15 @@ def cmd_bus_server(args: argparse.Namespace) -> int:
     server_cls = BusServer if args.python_server else NativeBusServer
     try:
         server = server_cls(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=args.spin_us,
-                            keep_log=False, pace=args.pace)
+                            keep_log=False, pace=args.pace, tcp=args.tcp, tcp_host=args.tcp_host)
     except (ValueError, OSError, BusServerError) as exc:
         print(f"hil bus-server: error: {exc}", file=sys.stderr)
         return 2
     previous = {s: signal.signal(s, lambda *_: server.shutdown(wait=False)) for s in (signal.SIGINT, signal.SIGTERM)}
     timer = threading.Timer(args.duration, server.shutdown) if args.duration else None
     try:
-        print(f"ready {server.path}", flush=True)
+        print(f"ready {server.path}" + (f" tcp {server.tcp_address[0]}:{server.tcp_address[1]} token-file "
+                                        f"{server.token_file}" if args.tcp else ""), flush=True)
         if timer:
             timer.daemon = True
             timer.start()
