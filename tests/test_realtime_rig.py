@@ -37,11 +37,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture
 def rt(monkeypatch):
-    """A private, short runtime root; afterwards no child process and no run directory may remain."""
+    """A private, short runtime root; afterwards no child process the test started and no run directory may remain.
+
+    (Processes that were there before it, e.g. the forkserver of an earlier `hil compare` pool, are not its.)"""
     d = tempfile.mkdtemp(prefix="th", dir="/tmp")
     monkeypatch.setenv("XDG_RUNTIME_DIR", d)
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
     yield Path(d)
-    leftover = psutil.Process().children(recursive=True)
+    leftover = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
     runs = list((Path(d) / "trainhil").glob("*")) if (Path(d) / "trainhil").exists() else []
     shutil.rmtree(d, ignore_errors=True)
     assert not leftover, f"child processes left behind: {[p.cmdline() for p in leftover]}"
