@@ -5,12 +5,12 @@ User errors (a bad scenario file, an unknown name) print one clear message and e
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import tomllib
 from pathlib import Path
 
+from hil.can.cli import positive_seconds
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
 
 
@@ -100,17 +100,6 @@ def parse_assignment(text: str) -> tuple[str, object]:
     except tomllib.TOMLDecodeError:
         value = raw  # a bare word: take it as a string (e.g. controller.law=consensus)
     return key.strip(), value
-
-
-def positive_seconds(text: str) -> float:
-    """An argparse type: a positive, finite number of seconds."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive, finite number of seconds (got {text})")
-    return value
 
 
 def _check_run_options(args: argparse.Namespace) -> None:

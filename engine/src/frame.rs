@@ -207,6 +207,17 @@ fn stuff_step(st: u8, bit: u8) -> (u8, u8) {
     }
 }
 
+/// The automaton after the `width` low bits of `v` (MSB first) from state `st`: (state, stuff bits inserted).
+fn stuff_bits_of(st: u8, v: usize, width: u32) -> (u8, u8) {
+    let (mut s, mut added) = (st, 0u8);
+    for i in (0..width).rev() {
+        let (next, add) = stuff_step(s, ((v >> i) & 1) as u8);
+        s = next;
+        added += add;
+    }
+    (s, added)
+}
+
 fn tables() -> &'static Tables {
     static TABLES: std::sync::OnceLock<Tables> = std::sync::OnceLock::new();
     TABLES.get_or_init(|| {
@@ -220,21 +231,9 @@ fn tables() -> &'static Tables {
         }
         for st in 0..8u8 {
             for v in 0..256usize {
-                let (mut s8, mut n8) = (st, 0u8);
-                for i in (0..8).rev() {
-                    let (n, add) = stuff_step(s8, ((v >> i) & 1) as u8);
-                    s8 = n;
-                    n8 += add;
-                }
-                t.stuff8[st as usize][v] = (s8, n8);
+                t.stuff8[st as usize][v] = stuff_bits_of(st, v, 8);
                 if v < 128 {
-                    let (mut s7, mut n7) = (st, 0u8);
-                    for i in (0..7).rev() {
-                        let (n, add) = stuff_step(s7, ((v >> i) & 1) as u8);
-                        s7 = n;
-                        n7 += add;
-                    }
-                    t.stuff7[st as usize][v] = (s7, n7);
+                    t.stuff7[st as usize][v] = stuff_bits_of(st, v, 7);
                 }
             }
         }

@@ -35,7 +35,8 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _positive_float(text: str) -> float:
+def positive_seconds(text: str) -> float:
+    """An argparse type: a positive, finite number of seconds (zero, negative, nan and inf are refused)."""
     try:
         value = float(text)
     except ValueError:
@@ -49,7 +50,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dbc", nargs="?", help="train DBC file (default: the packaged dbc/train.dbc)")
     p.add_argument("--bitrate", type=_positive_int, help="bit/s (required without --scenario)")
     p.add_argument("--units", type=_positive_int, help="power units per train (default: the scenario's, else every DBC slot)")
-    p.add_argument("--cycle", type=_positive_float, metavar="S",
+    p.add_argument("--cycle", type=positive_seconds, metavar="S",
                    help="period in s of every frame: ECU cycle, sensor and reference (default: the scenario's, else the DBC's)")
     p.add_argument("--scenario", metavar="NAME|PATH", help="take units, periods, bitrate and radio from this scenario")
     p.add_argument("--bus", default="bus1", help="which train's bus, busK (default bus1); also where --measured reads")

@@ -211,6 +211,20 @@ def listen_tcp(host: str, port: int, path: Path) -> tuple[socket.socket, bytes, 
     return sock, token, address, token_file
 
 
+def remove_endpoints(path: Path, inode: int, token_file: Path | None) -> None:
+    """Remove a closed server's token file and its socket, if the socket is still the one it made (same inode)."""
+    if token_file is not None:
+        try:
+            os.unlink(token_file)
+        except FileNotFoundError:
+            pass
+    try:
+        if os.lstat(path).st_ino == inode:
+            os.unlink(path)
+    except FileNotFoundError:
+        pass
+
+
 class BusServer:
     """One CAN bus served on ``<run dir>/<bus>.sock`` in wall-clock time (see the module docstring).
 
@@ -410,16 +424,7 @@ class BusServer:
             if s is not None:
                 s.close()
         self._sel.close()
-        if self.token_file is not None:
-            try:
-                os.unlink(self.token_file)
-            except FileNotFoundError:
-                pass
-        try:
-            if os.lstat(self.path).st_ino == self._inode:
-                os.unlink(self.path)
-        except FileNotFoundError:
-            pass
+        remove_endpoints(self.path, self._inode, self.token_file)
 
     def __enter__(self) -> "BusServer":
         return self.start()

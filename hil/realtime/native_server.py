@@ -18,7 +18,7 @@ import trainhil_engine as engine
 
 from hil.can.bus import Transmission
 from hil.realtime.busserver import (DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServer, BusServerStats,
-                                    listen_tcp)
+                                    listen_tcp, remove_endpoints)
 from hil.realtime.paths import check_loopback, socket_path, validate_name
 from hil.record.runlog import BusLog
 
@@ -135,16 +135,7 @@ class NativeBusServer:
         self._feed_listeners()
         self._collect_log()
         self._closed = True
-        if self.token_file is not None:
-            try:
-                os.unlink(self.token_file)
-            except FileNotFoundError:
-                pass
-        try:
-            if os.lstat(self.path).st_ino == self._inode:
-                os.unlink(self.path)
-        except FileNotFoundError:
-            pass
+        remove_endpoints(self.path, self._inode, self.token_file)
 
     def __enter__(self) -> "NativeBusServer":
         return self.start()
