@@ -44,6 +44,8 @@ SUMMARY_KEYS = [
     ("gap_final_m", "final gap per train pair (m)"),
     ("frames_sent", "frames sent"),
     ("frames_lost", "frames lost"),
+    ("reader_samples_skipped", "samples skipped at readers (not lost)"),
+    ("reader_samples_repeated", "samples repeated at readers"),
     ("bus_load_max", "max bus load"),
     ("frame_latency_p99_s", "frame latency p99 (s)"),
     ("cycle_lateness_p99_s", "ECU cycle lateness p99 (s, real time)"),

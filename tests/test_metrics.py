@@ -294,3 +294,13 @@ def test_no_frames_no_deadline_misses():
     assert (b["latency_max_by_id"], b["deadline_misses"], b["latency_to_period_max"]) == ({}, 0, None)
     assert (m["deadline_misses"], m["latency_to_period_max"]) == (0, None)
     assert json.loads(json.dumps(m, allow_nan=False)) == m
+
+
+def test_samples_skipped_or_repeated_at_the_readers_are_reported_apart_from_lost_frames():
+    """E2E LOST and REPEATED counted by the ECUs' mailboxes are reader-side sampling, not bus loss."""
+    log = make_log([0.0, 1.0], 80.0)
+    log.e2e = {"train1/unit1/ecu": {"OK": 90, "OK_SOME_LOST": 3, "LOST": 4, "REPEATED": 2},
+               "train1/unit2/ecu": {"OK": 99, "LOST": 1}}
+    m = compute_metrics(log, BAND)
+    assert (m["reader_samples_skipped"], m["reader_samples_repeated"], m["frames_lost"]) == (5, 2, 0)
+    assert m["e2e"]["train1/unit1/ecu"]["LOST"] == 4  # the per-ECU verdicts stay as they were

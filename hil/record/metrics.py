@@ -46,6 +46,7 @@ def compute_metrics(log: RunLog, coupler_band: tuple[float, float], settle_band_
     out["codec_saturations"] = {str(k): int(v) for k, v in log.codec_saturations.items()}
     out["radio"] = _counters(log.radio_stats)
     out["e2e"] = _counters(log.e2e)
+    out.update(_reader_samples(log.e2e))
     out["interrupted"] = bool(log.interrupted)
     out["safety"] = safety_report(log, (lo, hi))  # each violation with its time and cause (hil/record/safety.py)
     fault_report = getattr(log, "fault_report", None)  # set by hil.faults when the scenario schedules faults
@@ -78,6 +79,16 @@ def _max(a: np.ndarray) -> float | None:
 
 def _min(a: np.ndarray) -> float | None:
     return _f(np.min(a)) if a.size else None
+
+
+def _reader_samples(e2e: dict[str, dict[str, int]]) -> dict[str, int]:
+    """Samples the ECUs' mailboxes skipped or read twice, summed over the ECUs: not frames lost on the bus.
+
+    A mailbox keeps the latest frame of a stream and the firmware reads it once per cycle. When cycles and
+    arrivals jitter (real time), a cycle may find two new samples, one of which it never saw (E2E ``LOST``, with
+    ``frames_lost`` still 0), or a sender may send the same sample twice (``REPEATED``)."""
+    return {"reader_samples_skipped": sum(int(c.get("LOST", 0)) for c in e2e.values()),
+            "reader_samples_repeated": sum(int(c.get("REPEATED", 0)) for c in e2e.values())}
 
 
 def _counters(nested: dict[str, dict[str, int]]) -> dict[str, dict[str, int]]:
