@@ -11,6 +11,7 @@ import tomllib
 from pathlib import Path
 
 from hil.can.cli import positive_seconds
+from hil.record.diskspace import DiskFullError
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
 
 
@@ -140,7 +141,8 @@ RUN_DESCRIPTION = """Run one scenario and write run.rrd (the rerun recording) an
 
 By default the run is in virtual time, as fast as the machine allows and reproducible bit for bit; --realtime
 runs the same firmware, plant and buses as processes paced to the wall clock; --ideal runs the network-free
-reference loop. Exit codes: 0 done, 1 a real-time node failed to start, 2 bad input, 130 interrupted."""
+reference loop. Exit codes: 0 done, 1 the run could not go on (a real-time node failed to start, the disk is
+full), 2 bad input, 130 interrupted."""
 
 RUN_EXAMPLES = """examples:
   hil run seed000                                        the main demo (800 s simulated, about a minute)
@@ -211,6 +213,11 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
         return 2
+    except DiskFullError as exc:  # the files written before the disk filled stay readable
+        print(f"hil: error: {exc.strerror}", file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(1)  # not through the interpreter's exit hooks: rerun's would wait forever for its dead file writer
     except RuntimeError as exc:  # a real-time node that failed to start (NodeError), named in the message
         print(f"hil: error: {exc}", file=sys.stderr)
         return 1

@@ -15,6 +15,7 @@ agree (a complete run recorded up to its end; an incomplete one no further than 
 """
 from __future__ import annotations
 
+import errno
 import json
 import multiprocessing
 import os
@@ -24,15 +25,24 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hil.record.diskspace import disk_full
+
 RUNNING = "running"
 TIME_SLACK_S = 1.0  # recording vs metrics time: a flush and a sample period of slack
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    """Write JSON so readers see the old file or the new one, never a partial one."""
+    """Write JSON so readers see the old file or the new one, never a partial one; on a full disk a DiskFullError
+    naming the place, and no temporary file left behind."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise disk_full(path) from None
+        raise
 
 
 def mark_running(path: Path, scenario: str, runtime: str, sim_time_s: float = 0.0) -> None:

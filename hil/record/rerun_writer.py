@@ -12,6 +12,7 @@ T0 + sim_time / pace (the mapping every real-time node uses), so the recording h
 """
 from __future__ import annotations
 
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -20,8 +21,11 @@ import rerun as rr
 
 from hil.layout import TrainLayout
 from hil.record import blueprint as bp
+from hil.record.diskspace import MIN_FREE_BYTES, DiskFullError, check_space, free_bytes
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.series import MPS_TO_KMH, limit_values, margin_colors, signal_columns, track_geometry
+
+FLUSH_TIMEOUT_S = 10.0  # a flush takes ~20 ms; one that takes this long means rerun's writer is stuck (a full disk)
 
 APPLICATION_ID = "trainhil"
 TIMELINE = "sim_time"
@@ -52,11 +56,13 @@ class RerunWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream(APPLICATION_ID, make_default=False, make_thread_default=False)
         self.rec.save(self.path)
+        self._flushed_size = 0  # bytes of the file written by the last flush that completed
         self.rec.send_recording_name(scenario_name)
         blueprint = bp.default_blueprint(layout, bus_names, frames=frames, realtime=realtime or wall_clock is not None)
         self.rec.send_blueprint(blueprint, make_active=True, make_default=True)
         self._log_series_styles()
         self._log_track_statics()
+        self.flush()  # the header, blueprint and statics on disk: a readable file from the start
 
     # ---------------------------------------------------------------- static styling
 
@@ -189,17 +195,47 @@ class RerunWriter:
     # ---------------------------------------------------------------- lifecycle
 
     def flush(self) -> None:
-        """Push everything sent so far to the file (it stays readable if the process then dies)."""
+        """Push everything sent so far to the file (it stays readable if the process then dies).
+
+        A full disk is a DiskFullError naming the place: checked before, and after a flush with a deadline (rerun's
+        writer thread dies when the disk fills, and an unbounded flush would then wait forever)."""
         self._check_open()
-        self.rec.flush()
+        try:
+            check_space(self.path)
+            try:
+                self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+            except RuntimeError as exc:  # "Flush timed out": the writer thread is stuck or gone
+                check_space(self.path)
+                raise RuntimeError(f"{self.path}: the recording could not be written within {FLUSH_TIMEOUT_S:g} s: "
+                                   f"{exc}") from None
+            check_space(self.path)
+        except DiskFullError:
+            self._cut_to_last_flush()
+            raise
+        self._flushed_size = self.path.stat().st_size
+
+    def _cut_to_last_flush(self) -> None:
+        """Cut a half-written last message off the file (the disk filled during a flush): a reader then gets
+        everything up to the last flush that completed, instead of an error at the truncated message."""
+        try:
+            if self.path.stat().st_size > self._flushed_size:
+                os.truncate(self.path, self._flushed_size)
+        except OSError:
+            pass
 
     def close(self) -> None:
-        """Flush and close the file (writes the .rrd footer). Idempotent."""
+        """Flush and close the file (writes the .rrd footer). Idempotent; bounded in time even on a full disk."""
         if self._closed:
             return
-        self.rec.flush()
-        self.rec.disconnect()
         self._closed = True
+        if free_bytes(self.path) < MIN_FREE_BYTES:
+            self._cut_to_last_flush()
+            return  # the disk is full: rerun's file writer has stopped, and waiting for it would never end
+        try:
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        except RuntimeError:
+            return  # as above, the writer is stuck: what reached the file stays readable
+        self.rec.disconnect()
 
     def __enter__(self) -> "RerunWriter":
         return self
