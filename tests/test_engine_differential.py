@@ -128,3 +128,21 @@ def test_the_bus_model_is_a_leaf_and_node_processes_do_not_import_the_server():
             "import hil.realtime.ecu_node, hil.realtime.plant_node, hil.realtime.radio_node; "
             "assert 'hil.realtime.busserver' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_an_inbox_node_hands_over_its_frames_in_arrival_order():
+    """The engine's generic inbox (a node whose frames Python drains) keeps the order and end times of the bus."""
+    net = engine.Network()
+    bus = net.add_bus("bus1", 500_000)
+    sender = net.attach_sender(bus, "tx")
+    node, inbox = net.attach_inbox(bus, "rx", [0x10, 0x20])
+    net.every(0, 0)
+    assert net.advance(10**9) is not None
+    for fid in (0x20, 0x30, 0x10):
+        net.send(bus, sender, fid, bytes(8))
+    assert net.advance(10**9) is None
+    frames = net.drain_inboxes()
+    assert [(i, fid) for i, fid, _, _ in frames] == [(inbox, 0x10), (inbox, 0x20)]  # 0x30 is not in the filter
+    t = [t_end for _, _, _, t_end in frames]
+    assert t[0] == engine.frame_bits(0x10, bytes(8)) * 2000 and t[1] > t[0]
+    assert net.drain_inboxes() == []

@@ -82,10 +82,6 @@ class EngineBus:
         """A node delivering into the ECU's mailboxes, behind their IDs as acceptance filter."""
         return self.net.attach_mailbox(self.index, name, ecu.mailbox)
 
-    def attach_inbox(self, name: str, rx_ids: set[int]) -> tuple[int, int]:
-        """A node delivering into an inbox the rig drains: (node, inbox)."""
-        return self.net.attach_inbox(self.index, name, sorted(rx_ids))
-
     def send(self, node: int, frame_id: int, data: bytes) -> bool:
         """Queue a frame at the current time (False: the node's TX queue was full, counted)."""
         return self.net.send(self.index, node, frame_id, data)
