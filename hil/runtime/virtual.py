@@ -90,8 +90,9 @@ class VirtualRig:
         return VirtualCanBus(self.kernel, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log=log)
 
     def _attach_plant(self, i: int) -> CanNode | int:
-        """The plant's node on train i's bus: the engine queues its TractionCmd frames in an inbox drained at every
-        plant step (a command acts from the first step after its arrival, as with a per-frame callback)."""
+        """The plant's node on train i's bus. The engine checks and decodes its TractionCmd frames on delivery and
+        queues them; they are applied at the next plant step (a command acts from the first step after its
+        arrival, as with a per-frame callback)."""
         if self.net is not None:
             commands = [(fid, self.db.by_id[fid], u) for fid, u in self.plant_io.cmd_unit[i].items()]
             node, table = self.net.attach_commands(self.buses[i].index, "Plant", commands, sorted(int(m) for m in VALID_MODES))
