@@ -424,3 +424,15 @@ def test_bus_server_parser_registers_on_the_hil_parser():
     args = p.parse_args(["bus-server", "--run", "seed000", "--bus", "bus1", "--policy", "fifo"])
     assert (args.func, args.run, args.bus, args.bitrate, args.policy, args.depth) == \
         (cmd_bus_server, "seed000", "bus1", 500_000, "fifo", 64)
+
+
+@pytest.mark.parametrize("args, named", [(["--bitrate", "0"], "--bitrate"), (["--bitrate", "-5"], "--bitrate"),
+                                         (["--depth", "0"], "--depth"), (["--duration", "-1"], "--duration"),
+                                         (["--pace", "0"], "--pace"), (["--pace", "nan"], "--pace")])
+def test_bus_server_command_refuses_values_that_cannot_work(rt, capsys, args, named):
+    from hil.realtime.cli import bus_server_main
+
+    with pytest.raises(SystemExit) as exc:
+        bus_server_main(["--run", "v1", "--bus", "bus1", *args])
+    assert exc.value.code == 2 and f"argument {named}" in capsys.readouterr().err
+    assert not (rt / "trainhil" / "v1").exists()  # refused before anything was made

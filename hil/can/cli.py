@@ -25,13 +25,25 @@ DESCRIPTION = ("Every frame of a train bus: worst-case length, WCRT (Davis et al
                "with --measured, a run's largest latency of each frame beside its bound.")
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """An argparse type: an integer > 0."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
     if value <= 0:
         raise argparse.ArgumentTypeError(f"{value} must be > 0")
+    return value
+
+
+def positive_number(text: str) -> float:
+    """An argparse type: a finite number > 0 (a factor such as a pace)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text} must be a finite number > 0")
     return value
 
 
@@ -48,8 +60,8 @@ def positive_seconds(text: str) -> float:
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dbc", nargs="?", help="train DBC file (default: the packaged dbc/train.dbc)")
-    p.add_argument("--bitrate", type=_positive_int, help="bit/s (required without --scenario)")
-    p.add_argument("--units", type=_positive_int, help="power units per train (default: the scenario's, else every DBC slot)")
+    p.add_argument("--bitrate", type=positive_int, help="bit/s (required without --scenario)")
+    p.add_argument("--units", type=positive_int, help="power units per train (default: the scenario's, else every DBC slot)")
     p.add_argument("--cycle", type=positive_seconds, metavar="S",
                    help="period in s of every frame: ECU cycle, sensor and reference (default: the scenario's, else the DBC's)")
     p.add_argument("--scenario", metavar="NAME|PATH", help="take units, periods, bitrate and radio from this scenario")

@@ -15,6 +15,7 @@ import sys
 import threading
 from pathlib import Path
 
+from hil.can.cli import positive_int, positive_number, positive_seconds
 from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError
 from hil.realtime.pacing import set_fifo_priority
 from hil.realtime.native_server import NativeBusServer
@@ -26,16 +27,16 @@ DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run", required=True, help="run name: the socket is <runtime root>/<run>/<bus>.sock")
     p.add_argument("--bus", required=True, help="bus name, e.g. bus1 (python-can channel \"<run>/<bus>\")")
-    p.add_argument("--bitrate", type=int, default=500_000, help="bit/s (default 500000)")
+    p.add_argument("--bitrate", type=positive_int, default=500_000, help="bit/s (default 500000)")
     p.add_argument("--policy", choices=("priority", "fifo"), default="priority", help="TX queue policy per node")
-    p.add_argument("--depth", type=int, default=64, help="TX queue depth per node (default 64)")
+    p.add_argument("--depth", type=positive_int, default=64, help="TX queue depth per node (default 64)")
     p.add_argument("--spin-us", type=float, default=DEFAULT_SPIN_US,
                    help=f"spin the last microseconds before a frame ends (default {DEFAULT_SPIN_US}; 0: never spin)")
     p.add_argument("--fifo", type=int, metavar="PRIORITY",
                    help="run under SCHED_FIFO at this priority (1-99) where permitted; use a short --spin-us with it")
-    p.add_argument("--pace", type=float, default=1.0,
+    p.add_argument("--pace", type=positive_number, default=1.0,
                    help="model seconds per wall second (default 1.0; 0.5: frames last twice as long in wall time)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--duration", type=positive_seconds, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--stats-json", help="write the final statistics to this JSON file")
     p.add_argument("--verbose", action="store_true", help="log nodes joining and leaving")
     p.add_argument("--tcp", action="store_true",
