@@ -124,21 +124,7 @@ pub fn stuff(bits: &[u8]) -> Bits {
 
 /// Number of stuff bits the sequence needs.
 pub fn stuff_count(bits: &[u8]) -> u32 {
-    let (mut last, mut run, mut count) = (2u8, 0u32, 0u32);
-    for &bit in bits {
-        if bit == last {
-            run += 1;
-        } else {
-            last = bit;
-            run = 1;
-        }
-        if run == 5 {
-            last = 1 - bit;
-            run = 1;
-            count += 1;
-        }
-    }
-    count
+    (stuff(bits).0.len() - bits.len()) as u32
 }
 
 /// The stuffed part of a classical data frame as sent, SOF through the CRC sequence.
@@ -146,46 +132,39 @@ pub fn stuffed_bits(can_id: u32, data: &[u8], extended: bool) -> Bits {
     stuff(&unstuffed_bits(can_id, data, extended).0)
 }
 
-/// The bit stream of a frame as it is sent, counted on the fly: CRC-15 register, stuffing run and stuff bits.
-struct Counter {
+/// The header of a frame as it is sent, counted bit by bit: the CRC-15 register, the stuffing automaton's state
+/// (`stuff_step`) and the stuff bits so far.
+struct Header {
     crc: u16,
-    last: u8,
-    run: u32,
+    st: u8,
     stuffed: u32,
     bits: u32,
 }
 
-impl Counter {
-    fn new() -> Counter {
-        Counter { crc: 0, last: 2, run: 0, stuffed: 0, bits: 0 }
+impl Header {
+    fn new() -> Header {
+        Header { crc: 0, st: IDLE_STATE, stuffed: 0, bits: 0 }
     }
 
-    /// Send `width` bits of `value`, MSB first; `crc`: whether they enter the CRC.
-    fn feed(&mut self, value: u64, width: u32, crc: bool) {
+    /// Send `width` bits of `value`, MSB first, into the CRC and the stuffing.
+    fn feed(&mut self, value: u64, width: u32) {
         for i in (0..width).rev() {
             let bit = ((value >> i) & 1) as u8;
-            if crc {
-                let next = bit ^ ((self.crc >> 14) & 1) as u8;
-                self.crc = (self.crc << 1) & 0x7FFF;
-                if next == 1 {
-                    self.crc ^= CRC15_POLY;
-                }
+            let next = bit ^ ((self.crc >> 14) & 1) as u8;
+            self.crc = (self.crc << 1) & 0x7FFF;
+            if next == 1 {
+                self.crc ^= CRC15_POLY;
             }
-            if bit == self.last {
-                self.run += 1;
-            } else {
-                self.last = bit;
-                self.run = 1;
-            }
-            if self.run == 5 {
-                self.last = 1 - bit;
-                self.run = 1;
-                self.stuffed += 1;
-            }
+            let (st, add) = stuff_step(self.st, bit);
+            self.st = st;
+            self.stuffed += add as u32;
         }
         self.bits += width;
     }
 }
+
+/// The stuffing state before SOF: the idle bus is recessive (last bit 1, run 1); the dominant SOF starts a fresh run.
+const IDLE_STATE: u8 = 4;
 
 /// Byte tables of the hot path: CRC-15 of a byte shifted into the register, and the stuffing automaton advanced
 /// by a whole byte (the state between bits is the last bit and its run length 1..4: `last * 4 + run - 1`).
@@ -246,19 +225,17 @@ fn tables() -> &'static Tables {
 /// bit, the data bytes and the CRC through byte tables.
 pub fn frame_bits(can_id: u32, data: &[u8], extended: bool) -> Result<u32, FrameError> {
     validate(can_id, data.len(), extended)?;
-    let mut c = Counter::new();
+    let mut c = Header::new();
     if extended {
         // SOF, base ID, SRR, IDE, ID extension, RTR, r1, r0
-        c.feed(((can_id >> 18) as u64) << 2 | 0b11, 1 + 11 + 2, true);
-        c.feed(((can_id & 0x3FFFF) as u64) << 3, 18 + 3, true);
+        c.feed(((can_id >> 18) as u64) << 2 | 0b11, 1 + 11 + 2);
+        c.feed(((can_id & 0x3FFFF) as u64) << 3, 18 + 3);
     } else {
-        c.feed((can_id as u64) << 3, 1 + 11 + 3, true); // SOF, ID, RTR, IDE, r0
+        c.feed((can_id as u64) << 3, 1 + 11 + 3); // SOF, ID, RTR, IDE, r0
     }
-    c.feed(data.len() as u64, 4, true);
+    c.feed(data.len() as u64, 4);
     let t = tables();
-    // the automaton's state after the header: last bit and run (the Counter never holds a run of 5)
-    let mut st = c.last * 4 + c.run as u8 - 1;
-    let (mut reg, mut stuffed) = (c.crc, c.stuffed);
+    let (mut st, mut reg, mut stuffed) = (c.st, c.crc, c.stuffed);
     for &byte in data {
         reg = ((reg << 8) & 0x7FFF) ^ t.crc[(((reg >> 7) as u8) ^ byte) as usize];
         let (next, add) = t.stuff8[st as usize][byte as usize];

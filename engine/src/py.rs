@@ -119,9 +119,8 @@ impl MessageCodec {
         })
     }
 
-    fn __repr__(&self, py: Python<'_>) -> String {
+    fn __repr__(&self) -> String {
         let sig: Vec<String> = self.layout.signals.iter().map(|s| format!("'{}'", s.name)).collect();
-        let _ = py;
         format!("MessageCodec({}, id=0x{:03X}, dlc={}, signals=({}{}))", self.name, self.frame_id, self.dlc, sig.join(", "),
                 if sig.len() == 1 { "," } else { "" })
     }
@@ -769,7 +768,6 @@ pub struct FrameLink {
     fd: i32,
     t0: f64,
     pace: f64,
-    mono0: f64,
     routes: std::collections::HashMap<u32, Vec<Rc<RefCell<mailbox::Mailbox>>>>,
     partial: Vec<u8>,
     received: u64,
@@ -778,27 +776,17 @@ pub struct FrameLink {
     kept: Vec<(u32, crate::bus::Payload, f64)>,
 }
 
-fn monotonic_s() -> f64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: clock_gettime writes into the timespec we own.
-    unsafe {
-        libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts);
-    }
-    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
-}
-
 #[pymethods]
 impl FrameLink {
-    /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). Simulated time
-    /// is (epoch - t0) * pace; `mono0` is the monotonic instant (Python's time.monotonic) of simulated t = 0.
-    /// `keep`: frames without a route are kept for `take` instead of dropped.
+    /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). A frame's
+    /// simulated time is (its epoch stamp - t0) * pace. `keep`: frames without a route are kept for `take`.
     #[new]
-    #[pyo3(signature = (fd, t0, pace, mono0, keep = false))]
-    fn new(fd: i32, t0: f64, pace: f64, mono0: f64, keep: bool) -> PyResult<Self> {
+    #[pyo3(signature = (fd, t0, pace, keep = false))]
+    fn new(fd: i32, t0: f64, pace: f64, keep: bool) -> PyResult<Self> {
         if !(pace.is_finite() && pace > 0.0) {
             return Err(PyValueError::new_err(format!("pace={pace} must be positive")));
         }
-        Ok(FrameLink { fd, t0, pace, mono0, routes: Default::default(), partial: Vec::new(), received: 0, keep,
+        Ok(FrameLink { fd, t0, pace, routes: Default::default(), partial: Vec::new(), received: 0, keep,
                        kept: Vec::new() })
     }
 
@@ -821,45 +809,6 @@ impl FrameLink {
     /// Deliver frames of `frame_id` into `mailbox` (several mailboxes may take one ID).
     fn route(&mut self, frame_id: u32, mailbox: &Mailbox) {
         self.routes.entry(frame_id).or_default().push(mailbox.inner.clone());
-    }
-
-    /// Simulated seconds now.
-    fn now(&self) -> f64 {
-        (monotonic_s() - self.mono0) * self.pace
-    }
-
-    /// Frames put into mailboxes so far.
-    #[getter]
-    fn received(&self) -> u64 {
-        self.received
-    }
-
-    /// Receive until simulated time `sim_t` (sleeping in ppoll, the GIL released), at most `max_wait_s` wall seconds
-    /// in one go; returns True once `sim_t` is reached. Frames whose ID has no route are dropped (the filters).
-    fn wait_until(&mut self, py: Python<'_>, sim_t: f64, max_wait_s: f64) -> PyResult<bool> {
-        let limit = monotonic_s() + max_wait_s;
-        loop {
-            let now = monotonic_s();
-            let rem = (sim_t - (now - self.mono0) * self.pace) / self.pace;
-            if rem <= 0.0 {
-                self.pump()?;
-                return Ok(true);
-            }
-            let wait = rem.min(limit - now);
-            if wait <= 0.0 {
-                return Ok(false);
-            }
-            let fd = self.fd;
-            let ready = py.allow_threads(move || {
-                let mut pfd = libc::pollfd { fd, events: libc::POLLIN, revents: 0 };
-                let ts = libc::timespec { tv_sec: wait as libc::time_t, tv_nsec: ((wait.fract()) * 1e9) as libc::c_long };
-                // SAFETY: one pollfd we own, for the duration of the call.
-                unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) }
-            });
-            if ready > 0 {
-                self.pump()?;
-            }
-        }
     }
 
     /// Read every record waiting on the socket; returns how many frames went into mailboxes.

@@ -36,26 +36,24 @@ def positive_int(text: str) -> int:
     return value
 
 
-def positive_number(text: str) -> float:
-    """An argparse type: a finite number > 0 (a factor such as a pace)."""
+def _finite_positive(text: str, unit: str) -> float:
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
     if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text} must be a finite number > 0")
+        raise argparse.ArgumentTypeError(f"{text} must be a finite number > 0{unit}")
     return value
+
+
+def positive_number(text: str) -> float:
+    """An argparse type: a finite number > 0 (a factor such as a pace)."""
+    return _finite_positive(text, "")
 
 
 def positive_seconds(text: str) -> float:
     """An argparse type: a positive, finite number of seconds (zero, negative, nan and inf are refused)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text} must be a finite number > 0 (seconds)")
-    return value
+    return _finite_positive(text, " (seconds)")
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:

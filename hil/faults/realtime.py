@@ -40,11 +40,6 @@ ECU_KINDS = ("ecu_crash", "ecu_hang")
 PLANT_KINDS = ("sensor_stuck", "sensor_noise", "actuator_degradation", "traction_loss")
 
 
-def wanted(scenario) -> bool:
-    """Whether a run needs the fault machinery (a schedule, or the restart policy)."""
-    return bool(scenario.faults) or scenario.ecu.restart_after_s is not None
-
-
 # --------------------------------------------------------------------------- plant node
 
 

@@ -18,6 +18,12 @@ import numpy as np
 from hil.layout import TrainLayout
 from hil.scenario.model import Scenario
 
+
+def needs_fault_machinery(scenario: Scenario) -> bool:
+    """Whether a run needs the fault machinery (a schedule, or the restart policy): both runtimes then run their
+    buses on the Python bus model, which carries error confinement and the injectors."""
+    return bool(scenario.faults) or scenario.ecu.restart_after_s is not None
+
 SOURCE = "faults"
 _SEED_TAG = 0x4641554C  # "FAUL": keeps fault draws apart from every other stream of the run seed
 

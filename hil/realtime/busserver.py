@@ -211,6 +211,18 @@ def listen_tcp(host: str, port: int, path: Path) -> tuple[socket.socket, bytes, 
     return sock, token, address, token_file
 
 
+def check_server_args(run: str, bus: str, tcp: bool, tcp_host: str, spin_us: float, pace: float) -> None:
+    """ValueError naming a bad argument of a bus server (either kind), before anything is created."""
+    validate_name(run, "run")
+    validate_name(bus, "bus")
+    if tcp:
+        check_loopback(tcp_host)
+    if spin_us < 0:
+        raise ValueError(f"spin_us={spin_us!r} must be >= 0")
+    if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
+        raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
+
+
 def remove_endpoints(path: Path, inode: int, token_file: Path | None) -> None:
     """Remove a closed server's token file and its socket, if the socket is still the one it made (same inode)."""
     if token_file is not None:
@@ -238,14 +250,7 @@ class BusServer:
                  spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
                  pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
                  max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S) -> None:
-        validate_name(run, "run")
-        validate_name(bus, "bus")
-        if tcp:
-            check_loopback(tcp_host)  # before anything is created
-        if spin_us < 0:
-            raise ValueError(f"spin_us={spin_us!r} must be >= 0")
-        if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
-            raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
+        check_server_args(run, bus, tcp, tcp_host, spin_us, pace)
         self._pace = float(pace)
         self.model = CanBusModel(bus, bitrate, policy, depth, extended, log, load_window_s)
         self.path = Path(path) if path is not None else socket_path(run, bus, create=True)

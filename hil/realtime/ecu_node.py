@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ecu_sim.codec import TrainDb
+from hil.faults.schedule import needs_fault_machinery
 from hil.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
 from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
@@ -44,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         if not 0 <= u < layout.n_units:
             raise SystemExit(f"--unit {u}: out of range 0..{layout.n_units - 1}")
     ecus = {u: build_ecu(parts, db, u) for u in args.unit}
-    if sc.faults or sc.ecu.restart_after_s is not None:  # diagnostics as in virtual time (hil/faults/virtual.py)
+    if needs_fault_machinery(sc):  # diagnostics as in virtual time (hil/faults/virtual.py)
         from ecu_sim.diagnostics import EcuDiagnostics, neighbour_names
 
         for u, ecu in ecus.items():

@@ -13,6 +13,7 @@ frame. Frame times are the bus's end-of-transmission stamps in simulated seconds
 """
 from __future__ import annotations
 
+import time
 from typing import Callable
 
 import can
@@ -29,7 +30,7 @@ class EngineFrames:
 
     def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool) -> None:
         self.clock, self.extended = clock, extended
-        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, clock.mono0, keep=True) for bus in buses]
+        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True) for bus in buses]
         self._fds = [link.fd for link in self.links]
 
     def route(self, bus: int, frame_id: int, mailbox: engine.Mailbox) -> None:
@@ -66,7 +67,7 @@ class EngineFrames:
             rem = clock.wall_until(sim_t) - spin_s
             if rem <= 0:
                 break
-            engine.wait_readable([], min(rem, MAX_SLEEP_S))  # a plain sleep, the GIL released
+            time.sleep(min(rem, MAX_SLEEP_S))
         while clock.wall_until(sim_t) > 0 and not stop:
             pass
         self.drain(on_frame)

@@ -18,8 +18,8 @@ import trainhil_engine as engine
 
 from hil.can.bus import Transmission
 from hil.realtime.busserver import (DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServer, BusServerStats,
-                                    listen_tcp, remove_endpoints)
-from hil.realtime.paths import check_loopback, socket_path, validate_name
+                                    check_server_args, listen_tcp, remove_endpoints)
+from hil.realtime.paths import socket_path
 from hil.record.runlog import BusLog
 
 LOG = logging.getLogger("hil.realtime.busserver")
@@ -35,14 +35,7 @@ class NativeBusServer:
                  spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
                  pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
                  max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S) -> None:
-        validate_name(run, "run")
-        validate_name(bus, "bus")
-        if tcp:
-            check_loopback(tcp_host)
-        if spin_us < 0:
-            raise ValueError(f"spin_us={spin_us!r} must be >= 0")
-        if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
-            raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
+        check_server_args(run, bus, tcp, tcp_host, spin_us, pace)
         if policy not in ("priority", "fifo"):
             raise ValueError(f"queue policy must be 'priority' or 'fifo', got {policy!r}")
         if not isinstance(bitrate, int) or bitrate <= 0 or 1_000_000_000 % bitrate:

@@ -45,6 +45,7 @@ from typing import Any, Callable
 import numpy as np
 
 from hil.layout import TrainLayout
+from hil.faults.schedule import needs_fault_machinery
 from hil.realtime.busserver import BusServer
 from hil.realtime.native_server import NativeBusServer
 from hil.realtime.paths import remove_run_dir
@@ -248,9 +249,7 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 def _server_class(scenario: Scenario):
     """The engine's native bus server (its own thread, outside the interpreter lock), unless the scenario injects
     faults, which act on the Python bus model under the server's lock (hil/faults/realtime.py)."""
-    from hil.faults.realtime import wanted
-
-    return BusServer if wanted(scenario) else NativeBusServer
+    return BusServer if needs_fault_machinery(scenario) else NativeBusServer
 
 
 # --------------------------------------------------------------------------- processes
@@ -258,9 +257,9 @@ def _server_class(scenario: Scenario):
 
 def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int):
     """The run's fault machinery (hil/faults/realtime.py), or None without faults and restart policy."""
-    from hil.faults.realtime import RealtimeFaults, wanted
+    from hil.faults.realtime import RealtimeFaults
 
-    if not wanted(scenario):
+    if not needs_fault_machinery(scenario):
         return None
     if not servers and any(f.train for f in scenario.faults if f.kind in ("babbling_node", "bus_corruption",
                                                                          "bus_error_frames", "frame_drop")):

@@ -55,11 +55,11 @@ class SimClock:
             raise ValueError(f"pace={pace!r} must be a positive number")
         self.t0 = float(t0_epoch)
         self.pace = float(pace)
-        self.mono0 = time.monotonic() - (time.time() - self.t0)  # monotonic instant of sim t = 0
+        self._mono0 = time.monotonic() - (time.time() - self.t0)  # monotonic instant of sim t = 0
 
     def now(self) -> float:
         """Simulated seconds now."""
-        return (time.monotonic() - self.mono0) * self.pace
+        return (time.monotonic() - self._mono0) * self.pace
 
     def from_epoch(self, stamp: float) -> float:
         """A bus timestamp (epoch s) in simulated seconds."""

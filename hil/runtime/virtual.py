@@ -26,6 +26,7 @@ from hil.radio.gateway import RadioGateway, build_links, standard_routes
 from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.runtime.assembly import Assembly, assemble
+from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
 from hil.runtime.kernel import Kernel, to_ns
 from hil.scenario.model import Scenario
@@ -35,7 +36,7 @@ NETWORK_MODELS = ("engine", "python")
 
 def network_model_for(scenario: Scenario) -> str:
     """The engine, unless the scenario needs what only the Python bus model has: faults, error confinement, restarts."""
-    return "python" if scenario.faults or scenario.ecu.restart_after_s is not None else "engine"
+    return "python" if needs_fault_machinery(scenario) else "engine"
 
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
 
@@ -46,10 +47,11 @@ class VirtualRig:
     def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None,
                  network: str | None = None) -> None:
         """``network``: "engine" or "python" (default: :func:`network_model_for` the scenario)."""
-        self.network = network_model_for(scenario) if network is None else network
+        needed = network_model_for(scenario)
+        self.network = needed if network is None else network
         if self.network not in NETWORK_MODELS:
             raise ValueError(f"network model must be one of {NETWORK_MODELS}, got {self.network!r}")
-        if self.network == "engine" and network_model_for(scenario) == "python":
+        if self.network == "engine" and needed == "python":
             raise ValueError(f"scenario {scenario.name}: faults and ECU restarts need the Python bus model (network='python')")
         self.sc = scenario
         self.parts: Assembly = assemble(scenario, seed)
@@ -75,7 +77,7 @@ class VirtualRig:
         self.gateway, self._gw_nodes = self._attach_radio()
         self._schedule()
         self.faults = None  # the fault schedule, its injectors and monitors (hil/faults), if the scenario has one
-        if scenario.faults or scenario.ecu.restart_after_s is not None:
+        if needs_fault_machinery(scenario):
             from hil.faults.virtual import VirtualFaults
 
             self.faults = VirtualFaults(self)
