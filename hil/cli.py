@@ -10,9 +10,12 @@ import sys
 import tomllib
 from pathlib import Path
 
+from ecu_sim.references import ReferenceLoadError
 from hil.can.cli import positive_seconds
 from hil.record.diskspace import DiskFullError
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
+
+EXIT_FAILED, EXIT_USAGE, EXIT_UNSAFE, EXIT_INTERRUPTED = 1, 2, 3, 130  # documented in RUN_DESCRIPTION, docs/cli.md
 
 
 def _cmd_scenarios(args: argparse.Namespace) -> int:
@@ -108,8 +111,8 @@ def parse_assignment(text: str) -> tuple[str, object]:
 def _check_run_options(args: argparse.Namespace) -> None:
     """Options that do nothing in the chosen runtime are errors, not silently ignored."""
     if not args.realtime:
-        given = [name for name, value in (("--pace", args.pace), ("--ecus-per-process", args.ecus_per_process))
-                 if value is not None]
+        given = [name for name, value in (("--pace", args.pace), ("--ecus-per-process", args.ecus_per_process),
+                                          ("--run", args.run_name)) if value is not None]
         if given:
             verb = "applies" if len(given) == 1 else "apply"
             raise ScenarioError(f"{' and '.join(given)} only {verb} with --realtime (virtual time runs as fast as it can)")
@@ -125,6 +128,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.seed is not None:
         overrides["seed"] = args.seed
     scenario = load_scenario(args.scenario, overrides)
+    if args.external:  # added to the scenario's own, validated like them
+        scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
     out = Path(args.out) if args.out else Path("runs") / scenario.name
     if args.realtime:
         from hil.realtime.cli import run_realtime_from_args
@@ -134,22 +139,41 @@ def _cmd_run(args: argparse.Namespace) -> int:
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
                               record=not args.no_record, progress=not args.quiet)
     print_summary(result.metrics, out)
-    return 130 if result.log.interrupted else 0
+    if result.log.interrupted:
+        return EXIT_INTERRUPTED
+    return unsafe_exit(result.metrics) if args.check else 0
+
+
+def unsafe_exit(metrics: dict) -> int:
+    """``--check``: EXIT_UNSAFE, with the violated verdicts named on stderr, when the run was not safe; else 0."""
+    safety = metrics.get("safety") or {}
+    bad = [f"{k} ({v['count']}x, first at t = {v['first_s']:.1f} s)" for k, v in safety.items()
+           if isinstance(v, dict) and v.get("violated")]
+    if not bad:
+        return 0
+    print(f"hil: unsafe: {'; '.join(bad)}", file=sys.stderr)
+    return EXIT_UNSAFE
 
 
 RUN_DESCRIPTION = """Run one scenario and write run.rrd (the rerun recording) and metrics.json, then print a summary.
 
 By default the run is in virtual time, as fast as the machine allows and reproducible bit for bit; --realtime
 runs the same firmware, plant and buses as processes paced to the wall clock; --ideal runs the network-free
-reference loop. Exit codes: 0 done, 1 the run could not go on (a real-time node failed to start, the disk is
-full), 2 bad input, 130 interrupted."""
+reference loop. --check makes an unsafe run fail, for CI.
+
+Exit codes: 0 done (with --check: and safe); 1 the run could not go on (a real-time node failed to start, an
+external unit never joined, the plant diverged, the disk is full); 2 bad input (scenario, --set, options);
+3 unsafe: --check and a safety verdict was violated (named on stderr); 130 interrupted (Ctrl-C, SIGTERM)."""
 
 RUN_EXAMPLES = """examples:
   hil run seed000                                        the main demo (800 s simulated, about a minute)
   hil run seed000 --duration 60 --seed 3 --can-log       one ASC log per bus beside the recording
   hil run seed000 --set radio.latency_s=0.3 --set can.bitrate=250000
   hil run my_scenario.toml --ideal                       the ideal loop of your own scenario
-  hil run seed000 --realtime --pace 1 --duration 20 --ecus-per-process 12"""
+  hil run seed000 --realtime --pace 1 --duration 20 --ecus-per-process 12
+  hil run seed000 --duration 60 --check                  exit 3 if any safety verdict is violated
+  hil run cruise.toml --set controller.law=mylaw:PDSpacing   your law, from ./mylaw.py
+  hil run cruise.toml --realtime --external train2/unit3 --run dut   then start your ECU on dut/bus2"""
 
 
 def _version() -> str:
@@ -178,6 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--ideal", action="store_true", help="run the ideal network-free reference loop instead")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--check", action="store_true",
+                     help=f"exit {EXIT_UNSAFE} if the run's safety verdict is unsafe, naming the violated verdicts (for CI)")
     from hil.realtime.cli import add_realtime_arguments
 
     add_realtime_arguments(run)
@@ -209,24 +235,24 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except ScenarioError as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
-        return 2
-    except FileNotFoundError as exc:
+        return EXIT_USAGE
+    except (FileNotFoundError, ReferenceLoadError) as exc:  # ReferenceLoadError: user code named in the scenario
         print(f"hil: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     except DiskFullError as exc:  # the files written before the disk filled stay readable
         print(f"hil: error: {exc.strerror}", file=sys.stderr)
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(1)  # not through the interpreter's exit hooks: rerun's would wait forever for its dead file writer
+        os._exit(EXIT_FAILED)  # not through the interpreter's exit hooks: rerun's would wait forever for its dead file writer
     except RuntimeError as exc:  # a real-time node that failed to start (NodeError), named in the message
         print(f"hil: error: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_FAILED
     except BrokenPipeError:  # `hil ... | head`: the reader left; stop quietly (Python docs' recipe)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except KeyboardInterrupt:  # before or after the run loop (the run loop itself stops cleanly on its own)
         print("hil: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

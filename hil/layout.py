@@ -10,8 +10,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ecu_sim.view import AgentInfo
+from hil.scenario.checks import UNIT_NAME, unit_name_error
 from hil.scenario.model import TrainsConfig
-
 
 @dataclass(frozen=True)
 class TrainLayout:
@@ -65,6 +65,19 @@ class TrainLayout:
 
     def train_unit(self, u: int) -> tuple[int, int]:
         return divmod(u, self.units_per_train)
+
+    def unit_name(self, u: int) -> str:
+        """``train<t>/unit<k>`` (1-based) of flat unit u: the name in scenarios, events and node lists."""
+        train, unit = self.train_unit(u)
+        return f"train{train + 1}/unit{unit + 1}"
+
+    def unit_index(self, name: str) -> int:
+        """Flat index of a ``train<t>/unit<k>`` name; ValueError says what is wrong with it."""
+        why = unit_name_error(name, self.n_trains, self.units_per_train)
+        if why is not None:
+            raise ValueError(why)
+        train, unit = UNIT_NAME.fullmatch(name.strip()).groups()  # type: ignore[union-attr]
+        return self.index(int(train) - 1, int(unit) - 1)
 
     def heads(self) -> np.ndarray:
         return np.arange(self.n_trains) * self.units_per_train

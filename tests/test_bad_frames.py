@@ -192,7 +192,7 @@ def test_random_garbage_connections_never_stop_the_server(server):
 
 def test_an_ecu_counts_unknown_ids_and_wrong_lengths_without_decoding_them():
     from ecu_sim.controllers.base import get_controller
-    from hil.runtime.virtual import build_ecu
+    from hil.runtime.firmware import build_ecu
     from hil.runtime.assembly import assemble
     from hil.scenario import load_scenario
 

@@ -13,6 +13,7 @@ import pytest
 from pydantic import Field
 
 from ecu_sim.controllers.base import Controller, ControllerParams
+from ecu_sim.programs import EcuSetup, standard_program
 from ecu_sim.runtime import Ecu
 from ecu_sim.view import Command, LocalView
 from hil.scenario import ScenarioError
@@ -28,9 +29,7 @@ from hil.testing import (
     assert_within,
     build_scenario,
 )
-from hil.testing.nodes import import_spec, node_imports
 from hil.testing.results import HilRun
-from hil.testing.rig import standard_ecu
 from tests.rrd_reader import read_scalars
 from tests.test_rerun_writer import make_log
 
@@ -60,9 +59,9 @@ class SilentAfterOneSecond(Ecu):
         return [] if self.name == "train2/unit2/ecu" and t > 1.0 else frames
 
 
-def dead_train2_unit2(parts, db, u: int):
+def dead_train2_unit2(setup: EcuSetup):
     """An ECU factory: the standard firmware everywhere, but train 2's unit 2 is dead from the start."""
-    ecu = standard_ecu(parts, db, u)
+    ecu = standard_program(setup)
     ecu.alive = ecu.name != "train2/unit2/ecu"
     return ecu
 
@@ -82,7 +81,7 @@ def test_overrides_and_law_swap_build_a_validated_scenario():
     sc = build_scenario(CRUISE, {"radio.latency_s": 0.2, "can.bitrate": 250000, "controller.params.kx_ref": 0.2})
     assert sc.radio.latency_s == 0.2 and sc.can.bitrate == 250000 and sc.controller.params == {"kx_ref": 0.2}
     swapped = build_scenario(CRUISE, controller=ConstantForce)
-    assert swapped.controller.law == "test_constant_force" and swapped.controller.params == {}
+    assert swapped.controller.law == "tests.test_hil_testing:ConstantForce" and swapped.controller.params == {}
     assert build_scenario(CRUISE, controller=ConstantForce, params={"force_n": 5.0}).controller.params == {"force_n": 5.0}
     assert build_scenario(sc, {"seed": 4}).seed == 4  # a Scenario object works too
     assert build_scenario("seed000", {"controller.law": "consensus"}).controller.params == {}  # as in sweeps
@@ -91,11 +90,11 @@ def test_overrides_and_law_swap_build_a_validated_scenario():
         build_scenario(CRUISE, {"can.bitrate": 300000})
     with pytest.raises(ScenarioError, match=r"controller\.params\.force"):
         build_scenario(CRUISE, controller=ConstantForce, params={"force": 1.0})
-    with pytest.raises(KeyError, match="unknown controller law 'nope'"):
+    with pytest.raises(ScenarioError, match="controller.law: unknown controller law 'nope'"):
         build_scenario(CRUISE, controller="nope")
 
-    class Impostor(ConstantForce):
-        name = "test_constant_force"
+    class Impostor(ConstantForce):  # defined in a function: registered by name, which must be free
+        name = "consensus"
 
     with pytest.raises(ValueError, match="already taken"):
         build_scenario(CRUISE, controller=Impostor)
@@ -109,7 +108,7 @@ def test_the_users_controller_class_runs_on_every_ecu(hil_rig):
     assert len(commands) == 6
     for path, (t, v) in commands.items():
         assert v[0] == 0.0 and np.all(v[t >= 0.1] == 2.5), path  # 2.5 kN as soon as the first command arrived
-    assert run.controller == "test_constant_force" and run.runtime == "virtual"
+    assert run.controller == "tests.test_hil_testing:ConstantForce" and run.runtime == "virtual"
 
 
 def test_signals_are_the_recordings_scalars_with_the_same_values(hil_rig, tmp_path):
@@ -233,21 +232,36 @@ def test_unknown_paths_say_what_exists():
 
 
 def test_real_time_nodes_import_the_users_law_and_ecu_program(tmp_path):
-    probe = ("from ecu_sim.controllers.base import get_controller; import hil.runtime.virtual as v; "
-             "print(get_controller('test_constant_force').__qualname__, v.build_ecu.__qualname__)")
-    before = os.environ.get("PYTHONPATH")
-    with node_imports(ConstantForce, SilentAfterOneSecond):
-        assert os.environ["TRAINHIL_NODE_CONTROLLER"] == "tests.test_hil_testing:ConstantForce"
-        out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    """The node processes resolve the scenario's references themselves, from the PYTHONPATH the rig gives them."""
+    from hil.realtime.orchestrator import node_environment
+    from hil.runtime.assembly import assemble
+    from hil.runtime.firmware import build_ecu
+
+    sc = build_scenario(CRUISE, controller=ConstantForce, ecu=SilentAfterOneSecond)
+    assert (sc.controller.law, sc.ecu.program) == ("tests.test_hil_testing:ConstantForce",
+                                                   "tests.test_hil_testing:SilentAfterOneSecond")
+    parts = assemble(sc)
+    ecu = build_ecu(parts, __import__("ecu_sim.codec").codec.TrainDb.load(), 4)
+    assert type(ecu) is SilentAfterOneSecond and type(ecu.controller) is ConstantForce
+    (tmp_path / "scenario.json").write_text(sc.model_dump_json())
+    probe = ("import sys; from hil.realtime.node import load_scenario_json; from hil.runtime.assembly import assemble; "
+             "from hil.runtime.firmware import build_ecu; from ecu_sim.codec import TrainDb; "
+             "e = build_ecu(assemble(load_scenario_json(sys.argv[1])), TrainDb.load(), 4); "
+             "print(type(e).__qualname__, type(e.controller).__qualname__)")
+    env = node_environment(sc)
+    out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "scenario.json")], capture_output=True, text=True,
+                         timeout=120, cwd=tmp_path, env=env)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["ConstantForce", "ecu_factory.<locals>.build"]
-    assert os.environ.get("PYTHONPATH") == before and "TRAINHIL_NODE_CONTROLLER" not in os.environ
+    assert out.stdout.split() == ["SilentAfterOneSecond", "ConstantForce"]
+    assert "sitecustomize" not in env.get("PYTHONPATH", "") and str(ROOT) in env["PYTHONPATH"].split(os.pathsep)
 
     class Local(ConstantForce):
         name = "test_local"
 
+    rig = Rig(CRUISE, controller=Local)
+    assert rig.run(0.1).controller == "test_local"  # virtual time: registered in this process
     with pytest.raises(ValueError, match="top level of an importable module"):
-        import_spec(Local, "controller")
+        rig.run(0.1, realtime=True)
 
 
 # --------------------------------------------------------------------------- the plugin in a pytest session

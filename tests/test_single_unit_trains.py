@@ -7,7 +7,8 @@ import pytest
 from hil.layout import TrainLayout
 from hil.radio.gateway import AGENT_STATE_BASE, RADIO_AHEAD_STATE, RADIO_BEHIND_STATE, standard_routes
 from hil.runtime.ideal import IdealLoop
-from hil.runtime.virtual import VirtualRig, neighbour_links
+from hil.runtime.firmware import neighbour_links
+from hil.runtime.virtual import VirtualRig
 from hil.scenario import load_scenario
 
 PERFECT = {"radio.latency_s": 0.0, "radio.jitter_s": 0.0, "radio.loss": {"model": "none"}}

@@ -11,6 +11,7 @@ from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
+from ecu_sim.references import LAW_GROUP, ReferenceLoadError, entry_point, entry_point_names, is_import_reference, load_reference
 from ecu_sim.view import AgentInfo, Command, LocalView
 
 
@@ -73,20 +74,37 @@ def register(cls: type[Controller]) -> type[Controller]:
 
 
 def get_controller(name: str) -> type[Controller]:
-    """Look a law up by name; the error lists the known names."""
+    """A law by registered name, by a name an installed package publishes (entry-point group
+    ``trainhil.controllers``), or by a ``"package.module:QualName"`` reference. The error lists the known names or
+    says why the reference does not load."""
     import ecu_sim.controllers  # noqa: F401  (imports every law module, filling the registry)
 
-    try:
+    if name in _REGISTRY:
         return _REGISTRY[name]
-    except KeyError:
-        known = ", ".join(sorted(_REGISTRY)) or "none"
-        raise KeyError(f"unknown controller law {name!r} (known: {known})") from None
+    if is_import_reference(name):
+        return _check_law(load_reference(name), name)
+    published = entry_point(LAW_GROUP, name)
+    if published is not None:
+        return _check_law(published, name)
+    raise ReferenceLoadError(f"unknown controller law {name!r} (known: {', '.join(known_controllers())}; "
+                             f"or a 'package.module:ClassName' reference)")
+
+
+def _check_law(obj: object, reference: str) -> type[Controller]:
+    """A loaded object is a law: a Controller subclass with its Params model."""
+    if not (isinstance(obj, type) and issubclass(obj, Controller)):
+        raise ReferenceLoadError(f"{reference!r} is {obj!r}, not a subclass of ecu_sim.controllers.base.Controller")
+    params = getattr(obj, "Params", None)
+    if not (isinstance(params, type) and issubclass(params, BaseModel)):
+        raise ReferenceLoadError(f"{reference!r}: {obj.__qualname__} has no `Params` (its ControllerParams model)")
+    return obj
 
 
 def known_controllers() -> list[str]:
+    """Registered and published law names."""
     import ecu_sim.controllers  # noqa: F401
 
-    return sorted(_REGISTRY)
+    return sorted(set(_REGISTRY) | set(entry_point_names(LAW_GROUP)))
 
 
 def build_controller(name: str, params: dict[str, Any], agent: AgentInfo, plant_info: PlantInfo) -> Controller:

@@ -34,7 +34,6 @@ from hil.faults.schedule import SOURCE, FaultSchedule, fault_rng
 from hil.faults.sensor import SensorFaults
 from hil.faults.virtual import BUS_KINDS, RADIO_KINDS
 from hil.record.runlog import Event, RunLog
-from hil.record.safety import violation_events
 
 ECU_KINDS = ("ecu_crash", "ecu_hang")
 PLANT_KINDS = ("sensor_stuck", "sensor_noise", "actuator_degradation", "traction_loss")
@@ -239,7 +238,7 @@ class RealtimeFaults:
 
     # ---- the end
     def finish(self, log: RunLog, t0: float | None, pace: float) -> None:
-        """Bus events in simulated time, detections matched, violations on the timeline, ``log.fault_report``."""
+        """Bus events in simulated time, detections matched, ``log.fault_report``."""
         for server, events in zip(self.servers, self.bus_events):
             shift = 0.0 if t0 is None else (t0 - server.epoch0) * pace
             log.events.extend(Event(t_ns * 1e-9 - shift, level, source, text) for t_ns, level, source, text in events)
@@ -247,8 +246,6 @@ class RealtimeFaults:
         log.events.sort(key=lambda e: e.t)
         can = {f"bus{i + 1}": bf.summary() for i, bf in enumerate(self.buses)}
         log.fault_report = fault_report(self.specs, self.layout, log, can, {"ecu_restarts": self.restarts})  # type: ignore[attr-defined]
-        log.events.extend(violation_events(log, self.sc.plant.coupler_band_m))
-        log.events.sort(key=lambda e: e.t)
 
 
 def spawn_ecu(node_cls, run: str, nodes_dir: Path, seed: int, duration: float, pace: float, u: int, name: str,

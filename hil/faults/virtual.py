@@ -17,7 +17,6 @@ from hil.faults.report import fault_report
 from hil.faults.schedule import SOURCE, FaultSchedule, ScheduledFault, fault_rng
 from hil.faults.sensor import SensorFaults
 from hil.record.runlog import RunLog
-from hil.record.safety import violation_events
 from hil.runtime.kernel import to_ns
 
 BUS_KINDS = ("babbling_node", "bus_corruption", "bus_error_frames", "frame_drop")
@@ -95,9 +94,8 @@ class VirtualFaults:
 
     # ---- the end
     def finish(self, log: RunLog) -> None:
-        """Detections matched to faults, safety violations on the timeline, ``log.fault_report`` for the metrics."""
+        """Detections matched to faults and ``log.fault_report`` for the metrics."""
         sc = self.rig.sc
         can = {bus.name: bf.summary() for bus, bf in zip(self.rig.buses, self.buses)}
         log.fault_report = fault_report(list(sc.faults), self.rig.layout, log, can,  # type: ignore[attr-defined]
                                         {"ecu_restarts": self.ecus.restarts})
-        log.events.extend(violation_events(log, sc.plant.coupler_band_m))  # appended (see fault_report)

@@ -108,6 +108,11 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: simulated seconds per wall second (default 1.0 = wall clock; 0.5 slower, 10 faster)")
     g.add_argument("--ecus-per-process", type=int, default=None, metavar="N",
                    help="with --realtime: host N ECUs per process (default 1: one process per ECU)")
+    g.add_argument("--external", action="append", default=[], metavar="UNIT",
+                   help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
+                        "program or device on the bus (adds to ecu.external; repeatable)")
+    g.add_argument("--run", dest="run_name", metavar="NAME",
+                   help="with --realtime: the run name, i.e. the python-can channel prefix NAME/bus1 (default: fresh)")
 
 
 def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
@@ -132,8 +137,24 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path):
             check_channels(scenario.can.socketcan_channels, scenario.trains.count)
         except SocketCanUnavailable as exc:
             raise ScenarioError(str(exc)) from None
+    if args.run_name is not None:
+        from hil.realtime.paths import validate_name
+
+        try:
+            validate_name(args.run_name, "--run")
+        except ValueError as exc:
+            raise ScenarioError(str(exc)) from None
     return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
-                        record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False))
+                        record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
+                        run=args.run_name, on_channels=print_channels)
+
+
+def print_channels(channels) -> None:
+    """One ``channel bus=... train=... interface=... channel=...`` line per bus on stdout (also under --quiet):
+    what a script needs to start its python-can program on the run's buses."""
+    for ch in channels:
+        print(ch.line())
+    sys.stdout.flush()
 
 
 def bus_server_main(argv: list[str] | None = None) -> int:

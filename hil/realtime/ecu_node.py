@@ -28,7 +28,7 @@ from hil.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
 from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
-from hil.runtime.virtual import build_ecu
+from hil.runtime.firmware import build_ecu
 
 
 def main(argv: list[str] | None = None) -> int:

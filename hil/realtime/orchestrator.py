@@ -48,14 +48,17 @@ from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.realtime.busserver import BusServer
 from hil.realtime.native_server import NativeBusServer
-from hil.realtime.paths import remove_run_dir
+from hil.realtime.external import ExternalUnitMissing, JoinWait
+from hil.realtime.paths import remove_run_dir, validate_name
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import asc_listener, open_asc
 from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.metrics import compute_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
+from hil.record.safety import record_violations
 from hil.reference import ReferenceProfile
+from hil.runtime.firmware import import_roots
 from hil.scenario.model import Scenario
 
 READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a loaded 2-core machine is slow
@@ -95,11 +98,13 @@ class Node:
         except (BrokenPipeError, OSError, ValueError):
             pass
 
-    def stderr_tail(self, n: int = 800) -> str:
+    def stderr_tail(self, lines: int = 30) -> str:
+        """The last ``lines`` whole lines the node wrote on stderr (a traceback's end names the error)."""
         try:
-            return self.stderr_path.read_text(errors="replace")[-n:].strip()
+            text = self.stderr_path.read_text(errors="replace").strip()
         except OSError:
             return ""
+        return "\n".join(text.splitlines()[-lines:])
 
 
 class _StopRequest:
@@ -137,12 +142,15 @@ def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]):
 
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
                  seed: int | None = None, ecus_per_process: int = 1, record: bool = True, progress: bool = False,
-                 plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None, can_log: bool = False):
+                 plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None, can_log: bool = False,
+                 run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: the plant polls this long before each publication (0: sleep only). ``on_start(t0)`` is
     called with the epoch time of simulated t = 0 once every node is ready (tools, tests). ``can_log``: write
-    ``<bus>.asc`` per bus, frames stamped in simulated seconds as in a virtual-time run."""
+    ``<bus>.asc`` per bus, frames stamped in simulated seconds as in a virtual-time run. ``run``: the run name
+    (the python-can channel prefix; default: a fresh one); ``on_channels(channels)`` is called once the buses are
+    up, before the nodes start, so that an external device can join (``ecu.external``)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process < 1:
@@ -162,7 +170,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     nodes_dir.mkdir()
     (nodes_dir / "scenario.json").write_text(scenario.model_dump_json())
     mark_running(out_dir / "metrics.json", scenario.name, "realtime")  # replaced by the metrics when the run ends
-    run = run_name(scenario.name)
+    run = run_name(scenario.name) if run is None else validate_name(run, "run")
+    external = [layout.unit_index(name) for name in scenario.ecu.external]
+    join = None  # JoinWait, while external units are expected
     sc_ = scenario.can
     servers: list[BusServer] = []
     nodes: list[Node] = []
@@ -184,12 +194,18 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace))
                 servers.append(server.start())
             faults = _faults(scenario, layout, servers, seed)
+            if on_channels is not None:
+                on_channels(channels(run, scenario))
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us,
-                                 faults.solo_units if faults else ())
-            if progress:
-                print(f"real-time rig {run}: python-can channels {run}/bus1 .. {run}/bus{layout.n_trains} "
-                      f"(interface trainhil), {len(nodes)} node processes, pace {pace:g}", file=sys.stderr)
+                                 faults.solo_units if faults else (), external, node_environment(scenario))
+            say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
+            if say is not None:
+                say(f"{len(nodes)} node processes, pace {pace:g}" + (
+                    f"; waiting up to {scenario.ecu.join_timeout_s:g} s for external unit(s) "
+                    f"{', '.join(scenario.ecu.external)}" if external else ""))
             _wait_ready(nodes, stop)
+            if external:
+                join = JoinWait(layout, external, scenario.ecu.join_timeout_s, nodes[0].lines, say)
             if not stop.requested:
                 t0 = clock["t0"] = time.time() + GO_MARGIN_S
                 for n in nodes:
@@ -199,7 +215,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 if faults is not None:
                     faults.go(t0, pace, nodes, _respawn(run, nodes_dir, seed, duration, pace, layout))
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
-                                         faults.tick if faults is not None else None)
+                                         faults.tick if faults is not None else None, join)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
             else:
                 stop_reason = stop.requested
@@ -218,6 +234,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     log, extra = _merge(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason)
     if faults is not None:
         faults.finish(log, t0, pace)
+    record_violations(log, scenario.plant.coupler_band_m)  # every safety violation on the timeline
     extra["realtime"]["bus_servers"] = server_stats
     files = [out_dir / f"bus{i + 1}.asc" for i in range(len(asc))]
     if record:
@@ -229,9 +246,46 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     metrics["runtime"] = "realtime"
     metrics["pace"] = float(pace)
     metrics["interrupted"] = log.interrupted
+    missing = join.missing() if join is not None and join.waiting and not stop.requested else None
+    if missing is not None:
+        metrics["error"] = f"ExternalUnitMissing: {stop_reason or missing}"
     write_json_atomic(out_dir / "metrics.json", metrics)
     files.append(out_dir / "metrics.json")
+    if missing is not None:
+        raise ExternalUnitMissing(f"{stop_reason or missing} (what ran is in {out_dir}): start the external program "
+                                  "once the rig has printed its channels, or raise ecu.join_timeout_s")
     return _run_result(log, metrics, out_dir, files)
+
+
+@dataclass(frozen=True)
+class Channel:
+    """Where a python-can program joins one train's bus: ``can.Bus(interface=..., channel=...)``."""
+
+    bus: str  # "bus1"
+    train: int  # 1-based
+    interface: str  # "trainhil" or "socketcan"
+    channel: str  # "<run>/bus1", or the host interface ("vcan0")
+
+    def line(self) -> str:
+        """The ``key=value`` line ``hil run --realtime`` prints on stdout for scripts."""
+        return f"channel bus={self.bus} train={self.train} interface={self.interface} channel={self.channel}"
+
+
+def channels(run: str, sc: Scenario) -> list[Channel]:
+    """The python-can channels of a run's train buses."""
+    if sc.can.transport == "socketcan":
+        return [Channel(f"bus{i + 1}", i + 1, "socketcan", ch) for i, ch in enumerate(sc.can.socketcan_channels)]
+    return [Channel(f"bus{i + 1}", i + 1, "trainhil", f"{run}/bus{i + 1}") for i in range(sc.trains.count)]
+
+
+def node_environment(sc: Scenario) -> dict[str, str]:
+    """The node processes' environment: ours, with the folders the scenario's ``module:QualName`` references
+    are imported from put first on ``PYTHONPATH`` (each node resolves the references itself)."""
+    env = dict(os.environ)
+    roots = [str(r) for r in import_roots(sc)]
+    if roots:
+        env["PYTHONPATH"] = os.pathsep.join([*roots, *filter(None, [env.get("PYTHONPATH")])])
+    return env
 
 
 def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace: float):
@@ -274,37 +328,33 @@ def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float,
     from hil.faults.realtime import spawn_ecu
 
     serial = iter(range(1, 1 << 30))
-    return lambda u: spawn_ecu(Node, run, nodes_dir, seed, duration, pace, u, _unit_name(layout, u), next(serial))
+    return lambda u: spawn_ecu(Node, run, nodes_dir, seed, duration, pace, u, layout.unit_name(u), next(serial))
 
 
 def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, duration: float, pace: float,
-                 per_process: int, spin_us: float, solo=()) -> list[Node]:
+                 per_process: int, spin_us: float, solo=(), external=(), env: dict[str, str] | None = None) -> list[Node]:
+    """The plant first (``nodes[0]``), the radio, then the ECU processes; none for ``external`` units."""
     common = ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
               "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir)]
     specs = [("plant", "plant", ["hil.realtime.plant_node", "--spin-us", repr(spin_us)])]
     if layout.n_trains > 1:
         specs.append(("radio", "radio", ["hil.realtime.radio_node"]))
-    units = [u for u in range(layout.n_units) if u not in solo]  # units with an ECU fault get a process each
+    units = [u for u in range(layout.n_units) if u not in solo and u not in external]  # ECU faults: a process each
     groups = [units[k:k + per_process] for k in range(0, len(units), per_process)] + [[u] for u in sorted(solo)]
     for group in groups:
-        names = ",".join(_unit_name(layout, u) for u in group)
+        names = ",".join(layout.unit_name(u) for u in group)
         specs.append((names, "ecu", ["hil.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
     nodes = []
     for name, kind, argv in specs:
         err = nodes_dir / f"{kind}_{len(nodes)}.stderr"
         with open(err, "w") as fh:
             proc = subprocess.Popen([sys.executable, "-m", argv[0], *common, *argv[1:]], stdin=subprocess.PIPE,
-                                    stdout=subprocess.PIPE, stderr=fh, text=True, bufsize=1,
+                                    stdout=subprocess.PIPE, stderr=fh, text=True, bufsize=1, env=env,
                                     start_new_session=True)  # a terminal's Ctrl-C reaches only us: we stop them
         node = Node(name, kind, proc, err)
         node.start_reader()
         nodes.append(node)
     return nodes
-
-
-def _unit_name(layout: TrainLayout, u: int) -> str:
-    train, unit = layout.train_unit(u)
-    return f"train{train + 1}/unit{unit + 1}"
 
 
 def _wait_ready(nodes: list[Node], stop: _StopRequest) -> None:
@@ -317,18 +367,24 @@ def _wait_ready(nodes: list[Node], stop: _StopRequest) -> None:
             if not n.ready and n.proc.poll() is not None:
                 if stop.requested:
                     return
-                raise NodeError(f"{n.kind} node {n.name} exited with code {n.proc.returncode} before it was ready: "
-                                f"{n.stderr_tail()}")
+                raise NodeError(f"{n.kind} node {n.name} exited with code {n.proc.returncode} before it was ready:\n"
+                                + _indent(n.stderr_tail() or "(nothing on its stderr)"))
         if time.monotonic() > deadline:
             late = ", ".join(f"{n.kind} {n.name}" for n in nodes if not n.ready)
             raise NodeError(f"nodes not ready after {READY_TIMEOUT_S:.0f} s: {late}")
         time.sleep(0.02)
 
 
+def _indent(text: str) -> str:
+    return "\n".join("  " + line for line in text.splitlines())
+
+
 def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop: _StopRequest,
-               events: list[Event], progress: bool, on_tick: Callable[[float], None] | None = None) -> str | None:
+               events: list[Event], progress: bool, on_tick: Callable[[float], None] | None = None,
+               join: JoinWait | None = None) -> str | None:
     """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed).
-    ``on_tick(sim_now)`` runs every loop turn (fault injection: every 10 ms instead of 50)."""
+    ``on_tick(sim_now)`` runs every loop turn (fault injection: every 10 ms instead of 50); ``join`` stops the run
+    when an external unit has not joined in time."""
     end_wall = t0 + duration / pace
     bar = _progress_bar(duration) if progress else None
     try:
@@ -340,13 +396,16 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                 bar.refresh()
             if stop.requested:
                 return stop.requested
+            if join is not None and (why := join.poll(now - t0)):
+                events.append(Event(sim_now, "ERROR", "rig", f"run stopped: {why}"))
+                return why
             for n in nodes:
                 code = n.proc.poll()
                 if code is not None and not n.reported and (code != 0 or now < end_wall - 0.5):
                     n.reported = True
                     level = "ERROR"
                     text = f"{'ECU' if n.kind == 'ecu' else n.kind} process {n.name} exited with code {code}"
-                    tail = n.stderr_tail(300)
+                    tail = n.stderr_tail(10)
                     events.append(Event(sim_now, level, "rig", text + (f": {tail}" if tail and code > 0 else "")))
                     if n.kind != "ecu":
                         return f"{n.kind} node exited"
@@ -476,10 +535,11 @@ def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> 
         "e2e_latency_p50_s": plant.get("e2e_latency_p50_s"),
         "e2e_latency_p99_s": plant.get("e2e_latency_p99_s"),
         "e2e_latency_max_s": plant.get("e2e_latency_max_s"),
+        **({"external_units": plant["external_units"]} if "external_units" in plant else {}),
         "realtime": {
             "ecus": {r["name"]: {k: v for k, v in r.items() if k not in ("events", "e2e", "codec_saturations", "name")}
                      for r in ecus},
-            "plant": {k: v for k, v in plant.items() if k not in ("events", "codec_saturations")},
+            "plant": {k: v for k, v in plant.items() if k not in ("events", "codec_saturations", "external_units")},
         },
     }
 

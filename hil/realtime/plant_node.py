@@ -12,7 +12,8 @@ after it, exactly as in the virtual rig, and the plant costs its steps instead o
 step at pace 10 would need 10,000 wake-ups per second). Recording samples (every ``recording.period_s``) are
 taken during integration. A command that reaches the plant after it already integrated past the command's
 arrival (the plant was late) is applied at once and counted (``late_commands``). The integration never skips.
-If commands stop, the Plant's own fail-safe acts and logs it.
+If commands stop, the Plant's own fail-safe acts and logs it. The commands of external units (``ecu.external``)
+are watched (hil/realtime/external.py): the node prints ``joined <unit> <t>`` on stdout at the first valid one.
 
 Sensor-to-actuator latency (``e2e``): the ECU sends its AgentState numbered with the Sensor sample k it used,
 in the same cycle as its TractionCmd (which has the lower ID, so it is on the bus first). When AgentState k of
@@ -35,6 +36,7 @@ import numpy as np
 
 from ecu_sim.codec import TrainDb
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.realtime.external import JOIN_LINE, ExternalWatch, missing_after_s
 from hil.realtime.frame_io import node_frames
 from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
@@ -74,6 +76,8 @@ class PlantNode:
 
             self.faults = PlantFaults(sc, self.plant, self.layout, seed, self.log)
         self.late_command_max_s = 0.0
+        external = [self.layout.unit_index(name) for name in sc.ecu.external]
+        self.external = ExternalWatch(self.layout, external, missing_after_s(sc)) if external else None
 
     def train_units(self, i: int) -> range:
         first = self.layout.index(i, 0)
@@ -98,6 +102,8 @@ class PlantNode:
             u = self.io.command(i, fid, data, t)
             if u is not None:
                 self.last_cmd_t[u] = t
+                if self.external is not None and self.external.command(u, t):
+                    print(f"{JOIN_LINE} {u} {t!r}", flush=True)  # the orchestrator waits for it (JoinWait)
             return
         u = self.state_unit[i].get(fid)
         if u is not None and self.last_cmd_t[u] >= (pub := self.sensor_pub[u, data[1] & 0xF]):
@@ -160,6 +166,8 @@ class PlantNode:
             self.advance_to(n_steps)
         self.log.sim_time_s = self.tick * step
         self.log.interrupted = self.tick < n_steps
+        if self.external is not None:
+            self.log.events.extend(self.external.events(self.log.sim_time_s))
         self.log.wall_time_s = time.time() - clock.t0
         if not stop:
             linger(clock)
@@ -193,7 +201,8 @@ class PlantNode:
                 "late_commands": self.late_commands, "late_command_max_s": self.late_command_max_s,
                 "malformed_frames": self.io.malformed_frames,
                 "events": [[e.t, e.level, e.source, e.text] for e in self.log.events],
-                "codec_saturations": self.db.total_saturations()}
+                "codec_saturations": self.db.total_saturations(),
+                **({"external_units": self.external.report(self.log.sim_time_s)} if self.external is not None else {})}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -192,3 +192,9 @@ def violation_events(log: RunLog, band: tuple[float, float]) -> list[Event]:
         if per[v.verdict] <= MAX_LISTED:
             out.append(Event(v.start_s, "ERROR", "safety", v.text()))
     return out
+
+
+def record_violations(log: RunLog, band: tuple[float, float]) -> None:
+    """Put the run's violations on its timeline (every runtime calls this once, at the end of the run). Appended,
+    not sorted in: the recorder writes the events incrementally by position (the viewer orders them by time)."""
+    log.events.extend(violation_events(log, band))

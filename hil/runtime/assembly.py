@@ -12,6 +12,7 @@ from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
 from hil.layout import TrainLayout
 from hil.plant import Plant
 from hil.reference import ReferenceProfile
+from hil.runtime.firmware import UnitFirmware, firmware_plan
 from hil.scenario.model import Scenario
 
 
@@ -24,6 +25,7 @@ class Assembly:
     plant: Plant
     reference: ReferenceProfile
     controllers: list[Controller]
+    firmware: list[UnitFirmware]  # per unit: law, params, ECU program, external (hil/runtime/firmware.py)
     plant_info: PlantInfo
     seed: int
     streams: dict[str, np.random.Generator]
@@ -48,7 +50,7 @@ def random_streams(seed: int) -> dict[str, np.random.Generator]:
 
 
 def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
-    """Build layout, plant (at its initial state), reference and one controller per unit."""
+    """Build layout, plant (at its initial state), reference and one controller per unit (its own law)."""
     seed = scenario.seed if seed is None else seed
     streams = random_streams(seed)
     layout = TrainLayout.from_config(scenario.trains)
@@ -57,6 +59,7 @@ def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     v0 = np.repeat(scenario.trains.initial_speeds_mps, layout.units_per_train).astype(float)
     plant = Plant(scenario.plant, scenario.track, layout, x0, v0, streams["plant"])
     info = plant_info(scenario)
-    controllers = [build_controller(scenario.controller.law, scenario.controller.params, layout.agent_info(u), info)
-                   for u in range(layout.n_units)]
-    return Assembly(scenario, layout, plant, ReferenceProfile.from_config(scenario.reference), controllers, info, seed, streams)
+    firmware = firmware_plan(scenario)
+    controllers = [build_controller(f.law, f.params, layout.agent_info(u), info) for u, f in enumerate(firmware)]
+    return Assembly(scenario, layout, plant, ReferenceProfile.from_config(scenario.reference), controllers, firmware,
+                    info, seed, streams)

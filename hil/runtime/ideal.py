@@ -13,6 +13,8 @@ import time
 
 from ecu_sim.view import LocalView, NeighbourView, ReferenceView
 from hil.record.runlog import RunLog
+from hil.record.safety import record_violations
+from hil.runtime.firmware import refuse_external_units
 from hil.runtime.assembly import Assembly, assemble
 from hil.runtime.kernel import to_ns
 from hil.scenario.model import Scenario
@@ -22,6 +24,7 @@ class IdealLoop:
     """Network-free closed loop of one scenario."""
 
     def __init__(self, scenario: Scenario, seed: int | None = None, control_period_s: float | None = None) -> None:
+        refuse_external_units(scenario, "the ideal loop")
         self.sc = scenario
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout
@@ -80,6 +83,7 @@ class IdealLoop:
             plant.events.clear()
         log.sim_time_s = plant.t
         log.wall_time_s = time.perf_counter() - wall0
+        record_violations(log, self.sc.plant.coupler_band_m)  # every safety violation on the timeline
         return log
 
 

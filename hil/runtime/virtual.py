@@ -18,15 +18,17 @@ from typing import Callable
 import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
-from ecu_sim.runtime import Ecu, NeighbourLink
+from ecu_sim.runtime import Ecu
 from hil.can.bus import CanNode
 from hil.runtime.python_bus import VirtualCanBus
 from hil.layout import TrainLayout
 from hil.radio.gateway import RadioGateway, build_links, standard_routes
 from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import BusLog, RunLog
+from hil.record.safety import record_violations
 from hil.runtime.assembly import Assembly, assemble
 from hil.faults.schedule import needs_fault_machinery
+from hil.runtime.firmware import EcuFactory, build_ecu, refuse_external_units
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
 from hil.runtime.kernel import Kernel, to_ns
 from hil.scenario.model import Scenario
@@ -45,8 +47,10 @@ class VirtualRig:
     """One scenario wired up over emulated CAN, ready to run in virtual time."""
 
     def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None,
-                 network: str | None = None) -> None:
-        """``network``: "engine" or "python" (default: :func:`network_model_for` the scenario)."""
+                 network: str | None = None, ecu_factory: EcuFactory = build_ecu) -> None:
+        """``network``: "engine" or "python" (default: :func:`network_model_for` the scenario). ``ecu_factory``
+        builds each unit's ECU (default: the program the scenario names, :func:`hil.runtime.firmware.build_ecu`)."""
+        refuse_external_units(scenario, "virtual time")
         needed = network_model_for(scenario)
         self.network = needed if network is None else network
         if self.network not in NETWORK_MODELS:
@@ -73,7 +77,7 @@ class VirtualRig:
         self._train_of = [self.layout.train_unit(u)[0] for u in range(self.layout.n_units)]
         self._ecu_nodes: list[CanNode] = []
         for u in range(self.layout.n_units):
-            self._attach_ecu(u)
+            self._attach_ecu(u, ecu_factory)
         self.gateway, self._gw_nodes = self._attach_radio()
         self._schedule()
         self.faults = None  # the fault schedule, its injectors and monitors (hil/faults), if the scenario has one
@@ -107,9 +111,9 @@ class VirtualRig:
 
         return self.buses[i].attach("Plant", on_rx, set(self.plant_io.cmd_unit[i]))
 
-    def _attach_ecu(self, u: int) -> None:
+    def _attach_ecu(self, u: int, ecu_factory: EcuFactory) -> None:
         train, unit = self.layout.train_unit(u)
-        ecu = build_ecu(self.parts, self.db, u)
+        ecu = ecu_factory(self.parts, self.db, u)
         name, bus = f"ECU_U{unit + 1:02d}", self.buses[train]
         if isinstance(bus, EngineBus):
             node = bus.attach_ecu(name, ecu)
@@ -269,32 +273,10 @@ class VirtualRig:
         log.wall_time_s = wall_s
         if self.faults is not None:
             self.faults.finish(log)
+        record_violations(log, self.sc.plant.coupler_band_m)  # every safety violation on the timeline
 
 
 # ---------------------------------------------------------------------- wiring shared with the real-time runtime
-def neighbour_links(db: TrainDb, layout: TrainLayout, forward_aux: bool, u: int) -> list[NeighbourLink]:
-    """Where unit u's neighbours' states arrive from: intra-train AgentState/AgentAux, or the radio IDs."""
-    links = []
-    for q, link, side in layout.neighbours(u):
-        if link == "intra":
-            unit = layout.train_unit(q)[1]
-            state, aux = db.agent_state(unit).frame_id, db.agent_aux(unit).frame_id
-        elif side == "ahead":
-            state, aux = db.radio_ahead_state.frame_id, db.radio_ahead_aux.frame_id if forward_aux else None
-        else:
-            state, aux = db.radio_behind_state.frame_id, db.radio_behind_aux.frame_id if forward_aux else None
-        links.append(NeighbourLink(state, aux, link, side, float(layout.offset_m[q])))  # type: ignore[arg-type]
-    return links
-
-
-def build_ecu(parts: Assembly, db: TrainDb, u: int) -> Ecu:
-    """The firmware of flat unit u, configured as in the scenario (both runtimes build it here)."""
-    sc, layout = parts.scenario, parts.layout
-    train, unit = layout.train_unit(u)
-    return Ecu(f"train{train + 1}/unit{unit + 1}/ecu", layout.agent_info(u), parts.controllers[u], db,
-               neighbour_links(db, layout, sc.radio.forward_aux, u), sc.ecu, sample_period_s=sc.can.sensor_period_s)
-
-
 def build_gateway(sc: Scenario, db: TrainDb, radio_rng) -> RadioGateway:
     """The radio gateway of the scenario's trains (links, routing table, position decoder)."""
     layout = TrainLayout.from_config(sc.trains)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import enum
 import math
+import re
 import types
 import typing
 from typing import Any
@@ -132,6 +133,22 @@ def _segment_errors(where: str, segments: list, start: str, end: str, overlap: b
     return None
 
 
+UNIT_NAME = re.compile(r"train(\d+)/unit(\d+)")
+
+
+def unit_name_error(name: str, n_trains: int, units_per_train: int) -> str | None:
+    """Why ``name`` is not the ``train<t>/unit<k>`` name of a unit of this group (1-based), or None."""
+    m = UNIT_NAME.fullmatch(str(name).strip())
+    if m is None:
+        return f"{name!r} is not a unit name: expected 'train<t>/unit<k>', e.g. 'train1/unit2' (1-based)"
+    train, unit = int(m.group(1)), int(m.group(2))
+    if not 1 <= train <= n_trains:
+        return f"{name!r}: there is no train {train} (trains.count = {n_trains})"
+    if not 1 <= unit <= units_per_train:
+        return f"{name!r}: a train has no unit {unit} (trains.units = {units_per_train})"
+    return None
+
+
 def _name_error(name: str) -> str | None:
     """The scenario name names the output directory (runs/<name>): no path separators, not empty."""
     if not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0"):
@@ -155,8 +172,29 @@ def scenario_inconsistency(sc: Any) -> str | None:
         _segment_errors("radio.blackouts", sc.radio.blackouts, "start_m", "end_m", overlap=False),
         _reference_error(sc.reference),
         _disturbance_error(sc.plant.disturbances, sc.trains.count, sc.trains.units),
+        _firmware_units_error(sc.ecu, sc.trains.count, sc.trains.units),
     )
     return next((why for why in checks if why is not None), None)
+
+
+def _firmware_units_error(ecu: Any, n_trains: int, n_units: int) -> str | None:
+    """ecu.units and ecu.external name units that exist, each at most once, and not both."""
+    seen: dict[str, str] = {}
+    for where, name in [*((f"ecu.units.{i}.unit", o.unit) for i, o in enumerate(ecu.units)),
+                        *((f"ecu.external.{i}", n) for i, n in enumerate(ecu.external))]:
+        why = unit_name_error(name, n_trains, n_units)
+        if why is not None:
+            return f"{where}: {why}"
+        key = str(name).strip()
+        if key in seen:
+            return f"{where} = {key!r}: already given in {seen[key]}"
+        seen[key] = where
+    for i, o in enumerate(ecu.units):
+        if o.params is not None:
+            bad = non_finite(o.params)
+            if bad is not None:
+                return f"ecu.units.{i}.params.{bad}: must be a finite number (got NaN or inf)"
+    return None
 
 
 def _duration_error(sc: Any) -> str | None:

@@ -54,19 +54,17 @@ def format_validation_errors(source: str, err: ValidationError, what: str = "sce
     return "\n".join(lines)
 
 
-def _validate_controller(source: str, scenario: Scenario) -> None:
-    """Check the law exists and its params validate, so errors surface at load, not mid-run."""
-    from ecu_sim.controllers.base import get_controller
+def _validate_firmware(source: str, scenario: Scenario) -> None:
+    """Every law, its parameters and every ECU program load and validate, so errors surface at load, not mid-run
+    (a ``module:QualName`` reference is imported here: the error names the field, the module and the exception)."""
+    from hil.runtime.firmware import firmware_errors
 
-    try:
-        law = get_controller(scenario.controller.law)
-    except KeyError as exc:
-        raise ScenarioError(f"{source}: controller.law: {exc.args[0]}") from None
-    try:
-        law.Params(**scenario.controller.params)
-    except ValidationError as exc:
-        msg = format_validation_errors(source, exc).replace("\n  ", "\n  controller.params.")
-        raise ScenarioError(msg) from None
+    errors = firmware_errors(scenario)
+    if len(errors) == 1 and "\n" not in errors[0]:
+        raise ScenarioError(f"{source}: {errors[0]}")
+    if errors:
+        n = len(errors)
+        raise ScenarioError(f"{source}: invalid scenario ({n} error{'s' if n > 1 else ''})\n  " + "\n  ".join(errors))
 
 
 def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrides: dict[str, Any] | None = None) -> Scenario:
@@ -83,7 +81,7 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrid
         scenario = Scenario(**data)
     except ValidationError as exc:
         raise ScenarioError(format_validation_errors(source, exc)) from None
-    _validate_controller(source, scenario)
+    _validate_firmware(source, scenario)
     return scenario
 
 

@@ -417,8 +417,26 @@ class ControllerConfig(Section):
     params: dict[str, Any] = {}
 
 
+class UnitFirmware(Section):
+    """One unit's own firmware among standard ones (``[[ecu.units]]``): its program, law and parameters."""
+
+    unit: str = Field(description="'train<t>/unit<k>', 1-based")
+    program: str | None = Field(default=None, description="ECU program for this unit (default: ecu.program)")
+    law: str | None = Field(default=None, description="control law for this unit (default: controller.law)")
+    params: dict[str, Any] | None = Field(default=None, description="the law's parameters (default: controller.params "
+                                          "with the scenario's law, the law's defaults with another)")
+
+
 class EcuConfig(Section):
-    """ECU runtime settings: cycle, input freshness and degraded modes."""
+    """ECU runtime settings: cycle, input freshness and degraded modes; which firmware runs where."""
+
+    program: str = Field(default="standard", description="ECU program of every unit: a registered name, an "
+                         "entry point (trainhil.ecu_programs) or 'package.module:QualName' (ecu_sim.programs)")
+    units: list[UnitFirmware] = Field(default=[], description="per-unit overrides of program, law and params")
+    external: list[str] = Field(default=[], description="units without an emulated ECU: an external device or "
+                                "program sends their frames (real time only)")
+    join_timeout_s: float = Field(default=30.0, gt=0, description="real time: how long (wall s) the rig waits for "
+                                  "each external unit's first valid TractionCmd")
 
     cycle_s: float = Field(default=0.01, gt=0)
     phase_s: float = Field(default=0.002, ge=0, description="first cycle after each sensor publication")

@@ -2,23 +2,24 @@
 ECU program swapped in, run in virtual time (or real time) for a duration, returning a :class:`HilRun`.
 
 - ``set={"radio.latency_s": 0.2, "controller.params.kx": 0.1}``: dotted keys as in ``hil run --set``.
-- ``controller=MyLaw`` (a :class:`~ecu_sim.controllers.base.Controller` subclass; registered on first use if it is
-  not yet) or a registered law's name; ``params={...}`` replaces the law's parameters (default: the law's
-  defaults when the law is swapped, the scenario's otherwise).
-- ``ecu=MyEcu`` (a subclass of :class:`ecu_sim.runtime.Ecu`, built with the standard wiring) or a factory
-  ``(parts, db, unit) -> Ecu`` (:func:`standard_ecu` builds the shipped one, to wrap or adjust): the firmware
-  program every unit runs instead of the standard one.
+- ``controller=MyLaw`` (a :class:`~ecu_sim.controllers.base.Controller` subclass), a law's name or a
+  ``"module:ClassName"`` reference; ``params={...}`` replaces the law's parameters (default: the law's defaults
+  when the law is swapped, the scenario's otherwise).
+- ``ecu=MyEcu`` (a subclass of :class:`ecu_sim.runtime.Ecu`, built with the standard wiring), a factory
+  ``(setup: EcuSetup) -> Ecu`` (:func:`ecu_sim.programs.standard_program` builds the shipped one, to wrap or
+  adjust), or a program's name or reference: the firmware every unit runs instead of the standard one.
 
-Real time runs the scenario on :func:`hil.realtime.orchestrator.run_realtime` (separate processes; by default one
-ECU process per train, ``ecus_per_process`` = units per train, to keep start-up short). The node
-processes import the user's controller and ECU program from their modules (:mod:`hil.testing.nodes`), so these
-must be defined at the top level of an importable module (not inside a test function).
+There is one seam for user code, the same as ``hil run``'s: the rig writes the class or function into the scenario
+as its ``"module:QualName"`` reference (``controller.law``, ``ecu.program``), and every runtime resolves it
+(:mod:`hil.runtime.firmware`). Real time runs the scenario on :func:`hil.realtime.orchestrator.run_realtime`
+(separate processes; by default one ECU process per train, ``ecus_per_process`` = units per train, to keep
+start-up short), whose node processes import the references themselves; so for real time, user code must be
+defined at the top level of an importable module (not inside a test function).
 """
 from __future__ import annotations
 
-import contextlib
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,44 +29,70 @@ from hil.scenario import Scenario, scenario_from_dict
 from hil.testing.results import HilRun, Series
 
 ControllerLike = Any  # type[Controller] | str
-EcuLike = Any  # type[Ecu] | Callable[[Assembly, TrainDb, int], Ecu]
+EcuLike = Any  # type[Ecu] | Callable[[EcuSetup], Ecu] | str
 
 
-def ensure_registered(controller: ControllerLike) -> str:
-    """The law name to put in the scenario; a Controller subclass not yet registered is registered under its name."""
+def law_reference(controller: ControllerLike) -> tuple[str, bool]:
+    """(what to put in ``controller.law``, whether other processes can load it). A class defined at the top level
+    of a module becomes its ``module:QualName`` reference; any other class is registered under its ``name`` here."""
     from ecu_sim.controllers.base import Controller, get_controller, register
+    from ecu_sim.references import reference_of
 
     if isinstance(controller, str):
-        get_controller(controller)  # KeyError listing the known laws
-        return controller
+        return controller, True
     if not (isinstance(controller, type) and issubclass(controller, Controller)):
-        raise TypeError(f"controller={controller!r}: expected a Controller subclass or a registered law's name")
+        raise TypeError(f"controller={controller!r}: expected a Controller subclass, a registered law's name or a "
+                        "'module:ClassName' reference")
+    if not hasattr(controller, "Params"):
+        raise TypeError(f"controller {controller.__qualname__} has no `Params` (its ControllerParams model)")
+    ref = reference_of(controller)
+    if ref is not None:
+        return ref, True
     name = getattr(controller, "name", None)
     if not isinstance(name, str) or not name:
         raise TypeError(f"controller {controller.__qualname__} has no `name` (the law's name in scenario files)")
-    if not hasattr(controller, "Params"):
-        raise TypeError(f"controller {controller.__qualname__} has no `Params` (its ControllerParams model)")
     try:
         known = get_controller(name)
-    except KeyError:
+    except LookupError:
         register(controller)
-        return name
+        return name, False
     if known is not controller:
         raise ValueError(f"controller name {name!r} is already taken by {known.__module__}.{known.__qualname__}; "
                          f"give {controller.__module__}.{controller.__qualname__} another `name`")
-    return name
+    return name, False
+
+
+def program_reference(ecu: EcuLike) -> tuple[str, bool]:
+    """(what to put in ``ecu.program``, whether other processes can load it), as :func:`law_reference`: an Ecu
+    subclass or factory at a module's top level by reference, any other registered here under its qualified name."""
+    from ecu_sim.programs import as_program, register_program
+    from ecu_sim.references import reference_of
+
+    if isinstance(ecu, str):
+        return ecu, True
+    as_program(ecu, repr(ecu))  # TypeError-like ReferenceLoadError now, not mid-run
+    ref = reference_of(ecu)
+    if ref is not None:
+        return ref, True
+    name = f"local:{getattr(ecu, '__module__', '?')}.{getattr(ecu, '__qualname__', repr(ecu))}"
+    register_program(name, ecu)
+    return name, False
 
 
 def build_scenario(scenario: str | Path | Scenario, overrides: dict[str, Any] | None = None,
-                   controller: ControllerLike | None = None, params: dict[str, Any] | None = None) -> Scenario:
-    """Load and validate the scenario with ``overrides`` (dotted keys) and the law swapped; ScenarioError names
-    the file and the field on bad input, like ``hil run``. As in sweeps, a law different from the scenario's gets
-    its own default parameters unless parameters are given (``params`` or ``controller.params...`` keys)."""
-    from hil.scenario.loader import ScenarioError, read_toml, resolve
+                   controller: ControllerLike | None = None, params: dict[str, Any] | None = None,
+                   ecu: EcuLike | None = None) -> Scenario:
+    """Load and validate the scenario with ``overrides`` (dotted keys), the law and the ECU program swapped;
+    ScenarioError names the file and the field on bad input, like ``hil run``. As in sweeps, a law different from
+    the scenario's gets its own default parameters unless parameters are given (``params`` or
+    ``controller.params...`` keys)."""
+    from hil.scenario.loader import read_toml, resolve, ScenarioError
 
     sets = dict(overrides or {})
     if controller is not None:
-        sets["controller.law"] = ensure_registered(controller)
+        sets["controller.law"] = law_reference(controller)[0]
+    if ecu is not None:
+        sets["ecu.program"] = program_reference(ecu)[0]
     if params is not None:
         sets["controller.params"] = dict(params)
     if isinstance(scenario, Scenario):
@@ -80,72 +107,19 @@ def build_scenario(scenario: str | Path | Scenario, overrides: dict[str, Any] | 
     return scenario_from_dict(data, source, sets)
 
 
-def standard_ecu(parts, db, u: int):
-    """The standard firmware of unit u (``hil.runtime.virtual.build_ecu`` as shipped), also while a swap is active:
-    a user factory can build it and wrap or adjust it."""
-    import hil.runtime.virtual as virtual
-
-    build = virtual.build_ecu
-    return getattr(build, "standard", build)(parts, db, u)
-
-
-def ecu_factory(ecu: EcuLike) -> Callable:
-    """``(parts, db, unit) -> Ecu`` for an Ecu subclass or a factory. A subclass is built by the standard
-    ``build_ecu`` itself with the class swapped in, so its wiring never drifts from the shipped firmware's."""
-    import hil.runtime.virtual as virtual
-    from ecu_sim.runtime import Ecu
-
-    standard = getattr(virtual.build_ecu, "standard", virtual.build_ecu)
-    if isinstance(ecu, type):
-        if not issubclass(ecu, Ecu):
-            raise TypeError(f"ecu={ecu.__qualname__}: expected a subclass of ecu_sim.runtime.Ecu or a factory")
-
-        def build(parts, db, u: int, cls=ecu):
-            saved = virtual.Ecu
-            virtual.Ecu = cls  # build_ecu constructs `Ecu(...)` from its module's namespace
-            try:
-                return standard(parts, db, u)
-            finally:
-                virtual.Ecu = saved
-
-    elif callable(ecu):
-        def build(parts, db, u: int, factory=ecu):
-            return factory(parts, db, u)
-
-    else:
-        raise TypeError(f"ecu={ecu!r}: expected a subclass of ecu_sim.runtime.Ecu or a factory (parts, db, unit) -> Ecu")
-    build.standard = standard  # type: ignore[attr-defined]
-    return build
-
-
-@contextlib.contextmanager
-def ecu_program(ecu: EcuLike | None) -> Iterator[None]:
-    """While active, the rig builds every unit's firmware with ``ecu`` (both runtimes build ECUs through
-    ``hil.runtime.virtual.build_ecu``; the real-time ECU nodes get the same swap from hil.testing.nodes)."""
-    if ecu is None:
-        yield
-        return
-    import hil.runtime.virtual as virtual
-
-    original = virtual.build_ecu
-    virtual.build_ecu = ecu_factory(ecu)
-    try:
-        yield
-    finally:
-        virtual.build_ecu = original
-
-
 class Rig:
     """A scenario ready to run under test (see the module docstring). ``run()`` can be called several times."""
 
     def __init__(self, scenario: str | Path | Scenario, *, set: dict[str, Any] | None = None,  # noqa: A002
                  controller: ControllerLike | None = None, params: dict[str, Any] | None = None,
                  ecu: EcuLike | None = None, seed: int | None = None) -> None:
-        self.scenario = build_scenario(scenario, set, controller, params)
+        self.scenario = build_scenario(scenario, set, controller, params, ecu)
         self.controller = controller
         self.ecu = ecu
-        if ecu is not None:
-            ecu_factory(ecu)  # type errors now, not mid-run
+        # user code registered in this process only (defined inside a function): virtual time only
+        self._local = [what for what, obj, ref in (("controller", controller, law_reference),
+                                                    ("ECU program", ecu, program_reference))
+                       if obj is not None and not ref(obj)[1]]
         self.seed = self.scenario.seed if seed is None else int(seed)
         self.realtime_default: dict[str, Any] | None = None  # set by the pytest plugin from @pytest.mark.hil_realtime
         self.on_run: list[Callable[[HilRun], None]] = []  # the plugin keeps runs for --hil-record
@@ -185,8 +159,7 @@ class Rig:
         from hil.record.metrics import compute_metrics
         from hil.runtime.virtual import VirtualRig
 
-        with ecu_program(self.ecu):
-            rig = VirtualRig(self.scenario, self.seed)
+        rig = VirtualRig(self.scenario, self.seed)
         frames = None
         if self.scenario.recording.frames:
             from hil.record.frames import FrameRecorder
@@ -204,14 +177,15 @@ class Rig:
     # ------------------------------------------------------------------ real time
     def _run_realtime(self, duration: float, pace: float = 1.0, ecus_per_process: int | None = None) -> HilRun:
         from hil.realtime.orchestrator import run_realtime
-        from hil.testing.nodes import node_imports
 
+        if self._local:
+            raise ValueError(f"the {' and the '.join(self._local)} of this rig must be defined at the top level of an "
+                             "importable module to run in real time (the rig's node processes import it from there)")
         out = self.work_dir() if self.work_dir else Path(tempfile.mkdtemp(prefix="trainhil-rt-"))
         started: list[float] = []
         per_process = ecus_per_process or self.scenario.trains.units
-        with node_imports(self.controller if not isinstance(self.controller, str) else None, self.ecu):
-            result = run_realtime(self.scenario, out, pace=pace, duration_s=duration, seed=self.seed,
-                                  ecus_per_process=per_process, record=False, on_start=started.append)
+        result = run_realtime(self.scenario, out, pace=pace, duration_s=duration, seed=self.seed,
+                              ecus_per_process=per_process, record=False, on_start=started.append)
         if self.scenario.recording.frames:
             from hil.record.runlog import Event
 

@@ -1,0 +1,199 @@
+"""The user's own firmware through the one seam (hil/runtime/firmware.py): laws and ECU programs by name, by
+``module:QualName`` reference and by entry point, per-unit overrides, clear load errors, external units refused
+outside real time; and the run's verdict for CI (``--check``) with every violation on the timeline."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ecu_sim.controllers.base import get_controller
+from ecu_sim.programs import get_program
+from ecu_sim.references import ReferenceLoadError
+from hil.cli import EXIT_UNSAFE, main
+from hil.runtime.firmware import firmware_plan
+from hil.scenario import ScenarioError
+from hil.testing import Rig, build_scenario
+from tests.rrd_reader import read_text_rows
+
+ROOT = Path(__file__).resolve().parents[1]
+CRUISE = ROOT / "examples" / "cruise.toml"
+
+USER_LAW = '''
+from pydantic import Field
+from ecu_sim.controllers.base import Controller, ControllerParams
+from ecu_sim.view import Command, LocalView
+
+
+class PushParams(ControllerParams):
+    force_n: float = Field(default=1000.0)
+
+
+class Push(Controller):
+    """Every unit pushes with a constant force."""
+    name = "push"
+    Params = PushParams
+
+    def step(self, view: LocalView) -> Command:
+        return Command(force_n=self.params.force_n, accel_mps2=0.0)
+'''
+
+USER_PROGRAM = '''
+from ecu_sim.programs import standard_program
+
+
+def quiet_after_half_a_second(setup):
+    """A factory: the standard firmware, which stops sending after t = 0.5 s."""
+    ecu = standard_program(setup)
+    cycle = ecu.cycle
+    ecu.cycle = lambda t: [] if t > 0.5 else cycle(t)
+    return ecu
+'''
+
+
+@pytest.fixture
+def user_dir(tmp_path, monkeypatch):
+    """A folder outside the repository with the user's law and program, as the current directory."""
+    (tmp_path / "mylaw.py").write_text(USER_LAW)
+    (tmp_path / "myecu.py").write_text(USER_PROGRAM)
+    (tmp_path / "broken.py").write_text("import numpy\nraise RuntimeError('calibration table missing')\n")
+    monkeypatch.chdir(tmp_path)
+    yield tmp_path
+    for name in ("mylaw", "myecu", "broken"):
+        sys.modules.pop(name, None)
+
+
+def traction_kn(run, train: int, unit: int) -> np.ndarray:
+    return run.signals[f"/trains/{train}/units/{unit}/traction_kn"].v
+
+
+def test_a_law_by_reference_from_the_current_directory_runs_on_every_unit(user_dir):
+    run = Rig(CRUISE, set={"controller.law": "mylaw:Push", "controller.params": {"force_n": 2500.0}}).run(0.5)
+    for train in (1, 2):
+        for unit in (1, 2, 3):
+            t = run.signals[f"/trains/{train}/units/{unit}/traction_kn"].t
+            assert np.all(traction_kn(run, train, unit)[t >= 0.1] == 2.5)
+    assert run.controller == "mylaw:Push"
+
+
+def test_one_unit_runs_its_own_law_and_program_among_standard_ones(user_dir):
+    sc = build_scenario(CRUISE, {"ecu.units": [{"unit": "train2/unit3", "law": "mylaw:Push", "params": {"force_n": 4000.0}},
+                                               {"unit": "train1/unit2", "program": "myecu:quiet_after_half_a_second"}]})
+    plan = firmware_plan(sc)
+    assert [f.law for f in plan] == ["consensus"] * 5 + ["mylaw:Push"]
+    assert plan[1].program == "myecu:quiet_after_half_a_second" and plan[0].program == "standard"
+    run = Rig(sc).run(1.0)
+    t = run.signals["/trains/2/units/3/traction_kn"].t
+    assert np.all(traction_kn(run, 2, 3)[t >= 0.1] == 4.0)
+    assert not np.all(traction_kn(run, 2, 2)[t >= 0.1] == 4.0)  # its neighbours keep the scenario's law
+    assert run.frame_times(0x081, "bus1")[-1] <= 0.51  # train 1's unit 2 fell silent after 0.5 s ...
+    assert run.frame_times(0x081, "bus2")[-1] > 0.95  # ... train 2's unit 2 did not
+
+
+def test_load_errors_name_the_field_the_module_and_the_exception(user_dir):
+    cases = [
+        ({"controller.law": "nomodule:Law"}, "controller.law: 'nomodule:Law': no module named 'nomodule'"),
+        ({"controller.law": "mylaw:Nope"}, "controller.law: 'mylaw:Nope': module 'mylaw' has no attribute 'Nope'"),
+        ({"controller.law": "broken:Law"}, "controller.law: 'broken:Law': importing module 'broken' failed: "
+                                           "RuntimeError: calibration table missing (broken.py, line 2)"),
+        ({"controller.law": "pd_spacing"}, "controller.law: unknown controller law 'pd_spacing' (known: "),
+        ({"ecu.program": "mylaw:Push"}, "ecu.program: 'mylaw:Push' is the class Push, not a subclass of "
+                                        "ecu_sim.runtime.Ecu"),
+        ({"ecu.units": [{"unit": "train1/unit1", "law": "mylaw:Push", "params": {"force": 1}}]},
+         "ecu.units.0.params.force: Extra inputs are not permitted"),
+        ({"ecu.units": [{"unit": "train3/unit1"}]}, "ecu.units.0.unit: 'train3/unit1': there is no train 3"),
+        ({"ecu.units": [{"unit": "unit1"}]}, "ecu.units.0.unit: 'unit1' is not a unit name"),
+        ({"ecu.external": ["train1/unit4"]}, "ecu.external.0: 'train1/unit4': a train has no unit 4"),
+        ({"ecu.units": [{"unit": "train1/unit2"}], "ecu.external": ["train1/unit2"]},
+         "ecu.external.0 = 'train1/unit2': already given in ecu.units.0.unit"),
+    ]
+    for sets, message in cases:
+        with pytest.raises(ScenarioError) as err:
+            build_scenario(CRUISE, sets)
+        assert message in str(err.value), (sets, str(err.value))
+        assert "Traceback" not in str(err.value)
+
+
+def test_hil_run_takes_a_law_by_reference_and_reports_a_broken_one_without_traceback(user_dir):
+    ok = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--set", "controller.law=mylaw:Push",
+                         "--duration", "0.5", "--no-record", "--quiet", "--out", "r"], capture_output=True, text=True,
+                        timeout=300, cwd=user_dir)
+    assert ok.returncode == 0, ok.stderr
+    bad = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--set", "controller.law=broken:Law",
+                          "--duration", "0.5", "--quiet"], capture_output=True, text=True, timeout=300, cwd=user_dir)
+    assert bad.returncode == 2
+    assert bad.stderr.strip() == (f"hil: error: {CRUISE}: controller.law: 'broken:Law': importing module 'broken' "
+                                  "failed: RuntimeError: calibration table missing (broken.py, line 2)")
+
+
+def test_installed_packages_publish_laws_and_programs_by_entry_point(tmp_path, monkeypatch):
+    pkg = tmp_path / "site"
+    (pkg / "trainhil_plugin_demo").mkdir(parents=True)
+    (pkg / "trainhil_plugin_demo" / "__init__.py").write_text(USER_LAW + USER_PROGRAM)
+    dist = pkg / "trainhil_plugin_demo-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: trainhil-plugin-demo\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text(textwrap.dedent("""
+        [trainhil.controllers]
+        demo_push = trainhil_plugin_demo:Push
+
+        [trainhil.ecu_programs]
+        demo_quiet = trainhil_plugin_demo:quiet_after_half_a_second
+    """))
+    monkeypatch.syspath_prepend(str(pkg))
+    try:
+        assert get_controller("demo_push").__name__ == "Push"
+        assert callable(get_program("demo_quiet"))
+        from ecu_sim.controllers.base import known_controllers
+        from ecu_sim.programs import known_programs
+
+        assert "demo_push" in known_controllers() and "demo_quiet" in known_programs()
+        sc = build_scenario(CRUISE, {"controller.law": "demo_push", "ecu.program": "demo_quiet"})
+        run = Rig(sc).run(1.0)
+        assert run.frame_times(0x080, "bus1")[-1] <= 0.51
+    finally:
+        sys.modules.pop("trainhil_plugin_demo", None)
+
+
+def test_an_external_unit_is_refused_outside_real_time_with_a_pointer_to_ecu_program(capsys):
+    code = main(["run", str(CRUISE), "--external", "train2/unit3", "--duration", "0.5", "--no-record", "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "ecu.external = ['train2/unit3']: an external unit needs a real-time run (hil run --realtime)" in err
+    assert "name it in ecu.program" in err
+    with pytest.raises(ScenarioError, match="not the ideal loop"):
+        from hil.runtime.ideal import IdealLoop
+
+        IdealLoop(build_scenario(CRUISE, {"ecu.external": ["train1/unit1"]}))
+
+
+def test_a_program_that_returns_no_ecu_is_named(user_dir):
+    (user_dir / "notecu.py").write_text("def make(setup):\n    return 42\n")
+    try:
+        with pytest.raises(ReferenceLoadError, match="ECU program 'notecu:make' returned int, not an ecu_sim.runtime.Ecu"):
+            Rig(CRUISE, set={"ecu.program": "notecu:make"}).run(0.1)
+    finally:
+        sys.modules.pop("notecu", None)
+
+
+# --------------------------------------------------------------------------- verdicts for CI
+
+
+def test_check_exits_with_its_own_code_naming_the_verdicts_and_violations_reach_the_timeline(user_dir, capsys):
+    """A law that pushes with 300 kN on every unit (power-limited to 4.8 MW) overspeeds within 10 s: --check fails the run (exit 3, not 2
+    or 130), names the verdict, and the recording of this fault-free run has the violation as an event."""
+    argv = ["run", str(CRUISE), "--set", "controller.law=mylaw:Push", "--set", "controller.params.force_n=300000.0",
+            "--duration", "10", "--quiet", "--out", str(user_dir / "r")]
+    assert main(argv) == 0  # without --check the verdict is reported, not enforced
+    assert main([*argv, "--check"]) == EXIT_UNSAFE == 3
+    err = capsys.readouterr().err
+    assert "hil: unsafe: overspeed (" in err and "first at t = " in err
+    rows = read_text_rows(user_dir / "r" / "run.rrd", "/events/safety")
+    texts = [text for entity_rows in rows.values() for _, text, _ in entity_rows]
+    assert any(text.startswith("SAFETY overspeed on train 1 unit 1") for text in texts), texts
+    assert main(["run", str(CRUISE), "--duration", "1", "--quiet", "--no-record", "--check",
+                 "--out", str(user_dir / "safe")]) == 0
