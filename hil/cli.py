@@ -131,17 +131,49 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.external:  # added to the scenario's own, validated like them
         scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
     out = Path(args.out) if args.out else Path("runs") / scenario.name
+    live = live_target(args)
+    if live is not None and not args.quiet:
+        print(f"hil: {live.describe()}", file=sys.stderr)
     if args.realtime:
         from hil.realtime.cli import run_realtime_from_args
 
-        result = run_realtime_from_args(args, scenario, out)
+        result = run_realtime_from_args(args, scenario, out, live)
     else:
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
-                              record=not args.no_record, progress=not args.quiet)
+                              record=not args.no_record, progress=not args.quiet, live=live)
     print_summary(result.metrics, out)
-    if result.log.interrupted:
-        return EXIT_INTERRUPTED
-    return unsafe_exit(result.metrics) if args.check else 0
+    code = EXIT_INTERRUPTED if result.log.interrupted else unsafe_exit(result.metrics) if args.check else 0
+    if live is not None and live.port is not None and code != EXIT_INTERRUPTED:
+        _keep_serving(live)
+    return code
+
+
+def live_target(args: argparse.Namespace):
+    """The --connect / --serve target, or None; both at once is a usage error."""
+    from hil.record.live import LiveTarget
+
+    if args.connect is not None and args.serve is not None:
+        raise ScenarioError("--connect and --serve exclude each other: stream to a viewer, or serve one")
+    try:
+        if args.connect is not None:
+            return LiveTarget(url=args.connect)
+        if args.serve is not None:
+            return LiveTarget(port=args.serve)
+    except ValueError as exc:
+        raise ScenarioError(str(exc)) from None
+    return None
+
+
+def _keep_serving(live) -> None:
+    """--serve: the run is over; viewers can still connect until Ctrl-C."""
+    import time
+
+    print(f"hil: the run is over; still {live.describe()}; Ctrl-C to stop", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
 
 
 def unsafe_exit(metrics: dict) -> int:
@@ -202,6 +234,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--ideal", action="store_true", help="run the ideal network-free reference loop instead")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    from hil.record.live import DEFAULT_PORT, DEFAULT_URL
+
+    run.add_argument("--connect", nargs="?", const=DEFAULT_URL, metavar="URL",
+                     help=f"stream the recording live to a running rerun viewer (default URL {DEFAULT_URL})")
+    run.add_argument("--serve", nargs="?", type=int, const=DEFAULT_PORT, metavar="PORT",
+                     help=f"serve the recording live on loopback (default port {DEFAULT_PORT}) for "
+                          "`rerun --connect rerun+http://127.0.0.1:PORT/proxy`; keeps serving after the run until Ctrl-C")
     run.add_argument("--check", action="store_true",
                      help=f"exit {EXIT_UNSAFE} if the run's safety verdict is unsafe, naming the violated verdicts (for CI)")
     from hil.realtime.cli import add_realtime_arguments

@@ -18,6 +18,7 @@ import can
 from hil.record.canlog import asc_listener, open_asc
 from hil.plant.dynamics import PlantDiverged
 from hil.record.integrity import StopSignals, mark_running, write_json_atomic
+from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
 from hil.record.metrics import compute_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog
@@ -74,8 +75,13 @@ def _can_loggers(rig: VirtualRig, out_dir: Path) -> list[can.ASCWriter]:
 
 def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, duration_s: float | None = None,
                  can_log: bool = False, ideal: bool = False, record: bool = True, progress: bool = False,
-                 chunk_s: float = 10.0, min_flush_wall_s: float = 2.0) -> RunResult:
-    """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir."""
+                 chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None) -> RunResult:
+    """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir.
+
+    ``live``: also stream the recording to a viewer as the simulation goes (flushed every simulated second, at
+    most every LIVE_FLUSH_WALL_S of wall time); with ``record=False`` only there."""
+    if live is not None:
+        chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
     out_dir.mkdir(parents=True, exist_ok=True)
     duration = scenario.duration_s if duration_s is None else duration_s
     runtime = "ideal" if ideal else "virtual"
@@ -83,11 +89,12 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     mark_running(out_dir / "metrics.json", scenario.name, runtime)  # never a stale or half-written result
     files: list[Path] = []
     writer = None
-    if record:
-        writer = RerunWriter(out_dir / "run.rrd", _layout(scenario), scenario.name, scenario.plant.coupler_band_m,
-                             scenario.trains.spacing_m, scenario.trains.emergency_gap_m,
-                             frames=scenario.recording.frames and not ideal)
-        files.append(out_dir / "run.rrd")
+    if record or live is not None:
+        writer = RerunWriter(out_dir / "run.rrd" if record else None, _layout(scenario), scenario.name,
+                             scenario.plant.coupler_band_m, scenario.trains.spacing_m, scenario.trains.emergency_gap_m,
+                             frames=scenario.recording.frames and not ideal, live=live)
+        if record:
+            files.append(out_dir / "run.rrd")
     recorder = IncrementalRecorder(writer) if writer else None
     bar = _progress_bar(duration, scenario.name) if progress else None
     loggers: list[can.ASCWriter] = []

@@ -36,6 +36,10 @@ class SampleTable:
     def __len__(self) -> int:
         return len(self._buf) // self.width
 
+    def rows_bytes(self, start: int) -> bytes:
+        """Rows ``start``.. as native float64 bytes (what ``extend_bytes`` takes): to stream a table to a file."""
+        return self._buf[start * self.width:].tobytes()
+
     def last(self, column: int = 0) -> float:
         """Value of ``column`` in the last row (NaN when empty), without materialising the table."""
         return self._buf[len(self._buf) - self.width + column] if self._buf else float("nan")

@@ -56,7 +56,8 @@ def test_a_law_returning_non_finite_force_stops_its_ecu_and_the_run_degrades_cle
     sc = load_scenario("seed000", {"controller.law": law, "controller.params": {}})
     result = run_scenario(sc, tmp_path, duration_s=4.0)
     events = result.log.events
-    failed = [e for e in events if e.level == "ERROR" and "failed" in e.text and "non-finite force" in e.text]
+    failed = [e for e in events if e.level == "ERROR" and "failed" in e.text and "non-finite force" in e.text
+              and e.source != "safety"]  # a safety violation quotes the failure as its cause
     assert len(failed) == 1, failed  # only the faulty unit's ECU
     assert failed[0].source == ECU_NAME and "ECU stopped" in failed[0].text and 1.0 <= failed[0].t < 1.1
     plant = [e for e in events if e.source == "plant" and e.t > failed[0].t]
@@ -84,7 +85,9 @@ def test_a_diverging_plant_ends_the_run_with_an_event_and_readable_files(tmp_pat
         run_scenario(sc, tmp_path, duration_s=5.0)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["interrupted"] is True and metrics["error"].startswith("PlantDiverged: plant diverged at t = 2.0")
-    assert 2.0 <= metrics["sim_time_s"] < 2.1 and metrics["events_by_level"]["ERROR"] == 1
+    assert 2.0 <= metrics["sim_time_s"] < 2.1
+    assert metrics["events_by_level"]["ERROR"] == 1 + metrics["safety"]["overspeed"]["count"] \
+        + sum(metrics["safety"][k]["count"] for k in ("gap_below_le", "collision", "coupler_out_of_band"))
     rep = check_run_dir(tmp_path, expect_complete=False)
     assert rep.ok, rep.problems
     assert 1.9 <= rep.rrd_last_time_s <= metrics["sim_time_s"] + 1e-9

@@ -49,9 +49,11 @@ from hil.faults.schedule import needs_fault_machinery
 from hil.realtime.busserver import BusServer
 from hil.realtime.native_server import NativeBusServer
 from hil.realtime.external import ExternalUnitMissing, JoinWait
+from hil.realtime.live_tail import LiveTail
 from hil.realtime.paths import remove_run_dir, validate_name
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import asc_listener, open_asc
+from hil.record.live import LiveTarget
 from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.metrics import compute_metrics
 from hil.record.rerun_writer import RerunWriter
@@ -143,14 +145,16 @@ def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]):
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
                  seed: int | None = None, ecus_per_process: int = 1, record: bool = True, progress: bool = False,
                  plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None, can_log: bool = False,
-                 run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None):
+                 run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
+                 live: LiveTarget | None = None):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: the plant polls this long before each publication (0: sleep only). ``on_start(t0)`` is
     called with the epoch time of simulated t = 0 once every node is ready (tools, tests). ``can_log``: write
     ``<bus>.asc`` per bus, frames stamped in simulated seconds as in a virtual-time run. ``run``: the run name
     (the python-can channel prefix; default: a fresh one); ``on_channels(channels)`` is called once the buses are
-    up, before the nodes start, so that an external device can join (``ecu.external``)."""
+    up, before the nodes start, so that an external device can join (``ecu.external``). ``live``: stream the
+    recording to a viewer as the run goes (hil/realtime/live_tail.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process < 1:
@@ -183,6 +187,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     stop_reason = None
     clock = {"t0": math.inf}  # epoch of simulated t = 0, once known (the CAN logs' time origin)
     faults = None  # hil.faults.realtime.RealtimeFaults when the scenario has faults or a restart policy
+    tail = None  # LiveTail, with a live target once the run has started
     asc: list = []
     try:
         with _StopRequest() as stop:
@@ -214,8 +219,13 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     on_start(t0)
                 if faults is not None:
                     faults.go(t0, pace, nodes, _respawn(run, nodes_dir, seed, duration, pace, layout))
+                if live is not None:
+                    tail = LiveTail(live, scenario, layout, nodes_dir, (t0, pace), run)
+                    if say is not None:
+                        say(live.describe())
+                ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None) if f]
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
-                                         faults.tick if faults is not None else None, join)
+                                         (lambda t: [f(t) for f in ticks]) if ticks else None, join)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
             else:
                 stop_reason = stop.requested
@@ -240,6 +250,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     if record:
         _write_rrd(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
         files.append(out_dir / "run.rrd")
+    if tail is not None:  # the rest of the run to the viewer: the signals it has not seen, buses, events, timing
+        _write_log(tail.writer, log, nodes_dir, signals_from=tail.sent)
+        tail.close()
     metrics = compute_metrics(log, scenario.plant.coupler_band_m)
     metrics.update(extra)
     metrics["scenario"] = scenario.name
@@ -550,17 +563,22 @@ def _write_rrd(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes
     timeline (``wall_clock`` = (T0 epoch s, pace)) when the run got as far as its start."""
     with RerunWriter(path, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m,
                      sc.trains.emergency_gap_m, realtime=True, wall_clock=wall_clock) as w:
-        if len(log.signals):
-            w.write_signals(log, 0, len(log.signals))
-        for bus in log.buses:
-            w.write_bus(bus, 0, 0)
-        if log.events:
-            w.write_events(log.events)
-        for entity, f in _timing_series(nodes_dir):  # cycle lateness per node, sensor-to-actuator latency, in ms
-            data = np.load(f)
-            if len(data):
-                w.write_scalars(entity, data[:, 0], data[:, 1] * 1e3)
-        w.flush()
+        _write_log(w, log, nodes_dir)
+
+
+def _write_log(w: RerunWriter, log: RunLog, nodes_dir: Path, signals_from: int = 0) -> None:
+    """Signals (from row ``signals_from``), buses, events and the nodes' timing series into a writer, flushed."""
+    if len(log.signals) > signals_from:
+        w.write_signals(log, signals_from, len(log.signals))
+    for bus in log.buses:
+        w.write_bus(bus, 0, 0)
+    if log.events:
+        w.write_events(log.events)
+    for entity, f in _timing_series(nodes_dir):  # cycle lateness per node, sensor-to-actuator latency, in ms
+        data = np.load(f)
+        if len(data):
+            w.write_scalars(entity, data[:, 0], data[:, 1] * 1e3)
+    w.flush()
 
 
 def _timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:

@@ -21,11 +21,13 @@ unit u arrives, the latency is the arrival time of u's last TractionCmd minus th
 sample k: sensor sampled -> command at the plant (applied at the next plant step, within ``plant.step_s``).
 
 At the end, and every ``SAVE_EVERY_WALL_S`` of wall time during the run: ``DIR/signals.npy`` (the RunLog signal
-table) and ``DIR/plant.json`` (events, e2e latencies, lateness, counters).
+table) and ``DIR/plant.json`` (events, e2e latencies, lateness, counters); every ``STREAM_EVERY_WALL_S`` the new
+signal rows are appended to ``DIR/signals.bin`` (the live view follows it).
 """
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from array import array
@@ -36,6 +38,7 @@ import numpy as np
 
 from ecu_sim.codec import TrainDb
 from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.realtime.live_tail import SIGNAL_STREAM
 from hil.realtime.external import JOIN_LINE, ExternalWatch, missing_after_s
 from hil.realtime.frame_io import node_frames
 from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
@@ -44,6 +47,7 @@ from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
 
 SAVE_EVERY_WALL_S = 5.0  # the plant's data so far is saved this often (a plant killed mid-run leaves it)
+STREAM_EVERY_WALL_S = 0.25  # new signal rows are appended to DIR/signals.bin this often (the live view reads it)
 
 
 class PlantNode:
@@ -127,8 +131,10 @@ class PlantNode:
 
     # ---- the paced loop
     def run(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float,
-            save: Callable[[LatenessStats], None] | None = None) -> LatenessStats:
-        """Run to ``duration``; ``save(stats)`` every SAVE_EVERY_WALL_S so a killed plant leaves its data so far.
+            save: Callable[[LatenessStats], None] | None = None,
+            stream: Callable[[], None] | None = None) -> LatenessStats:
+        """Run to ``duration``; ``save(stats)`` every SAVE_EVERY_WALL_S so a killed plant leaves its data so far, and
+        ``stream()`` every STREAM_EVERY_WALL_S (the new signal rows, for the live view).
 
         Only publications are paced: the loop sleeps to the next Sensor/Reference tick and integrates lazily in
         between (see :meth:`advance_to`), so the plant costs its steps and no per-step wake-ups."""
@@ -142,6 +148,7 @@ class PlantNode:
         stats = LatenessStats(publish_every * step, clock.pace)
         n_steps = int(round(duration / step))
         next_save = time.monotonic() + SAVE_EVERY_WALL_S
+        next_stream = time.monotonic() + STREAM_EVERY_WALL_S
         target = self.target = 0
         while target < n_steps and not stop:
             t = target * step
@@ -154,6 +161,9 @@ class PlantNode:
                 self.publish_sensors(t)
             if target % self.every["ref"] == 0:
                 self.publish_reference(t)
+            if stream is not None and time.monotonic() > next_stream:
+                stream()
+                next_stream = time.monotonic() + STREAM_EVERY_WALL_S
             if save is not None and time.monotonic() > next_save:
                 self.log.sim_time_s, self.log.interrupted = t, True  # as of this save
                 self.log.wall_time_s = time.time() - clock.t0
@@ -205,6 +215,24 @@ class PlantNode:
                 **({"external_units": self.external.report(self.log.sim_time_s)} if self.external is not None else {})}
 
 
+class SignalStream:
+    """Appends the run log's new signal rows (native float64) to a file: the live view follows it, and it survives
+    whatever happens to the processes."""
+
+    def __init__(self, path: Path, log: RunLog) -> None:
+        self.log, self.rows = log, 0
+        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o600)
+
+    def write(self) -> None:
+        n = len(self.log.signals)
+        if n > self.rows:
+            os.write(self.fd, self.log.signals.rows_bytes(self.rows))
+            self.rows = n
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = node_parser("python -m hil.realtime.plant_node", "Run the plant and the wayside on the real-time rig's buses.")
     p.add_argument("--spin-us", type=float, default=200.0, help="poll the last microseconds before a step (0: sleep only)")
@@ -232,9 +260,12 @@ def main(argv: list[str] | None = None) -> int:
             np.save(out / "timing_e2e.npy", e2e)
             write_json(out / "plant.json", node.results(st))
 
+        rows = SignalStream(out / SIGNAL_STREAM, node.log)
         try:
-            stats = node.run(clock, args.duration, stop, args.spin_us * 1e-6, save)
+            stats = node.run(clock, args.duration, stop, args.spin_us * 1e-6, save, rows.write)
         finally:
+            rows.write()
+            rows.close()
             save(stats)
     finally:
         for b in node.buses + node.wayside:

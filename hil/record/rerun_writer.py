@@ -21,6 +21,7 @@ import rerun as rr
 
 from hil.layout import TrainLayout
 from hil.record import blueprint as bp
+from hil.record.live import LiveTarget
 from hil.record.diskspace import MIN_FREE_BYTES, DiskFullError, check_space, free_bytes
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.series import MPS_TO_KMH, limit_values, margin_colors, signal_columns, track_geometry
@@ -28,6 +29,7 @@ from hil.record.series import MPS_TO_KMH, limit_values, margin_colors, signal_co
 FLUSH_TIMEOUT_S = 10.0  # a flush takes ~20 ms; one that takes this long means rerun's writer is stuck (a full disk)
 
 APPLICATION_ID = "trainhil"
+SERVING: list[rr.RecordingStream] = []  # streams served with --serve, kept alive after their run ends
 TIMELINE = "sim_time"
 WALL_TIMELINE = "wall_time"
 SCALARS = rr.Scalars.descriptor_scalars()
@@ -42,10 +44,14 @@ class RerunWriter:
     ``frames``: the recording will hold per-frame text rows (adds the Frames tab); ``wall_clock``: (T0, pace) of a
     real-time run (adds the ``wall_time`` timeline and the Timing tab); ``realtime`` adds the Timing tab alone."""
 
-    def __init__(self, path: Path, layout: TrainLayout, scenario_name: str, coupler_band: tuple[float, float],
+    def __init__(self, path: Path | None, layout: TrainLayout, scenario_name: str, coupler_band: tuple[float, float],
                  spacing_m: float, emergency_gap_m: float, bus_names: list[str] | None = None, *,
-                 frames: bool = False, realtime: bool = False, wall_clock: tuple[float, float] | None = None) -> None:
-        self.path = Path(path)
+                 frames: bool = False, realtime: bool = False, wall_clock: tuple[float, float] | None = None,
+                 live: LiveTarget | None = None, recording_id: str | None = None) -> None:
+        """``path``: the .rrd file (None: ``live`` only); ``live``: also stream to a viewer (hil/record/live.py)."""
+        if path is None and live is None:
+            raise ValueError("a RerunWriter needs a file, a live target, or both")
+        self.path = Path(path) if path is not None else None
         self.layout = layout
         self._limits = limit_values(coupler_band, spacing_m, emergency_gap_m)
         self._pairs = layout.coupler_pairs()
@@ -53,9 +59,15 @@ class RerunWriter:
         if wall_clock is not None and not wall_clock[1] > 0:
             raise ValueError(f"wall_clock pace must be > 0, got {wall_clock[1]!r}")
         self.wall_clock = wall_clock
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.rec = rr.RecordingStream(APPLICATION_ID, make_default=False, make_thread_default=False)
-        self.rec.save(self.path)
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, make_default=False,
+                                      make_thread_default=False)
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._serving = live is not None and live.port is not None
+        if live is None:
+            self.rec.save(self.path)
+        else:
+            self.rec.set_sinks(*([rr.FileSink(self.path)] if self.path is not None else []), live.sink())
         self._flushed_size = 0  # bytes of the file written by the last flush that completed
         self.rec.send_recording_name(scenario_name)
         blueprint = bp.default_blueprint(layout, bus_names, frames=frames, realtime=realtime or wall_clock is not None)
@@ -200,6 +212,9 @@ class RerunWriter:
         A full disk is a DiskFullError naming the place: checked before, and after a flush with a deadline (rerun's
         writer thread dies when the disk fills, and an unbounded flush would then wait forever)."""
         self._check_open()
+        if self.path is None:  # live only: nothing on disk to check
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+            return
         try:
             check_space(self.path)
             try:
@@ -228,13 +243,16 @@ class RerunWriter:
         if self._closed:
             return
         self._closed = True
-        if free_bytes(self.path) < MIN_FREE_BYTES:
+        if self.path is not None and free_bytes(self.path) < MIN_FREE_BYTES:
             self._cut_to_last_flush()
             return  # the disk is full: rerun's file writer has stopped, and waiting for it would never end
         try:
             self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
         except RuntimeError:
             return  # as above, the writer is stuck: what reached the file stays readable
+        if self._serving:
+            SERVING.append(self.rec)  # a served recording stays up for late viewers until the process ends
+            return
         self.rec.disconnect()
 
     def __enter__(self) -> "RerunWriter":

@@ -11,33 +11,15 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from hil.record import paths
+from hil.record.reader import Series
 from hil.record.runlog import Event, RunLog
 from hil.record.series import signal_columns
 from hil.scenario.model import Scenario
-
-
-class Series(NamedTuple):
-    """One recorded signal: sample times (s, simulated) and values (unit in the path's suffix)."""
-
-    t: np.ndarray
-    v: np.ndarray
-
-    def after(self, t0: float) -> "Series":
-        """The samples at or after t0."""
-        keep = self.t >= t0
-        return Series(self.t[keep], self.v[keep])
-
-    def at(self, t: float) -> float:
-        """The value held at time t (the last sample at or before t; zero-order hold)."""
-        i = int(np.searchsorted(self.t, t, side="right")) - 1
-        if i < 0:
-            raise ValueError(f"no sample at or before t = {t} s (first at {self.t[0] if len(self.t) else 'none'})")
-        return float(self.v[i])
 
 
 class Signals(Mapping[str, Series]):
