@@ -197,3 +197,38 @@ def test_check_exits_with_its_own_code_naming_the_verdicts_and_violations_reach_
     assert any(text.startswith("SAFETY overspeed on train 1 unit 1") for text in texts), texts
     assert main(["run", str(CRUISE), "--duration", "1", "--quiet", "--no-record", "--check",
                  "--out", str(user_dir / "safe")]) == 0
+
+
+@pytest.mark.slow  # about 10 s: node start-up and 2 s of real time
+def test_hil_run_realtime_runs_the_users_law_from_their_own_folder(user_dir):
+    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "2",
+                           "--ecus-per-process", "3", "--set", "controller.law=mylaw:Push",
+                           "--set", "controller.params.force_n=2500.0", "--quiet", "--out", "rt"],
+                          capture_output=True, text=True, timeout=300, cwd=user_dir)
+    assert proc.returncode == 0, proc.stderr
+    from hil.record import load_run
+
+    run = load_run(user_dir / "rt")
+    t, v = run["/trains/2/units/3/traction_kn"]
+    assert np.all(v[t >= 0.2] == 2.5)  # every ECU process imported ./mylaw.py and ran it
+    assert run.metrics["runtime"] == "realtime"
+
+
+def test_a_real_time_node_that_cannot_load_the_law_reports_the_whole_error(tmp_path):
+    """A law registered in this process only is unknown to the node processes: the start-up error comes through
+    whole, the node's last line included, not cut mid-word."""
+    from ecu_sim.controllers.base import _REGISTRY, register
+    from hil.realtime.orchestrator import NodeError, run_realtime
+
+    class OnlyHere(get_controller("consensus")):  # registered here, not importable by the nodes
+        name = "test_only_in_this_process"
+
+    if OnlyHere.name not in _REGISTRY:
+        register(OnlyHere)
+    sc = build_scenario(CRUISE, {"controller.law": OnlyHere.name})
+    with pytest.raises(NodeError) as err:
+        run_realtime(sc, tmp_path, duration_s=1.0, ecus_per_process=6)
+    msg = str(err.value)
+    assert "exited with code 1 before it was ready:" in msg
+    assert "unknown controller law 'test_only_in_this_process' (known: " in msg
+    assert "or a 'package.module:ClassName' reference)" in msg  # the end of the node's message
