@@ -262,6 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_compare_parser(sub)
     add_can_analysis_parser(sub)
     add_bus_server_parser(sub)
+    from hil.realtime.recover import add_recover_parser
+
+    add_recover_parser(sub)
     from hil.view import add_view_parser
 
     add_view_parser(sub)

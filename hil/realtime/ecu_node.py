@@ -97,6 +97,21 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
         queue.append((phase + max(0, math.ceil((start - phase) / cycle)) * cycle, u))
     heapq.heapify(queue)
     watchdog, stopped_at = sc.ecu.restart_after_s, {}
+    try:
+        _cycle_loop(clock, sc, ecus, io, bus_of, duration, stop, queue, stats, watchdog, stopped_at)
+    except (ConnectionError, OSError) as exc:  # the bus server went away (its rig died): keep what we have
+        for ecu in ecus.values():
+            ecu.events.append((clock.now(), "ERROR", f"the bus went away, the ECU stopped: {exc}"))
+        return stats
+    if not stop:
+        linger(clock)
+    return stats
+
+
+def _cycle_loop(clock: SimClock, sc, ecus: dict, io, bus_of: dict, duration: float, stop: StopFlag, queue: list,
+                stats: dict, watchdog, stopped_at: dict) -> None:
+    """Earliest deadline first: wait, cycle the unit, send its frames, book its lateness, requeue it."""
+    cycle = sc.ecu.cycle_s
     while queue and not stop:
         deadline, u = queue[0]
         if deadline >= duration:
@@ -117,9 +132,6 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
         overrun = stats[u].add(now - deadline, deadline)
         stats[u].skipped += overrun
         heapq.heapreplace(queue, (deadline + (1 + overrun) * cycle, u))
-    if not stop:
-        linger(clock)
-    return stats
 
 
 if __name__ == "__main__":

@@ -49,8 +49,8 @@ from hil.faults.schedule import needs_fault_machinery
 from hil.realtime.busserver import BusServer
 from hil.realtime.native_server import NativeBusServer
 from hil.realtime.external import ExternalUnitMissing, JoinWait
-from hil.realtime.live_tail import LiveTail
-from hil.realtime.paths import remove_run_dir, validate_name
+from hil.realtime.live_tail import SIGNAL_STREAM, LiveTail
+from hil.realtime.paths import remove_run_dir, remove_stale_run_dirs, validate_name
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import asc_listener, open_asc
 from hil.record.live import LiveTarget
@@ -68,6 +68,11 @@ GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the mes
 STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
 KILL_GRACE_S = 3.0
 TIMING_ROOT = "/timing"  # rerun entities of the real-time timing (lateness, e2e latency)
+
+
+RUN_FILE = "run.json"  # in the nodes directory: the run's name, T0, pace, duration and seed
+RUNNING_NOTE = ("a real-time run writes run.rrd and these metrics when it ends; if the rig was killed, "
+                "`hil recover {out}` rebuilds both from what the nodes recorded")
 
 
 class NodeError(RuntimeError):
@@ -173,7 +178,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     shutil.rmtree(nodes_dir, ignore_errors=True)
     nodes_dir.mkdir()
     (nodes_dir / "scenario.json").write_text(scenario.model_dump_json())
-    mark_running(out_dir / "metrics.json", scenario.name, "realtime")  # replaced by the metrics when the run ends
+    mark_running(out_dir / "metrics.json", scenario.name, "realtime",  # replaced by the metrics when the run ends
+                 note=RUNNING_NOTE.format(out=out_dir))
+    remove_stale_run_dirs()  # left by a rig that was killed (kill -9): its sockets accept no one
     run = run_name(scenario.name) if run is None else validate_name(run, "run")
     external = [layout.unit_index(name) for name in scenario.ecu.external]
     join = None  # JoinWait, while external units are expected
@@ -213,6 +220,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 join = JoinWait(layout, external, scenario.ecu.join_timeout_s, nodes[0].lines, say)
             if not stop.requested:
                 t0 = clock["t0"] = time.time() + GO_MARGIN_S
+                write_json_atomic(nodes_dir / RUN_FILE, {"run": run, "t0": t0, "pace": pace, "duration_s": duration,
+                                                         "seed": seed})  # what hil recover needs
                 for n in nodes:
                     n.tell(f"go {t0!r}")
                 if on_start is not None:
@@ -241,14 +250,14 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             w.stop()
         remove_run_dir(run)
     wall = run_wall if t0 is not None else time.perf_counter() - wall0
-    log, extra = _merge(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason)
+    log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason)
     if faults is not None:
         faults.finish(log, t0, pace)
     record_violations(log, scenario.plant.coupler_band_m)  # every safety violation on the timeline
     extra["realtime"]["bus_servers"] = server_stats
     files = [out_dir / f"bus{i + 1}.asc" for i in range(len(asc))]
     if record:
-        _write_rrd(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
+        write_recording(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
         files.append(out_dir / "run.rrd")
     if tail is not None:  # the rest of the run to the viewer: the signals it has not seen, buses, events, timing
         _write_log(tail.writer, log, nodes_dir, signals_from=tail.sent)
@@ -484,15 +493,12 @@ def _read_json(path: Path) -> dict | None:
         return None
 
 
-def _merge(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[BusServer], events: list[Event],
+def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[BusServer], events: list[Event],
            t0: float | None, pace: float, duration: float, wall: float, stop_reason: str | None):
     log = RunLog(layout)
     log.reference_change_times = ReferenceProfile.from_config(sc.reference).change_times
     plant = _read_json(nodes_dir / "plant.json") or {}
-    sig = nodes_dir / "signals.npy"
-    if sig.exists():
-        for row in np.load(sig):
-            log.signals.append(row)
+    log.signals.extend_bytes(_signal_rows(nodes_dir, log.signals.width))
     log.events.extend(Event(*e) for e in plant.get("events", []))
     ecus = [d for p in sorted(nodes_dir.glob("ecu_*.json")) if (d := _read_json(p))]
     for d in ecus:
@@ -519,6 +525,20 @@ def _merge(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[Bus
     return log, _timing_metrics(plant, ecus, servers)
 
 
+def _signal_rows(nodes_dir: Path, width: int) -> bytes:
+    """The plant's signal rows: its last save (signals.npy), or its stream (signals.bin) if that has more rows,
+    as it does when the plant was killed between saves."""
+    saved = np.load(nodes_dir / "signals.npy") if (nodes_dir / "signals.npy").exists() else np.zeros((0, width))
+    try:
+        streamed = (nodes_dir / SIGNAL_STREAM).read_bytes()
+    except OSError:
+        streamed = b""
+    streamed = streamed[:len(streamed) - len(streamed) % (8 * width)]
+    if len(streamed) > saved.size * 8:
+        return streamed
+    return np.ascontiguousarray(saved, dtype=float).tobytes()
+
+
 def _sim_bus_log(server: BusServer, t0: float, pace: float, duration: float) -> BusLog:
     """The server's BusLog with its times moved to simulated time (model t -> t - (T0 - epoch0) * pace)."""
     src, shift = server.log, (t0 - server.epoch0) * pace
@@ -528,7 +548,7 @@ def _sim_bus_log(server: BusServer, t0: float, pace: float, duration: float) -> 
             rows = table.copy()
             rows[:, 0] -= shift
             rows = rows[(rows[:, 0] >= 0) & (rows[:, 0] <= duration + 1e-9)]
-            dst._buf.frombytes(np.ascontiguousarray(rows).tobytes())  # bulk append (SampleTable has no API for it)
+            dst.extend_bytes(np.ascontiguousarray(rows, dtype=float).tobytes())
     return out
 
 
@@ -557,7 +577,7 @@ def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> 
     }
 
 
-def _write_rrd(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path,
+def write_recording(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path,
                wall_clock: tuple[float, float] | None) -> None:
     """The recording of a real-time run: signals, buses, events and timing on sim time, plus the wall-clock
     timeline (``wall_clock`` = (T0 epoch s, pace)) when the run got as far as its start."""

@@ -21,6 +21,7 @@ import re
 import socket
 import stat
 import tempfile
+import time
 from pathlib import Path
 
 ROOT_NAME = "trainhil"
@@ -150,6 +151,37 @@ def remove_run_dir(run: str) -> bool:
     except OSError:
         return False
     return True
+
+
+STALE_AFTER_S = 60.0  # a run directory younger than this may belong to a rig that is starting its servers
+
+
+def remove_stale_run_dirs() -> list[str]:
+    """Remove our run directories whose every socket is dead (a rig killed with SIGKILL leaves them); the names
+    removed. Directories with a live socket, someone else's, or younger than STALE_AFTER_S are left alone."""
+    root = runtime_root()
+    try:
+        check_private_dir(root)
+        runs = [d for d in root.iterdir() if d.is_dir() and not d.is_symlink()]
+    except (OSError, InsecureRunDirError):
+        return []
+    removed = []
+    for d in runs:
+        try:
+            check_private_dir(d)
+            if time.time() - d.stat().st_mtime < STALE_AFTER_S:
+                continue
+            files = list(d.iterdir())
+            if any(f.suffix == SOCKET_SUFFIX and socket_is_live(f, 0.2) for f in files):
+                continue
+            for f in files:
+                if f.suffix in (SOCKET_SUFFIX, TOKEN_SUFFIX):
+                    f.unlink()
+            d.rmdir()  # fails, and keeps the directory, if anything else is in it
+            removed.append(d.name)
+        except (OSError, InsecureRunDirError):
+            continue
+    return removed
 
 
 def socket_is_live(path: Path, timeout: float = 0.5) -> bool:

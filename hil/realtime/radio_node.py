@@ -64,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
                 _, _, dst_bus, dst_id, payload = heapq.heappop(queue)
                 frames.send(dst_bus, [(dst_id, payload)])
         linger(clock)
+    except (ConnectionError, OSError) as exc:  # the bus server went away (its rig died): write what we have
+        print(f"radio node: the bus went away: {exc}", file=sys.stderr)
     finally:
         for b in buses:
             b.shutdown()

@@ -45,11 +45,12 @@ def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
         raise
 
 
-def mark_running(path: Path, scenario: str, runtime: str, sim_time_s: float = 0.0) -> None:
-    """The metrics.json stub of a run in progress (replaced by the full metrics when the run ends)."""
+def mark_running(path: Path, scenario: str, runtime: str, sim_time_s: float = 0.0, note: str | None = None) -> None:
+    """The metrics.json stub of a run in progress (replaced by the full metrics when the run ends). ``note`` says
+    where the data so far is; by default, in run.rrd up to sim_time_s (the virtual-time recorder flushes)."""
     write_json_atomic(path, {"scenario": scenario, "runtime": runtime, "status": RUNNING, "interrupted": True,
                              "sim_time_s": float(sim_time_s),
-                             "note": "the run has not finished: run.rrd holds everything up to sim_time_s"})
+                             "note": note or "the run has not finished: run.rrd holds everything up to sim_time_s"})
 
 
 class StopSignals:

@@ -1,0 +1,113 @@
+"""``hil recover RUN_DIR``: rebuild run.rrd and metrics.json of a real-time run whose rig was killed.
+
+The orchestrator writes the recording when the run ends, from the files its node processes leave in
+``RUN_DIR/nodes``. If the orchestrator itself dies (``kill -9``, an out-of-memory kill, a power cut of the
+terminal), the nodes notice that their stdin closed, stop, and write their results; the plant has also streamed
+its signal rows to ``nodes/signals.bin`` all along. This merges those files as the orchestrator would have. What
+lived only in the orchestrator is gone and is said so: the bus servers' load and latency tables, and its own
+events. The result is marked ``"recovered": true`` and ``"interrupted": true``.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from hil.layout import TrainLayout
+from hil.realtime.node import load_scenario_json
+from hil.realtime.orchestrator import RUN_FILE, merge_nodes, write_recording
+from hil.record.integrity import RUNNING, write_json_atomic
+from hil.record.metrics import compute_metrics
+from hil.record.runlog import Event
+from hil.record.safety import record_violations
+
+NODES_GRACE_S = 10.0  # how long the nodes of a killed rig may still be writing their results
+
+
+class RecoverError(ValueError):
+    """RUN_DIR is not a real-time run that can be recovered (the message says why)."""
+
+
+def recover(out_dir: Path, wait_s: float = NODES_GRACE_S) -> dict:
+    """Rebuild ``out_dir``'s run.rrd and metrics.json from its nodes' files; the new metrics."""
+    out_dir = Path(out_dir)
+    nodes_dir = out_dir / "nodes"
+    status = _status(out_dir / "metrics.json")
+    if not (nodes_dir / "scenario.json").is_file():
+        raise RecoverError(f"{out_dir}: no nodes/scenario.json: not the output directory of a real-time run")
+    if status is not None and status != RUNNING:
+        raise RecoverError(f"{out_dir}: the run finished and wrote its results; nothing to recover")
+    _wait_for_plant(nodes_dir, wait_s)
+    sc = load_scenario_json(str(nodes_dir / "scenario.json"))
+    run = _read(nodes_dir / RUN_FILE) or {}
+    pace, duration = float(run.get("pace", 1.0)), float(run.get("duration_s", sc.duration_s))
+    layout = TrainLayout.from_config(sc.trains)
+    lost = Event(0.0, "WARN", "rig", "recovered by hil recover: the rig's orchestrator stopped during the run; its bus "
+                                     "load and latency tables and its own events were lost with it")
+    log, extra = merge_nodes(sc, layout, nodes_dir, [], [lost], None, pace, duration, 0.0, "the orchestrator died")
+    if len(log.signals):  # a plant killed too saved last some seconds ago; its stream goes further
+        log.sim_time_s = max(log.sim_time_s, float(log.signals.last(0)))
+    record_violations(log, sc.plant.coupler_band_m)
+    t0 = run.get("t0")
+    write_recording(sc, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (float(t0), pace))
+    metrics = compute_metrics(log, sc.plant.coupler_band_m)
+    metrics.update(extra)
+    metrics.update(scenario=sc.name, runtime="realtime", pace=pace, interrupted=True, recovered=True,
+                   recovered_missing=["bus load and latency tables", "orchestrator events"])
+    write_json_atomic(out_dir / "metrics.json", metrics)
+    return metrics
+
+
+def _status(path: Path) -> str | None:
+    data = _read(path)
+    return None if data is None else data.get("status", "complete")
+
+
+def _read(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _wait_for_plant(nodes_dir: Path, wait_s: float) -> None:
+    """The plant writes plant.json when it stops; give a just-killed rig's nodes that long to finish."""
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        plant = _read(nodes_dir / "plant.json")
+        if plant is not None and not _stream_growing(nodes_dir):
+            return
+        time.sleep(0.25)
+
+
+def _stream_growing(nodes_dir: Path) -> bool:
+    """True while the plant still appends to its signal stream (its rig died a moment ago)."""
+    from hil.realtime.live_tail import SIGNAL_STREAM
+
+    path = nodes_dir / SIGNAL_STREAM
+    try:
+        size = path.stat().st_size
+        time.sleep(0.3)
+        return path.stat().st_size != size
+    except OSError:
+        return False
+
+
+def add_recover_parser(subparsers) -> None:
+    """``hil recover RUN_DIR``."""
+    p = subparsers.add_parser("recover", help="rebuild run.rrd and metrics.json of a real-time run whose rig was killed",
+                              description=__doc__.split("\n\n")[1].replace("\n", " "))
+    p.add_argument("run_dir", help="the run's output directory (hil run --out)")
+    p.set_defaults(func=_cmd_recover)
+
+
+def _cmd_recover(args) -> int:
+    from hil.scenario import ScenarioError
+
+    try:
+        metrics = recover(Path(args.run_dir))
+    except RecoverError as exc:
+        raise ScenarioError(str(exc)) from None
+    print(f"recovered {args.run_dir}: {metrics['sim_time_s']:.1f} s simulated; run.rrd and metrics.json written "
+          f"(bus tables lost with the rig)")
+    return 0

@@ -1,0 +1,81 @@
+"""A real-time rig killed with SIGKILL (issue 16, item 3): what the nodes recorded is recoverable with
+``hil recover`` into a readable recording and metrics that say what was lost, and the next run removes the dead
+run directory the killed rig left."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hil.record import load_run
+from hil.realtime.paths import STALE_AFTER_S, remove_stale_run_dirs, run_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+CRUISE = ROOT / "examples" / "cruise.toml"
+
+
+def hil(*argv: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "hil.cli", *argv], capture_output=True, text=True, timeout=120, **kw)
+
+
+@pytest.mark.slow  # about 15 s: start-up, 3 s of real time, the kill, the merge
+def test_a_killed_rig_is_recovered_from_its_nodes_files(tmp_path):
+    out = tmp_path / "r"
+    rig = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "60",
+                            "--ecus-per-process", "3", "--quiet", "--out", str(out)],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    stream, row = out / "nodes" / "signals.bin", 8 * (3 + 5 * 6)
+    deadline = time.monotonic() + 90
+    while not (stream.exists() and stream.stat().st_size >= 30 * row):  # 3 s of samples at 0.1 s
+        assert time.monotonic() < deadline and rig.poll() is None, "the rig did not start streaming"
+        time.sleep(0.2)
+    rig.send_signal(signal.SIGKILL)
+    rig.wait(10)
+    stub = json.loads((out / "metrics.json").read_text())
+    assert stub["status"] == "running" and "hil recover" in stub["note"] and not (out / "run.rrd").exists()
+
+    done = hil("recover", str(out))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith(f"recovered {out}: ")
+    run = load_run(out)
+    t, v = run["/trains/1/units/1/speed_kmh"]
+    assert t[-1] >= 2.9 and len(t) >= 30 and run.metrics["sim_time_s"] == pytest.approx(t[-1], abs=0.11)
+    m = run.metrics
+    assert m["recovered"] is True and m["interrupted"] is True and "bus load and latency tables" in m["recovered_missing"]
+    assert len(m["realtime"]["ecus"]) == 6  # every ECU process wrote its results when its bus went away
+    assert m["e2e_latency_p50_s"] is not None
+    texts = [e.text for e in run.events]
+    assert any(text.startswith("recovered by hil recover") for text in texts)
+    assert any(text.startswith("the bus went away, the ECU stopped") for text in texts)
+
+    again = hil("recover", str(out))
+    assert again.returncode == 2 and "the run finished and wrote its results; nothing to recover" in again.stderr
+    nothing = hil("recover", str(tmp_path))
+    assert nothing.returncode == 2 and "not the output directory of a real-time run" in nothing.stderr
+
+
+def test_dead_run_directories_are_removed_and_live_ones_kept(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    dead = run_dir(f"dead{os.getpid()}", create=True)
+    (dead / "bus1.sock").touch()  # a socket file nobody listens on
+    live = run_dir(f"live{os.getpid()}", create=True)
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    server.bind(str(live / "bus1.sock"))
+    server.listen()
+    young = run_dir(f"young{os.getpid()}", create=True)
+    (young / "bus1.sock").touch()
+    old = time.time() - STALE_AFTER_S - 5
+    for d in (dead, live):
+        os.utime(d, (old, old))
+    try:
+        assert remove_stale_run_dirs() == [dead.name]
+        assert not dead.exists() and live.exists() and young.exists()  # a young one may be a rig starting up
+    finally:
+        server.close()
