@@ -56,10 +56,11 @@ def test_token_file_and_socket_are_owner_only(server, rt):
 
 def test_without_the_token_or_with_a_wrong_one_the_connection_is_refused_and_counted(server):
     hello = protocol.pack_hello("intruder")
-    assert raw_tcp(server, hello) == b""  # HELLO without AUTH: no WELCOME, hung up
+    refused = protocol.pack_refused(protocol.REFUSED_TOKEN)  # no WELCOME: why, then hung up
+    assert raw_tcp(server, hello) == refused  # HELLO without AUTH
     wrong = bytes(b ^ 0xFF for b in server.token)
-    assert raw_tcp(server, protocol.pack_auth(wrong), hello) == b""
-    assert raw_tcp(server, protocol.pack_auth(bytes(16)), hello) == b""
+    assert raw_tcp(server, protocol.pack_auth(wrong), hello) == refused
+    assert raw_tcp(server, protocol.pack_auth(bytes(16)), hello) == refused
     assert wait_for(lambda: server.stats.auth_failures == 3)
     stats = server.stats
     assert stats.clients == 0 and stats.protocol_errors == 0
@@ -81,9 +82,9 @@ def test_python_can_finds_the_token_in_the_run_directory_and_talks_to_unix_nodes
 
 def test_python_can_with_a_wrong_or_missing_token_is_refused_clearly(server):
     port = server.tcp_address[1]
-    with pytest.raises(can.CanInitializationError, match="closed the connection during the handshake.*token"):
+    with pytest.raises(can.CanInitializationError, match="refused the connection: a missing or wrong token"):
         can.Bus(interface="trainhil", channel=f"tcp://127.0.0.1:{port}", token="00" * 16)  # python-can: int 0
-    with pytest.raises(can.CanInitializationError, match="closed the connection during the handshake.*token"):
+    with pytest.raises(can.CanInitializationError, match="refused the connection: a missing or wrong token"):
         can.Bus(interface="trainhil", channel=f"tcp://127.0.0.1:{port}", token=bytes(b ^ 1 for b in server.token))
     with pytest.raises(can.CanInitializationError, match="needs the run's token"):
         can.Bus(interface="trainhil", channel=f"tcp://127.0.0.1:{port}")
@@ -188,3 +189,32 @@ def test_bus_server_command_with_tcp_publishes_the_endpoint_and_accepts_the_toke
     finally:
         proc.terminate()
         proc.communicate(timeout=10)
+
+
+def test_connections_without_the_token_cannot_take_the_owners_slots(rt, server_cls):
+    """The attack of issue 16 (item 2): another local user opens TCP connections and never shows the token. They
+    have their own budget (MAX_UNAUTHENTICATED) and deadline (AUTH_TIMEOUT_S): the owner's unix-socket and
+    authenticated nodes still join, up to max_clients, and whoever is refused is told why."""
+    with server_cls("r1", "bus1", 500_000, tcp=True, max_clients=4) as srv:
+        squatters = [socket.create_connection(srv.tcp_address, timeout=2.0) for _ in range(protocol.MAX_UNAUTHENTICATED)]
+        assert wait_for(lambda: srv.stats.clients == 0)  # not nodes, and not counted against max_clients
+        one_more = raw_tcp(srv)  # the budget of connections waiting to authenticate is used up
+        assert protocol.refused_reason(one_more) == protocol.REFUSED_REASONS[protocol.REFUSED_WAITING]
+        nodes = [TrainhilBus("r1/bus1", node_name=f"owner{k}") for k in range(4)]  # late or restarted owner nodes
+        try:
+            assert wait_for(lambda: srv.stats.clients == 4)
+            with pytest.raises(can.CanInitializationError, match=r"refused the connection: the bus server is full"):
+                TrainhilBus("r1/bus1", node_name="fifth")
+            nodes[0].send(can.Message(arbitration_id=0x10, data=DATA, is_extended_id=False))
+            assert nodes[1].recv(2.0).arbitration_id == 0x10
+        finally:
+            for n in nodes:
+                n.shutdown()
+        # the squatters are told and dropped after the deadline; a token holder then gets in over TCP
+        for s in squatters:
+            s.settimeout(5.0)
+            assert protocol.refused_reason(s.recv(24)) == protocol.REFUSED_REASONS[protocol.REFUSED_TIMEOUT]
+            s.close()
+        assert wait_for(lambda: srv.stats.auth_failures >= protocol.MAX_UNAUTHENTICATED)
+        with TrainhilBus("tcp:r1/bus1", node_name="tcp-owner") as ok:
+            assert ok.channel_info.startswith("trainhil tcp:")

@@ -29,6 +29,16 @@ const KIND_FILTERS: u8 = 4;
 const KIND_FILTER: u8 = 5;
 const KIND_FILTERS_ACK: u8 = 6;
 const KIND_AUTH: u8 = 7;
+const KIND_REFUSED: u8 = 8;
+/// Why a connection was refused (byte 1 of a REFUSED record; the client says it in its error).
+pub const REFUSED_FULL: u8 = 1;
+pub const REFUSED_TOKEN: u8 = 2;
+pub const REFUSED_WAITING: u8 = 3;
+pub const REFUSED_TIMEOUT: u8 = 4;
+/// TCP connections that have not shown the token yet: their own small budget and a short deadline, so that they
+/// can never take the slots of authenticated or unix-socket nodes (``max_clients``).
+pub const MAX_UNAUTHENTICATED: usize = 16;
+pub const AUTH_TIMEOUT: Duration = Duration::from_secs(1);
 const FLAG_EXTENDED: u8 = 0x01;
 const FLAG_REMOTE: u8 = 0x02;
 const FLAG_ERROR: u8 = 0x04;
@@ -142,6 +152,14 @@ fn pack_welcome(bitrate: u32, epoch0: f64, client_id: u32) -> [u8; RECORD_SIZE] 
     r[4..8].copy_from_slice(&bitrate.to_le_bytes());
     r[8..16].copy_from_slice(&epoch0.to_le_bytes());
     r[16..20].copy_from_slice(&client_id.to_le_bytes());
+    r
+}
+
+/// The record a refused connection gets before the server closes it.
+pub fn pack_refused(why: u8) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_REFUSED;
+    r[1] = why;
     r
 }
 
@@ -546,14 +564,21 @@ impl Server {
                     return;
                 }
             };
+            let waiting = self.clients.iter().filter(|c| !c.closed && !c.authed).count();
             let why = if ip.is_some_and(|ip| !ip.is_loopback() && ip.to_string() != "::ffff:127.0.0.1") {
-                Some(format!("TCP peer {} is not loopback", ip.unwrap()))
-            } else if self.clients.len() >= self.cfg.max_clients {
-                Some(format!("more than {} connections", self.cfg.max_clients))
+                Some((0, format!("TCP peer {} is not loopback", ip.unwrap())))
+            } else if tcp && waiting >= MAX_UNAUTHENTICATED {
+                Some((REFUSED_WAITING, format!("{MAX_UNAUTHENTICATED} TCP connections are already waiting to authenticate")))
+            } else if !tcp && self.authenticated() >= self.cfg.max_clients {
+                Some((REFUSED_FULL, format!("more than {} connections", self.cfg.max_clients)))
             } else {
                 None
             };
-            if let Some(why) = why {
+            if let Some((code, why)) = why {
+                let mut stream = stream;
+                if code != 0 {
+                    let _ = stream.write(&pack_refused(code));
+                }
                 drop(stream);
                 self.bad_input(shared, "clients_refused", format!("connection refused: {why}"));
                 continue;
@@ -577,9 +602,22 @@ impl Server {
         }
     }
 
+    /// Open connections that count against ``max_clients``: unix sockets, and TCP ones that showed the token.
+    fn authenticated(&self) -> usize {
+        self.clients.iter().filter(|c| !c.closed && c.authed).count()
+    }
+
     fn expire_handshakes(&mut self, shared: &mut Shared) {
         let limit = self.cfg.hello_timeout;
         for i in 0..self.clients.len() {
+            let c = &mut self.clients[i];
+            if !c.closed && !c.authed && c.t_open.elapsed() > AUTH_TIMEOUT {
+                let _ = c.stream.write(&pack_refused(REFUSED_TIMEOUT));
+                let text = format!("TCP connection #{} sent no token within {} s", c.cid, AUTH_TIMEOUT.as_secs_f64());
+                self.bad_input(shared, "auth_failures", text);
+                self.drop_client(shared, i, "authentication timeout");
+                continue;
+            }
             let c = &self.clients[i];
             if !c.closed && c.node.is_none() && c.t_open.elapsed() > limit {
                 let text = format!("connection #{} sent no HELLO within {} s", c.cid, limit.as_secs_f64());
@@ -637,7 +675,15 @@ impl Server {
                 let why = if kind == KIND_AUTH { "a wrong token" } else { "no token" };
                 let text = format!("TCP connection #{} refused: {why}", self.clients[i].cid);
                 self.bad_input(shared, "auth_failures", text);
+                let _ = self.clients[i].stream.write(&pack_refused(REFUSED_TOKEN));
                 return Err(Fault::Refused(why.into()));
+            }
+            if self.authenticated() >= self.cfg.max_clients {
+                let text = format!("TCP connection #{} refused: more than {} connections", self.clients[i].cid,
+                                   self.cfg.max_clients);
+                self.bad_input(shared, "clients_refused", text);
+                let _ = self.clients[i].stream.write(&pack_refused(REFUSED_FULL));
+                return Err(Fault::Refused("the bus is full".into()));
             }
             self.clients[i].authed = true;
             return Ok(());

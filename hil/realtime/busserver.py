@@ -45,8 +45,9 @@ from pathlib import Path
 from hil.can.bus import CanBusModel, CanNode, Transmission
 from hil.realtime.paths import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
 from hil.realtime.protocol import (
-    FLAG_ECHO, FLAG_EXTENDED, FRAME, KIND_AUTH, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO, PROTOCOL_VERSION,
-    RECORD_SIZE, TOKEN_BYTES, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_welcome,
+    AUTH_TIMEOUT_S, FLAG_ECHO, FLAG_EXTENDED, FRAME, KIND_AUTH, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO,
+    MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE, REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING,
+    TOKEN_BYTES, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_refused, pack_welcome,
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
 from hil.can.stats import BusLog
@@ -159,6 +160,14 @@ class BusServerStats:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def _try_send(sock: socket.socket, record: bytes) -> None:
+    """Best effort: tell a connection why it is refused before closing it."""
+    try:
+        sock.send(record)
+    except OSError:
+        pass
 
 
 class _Client:
@@ -564,12 +573,16 @@ class BusServer:
             except OSError as exc:  # e.g. out of file descriptors: refuse this one, keep serving
                 self._bad_input("clients_refused", f"accept failed: {exc}")
                 return
-            why = None
+            why, code = None, None
             if tcp and addr[0] not in ("127.0.0.1", "::1", "::ffff:127.0.0.1"):
                 why = f"TCP peer {addr[0]} is not loopback"
-            elif len(self._clients) >= self._max_clients:
-                why = f"more than {self._max_clients} connections"
+            elif tcp and sum(not c.authed for c in self._clients.values()) >= MAX_UNAUTHENTICATED:
+                why, code = f"{MAX_UNAUTHENTICATED} TCP connections are already waiting to authenticate", REFUSED_WAITING
+            elif not tcp and self._authenticated() >= self._max_clients:
+                why, code = f"more than {self._max_clients} connections", REFUSED_FULL
             if why is not None:
+                if code is not None:
+                    _try_send(sock, pack_refused(code))
                 sock.close()
                 self._bad_input("clients_refused", f"connection refused: {why}")
                 continue
@@ -588,9 +601,19 @@ class BusServer:
         if n <= LOG_FIRST or n % 1000 == 0:
             LOG.warning("bus %s: %s (%s #%d)", self.channel, text, kind, n)
 
+    def _authenticated(self) -> int:
+        """Connections that count against max_clients: unix sockets, and TCP ones that showed the token."""
+        return sum(c.authed for c in self._clients.values())
+
     def _expire_handshakes(self) -> None:
-        """Drop connections that did not complete AUTH/HELLO within hello_timeout_s (they hold a slot)."""
-        limit = time.monotonic() - self._hello_timeout_s
+        """Drop TCP connections without the token after AUTH_TIMEOUT_S, and any that did not complete HELLO within
+        hello_timeout_s (they hold a slot)."""
+        now = time.monotonic()
+        for c in [c for c in self._clients.values() if not c.authed and c.t_open < now - AUTH_TIMEOUT_S]:
+            _try_send(c.sock, pack_refused(REFUSED_TIMEOUT))
+            self._bad_input("auth_failures", f"TCP connection #{c.cid} sent no token within {AUTH_TIMEOUT_S:g} s")
+            self._drop(c, "authentication timeout")
+        limit = now - self._hello_timeout_s
         for c in [c for c in self._clients.values() if c.node is None and c.t_open < limit]:
             self._bad_input("protocol_errors", f"connection #{c.cid} sent no HELLO within {self._hello_timeout_s:g} s")
             self._drop(c, "handshake timeout")
@@ -601,7 +624,12 @@ class BusServer:
         if token is None or self.token is None or not hmac.compare_digest(token, self.token):
             why = "no token" if token is None else "a wrong token"
             self._bad_input("auth_failures", f"TCP connection #{c.cid} refused: {why}")
+            _try_send(c.sock, pack_refused(REFUSED_TOKEN))
             raise _Refused(why)
+        if self._authenticated() >= self._max_clients:
+            self._bad_input("clients_refused", f"TCP connection #{c.cid} refused: more than {self._max_clients} connections")
+            _try_send(c.sock, pack_refused(REFUSED_FULL))
+            raise _Refused("the bus is full")
         c.authed = True
 
     def _drain_wake(self, now: int) -> None:

@@ -55,7 +55,19 @@ KIND_FILTERS = 4
 KIND_FILTER = 5
 KIND_FILTERS_ACK = 6
 KIND_AUTH = 7
+KIND_REFUSED = 8  # server -> client, then it closes: byte 1 says why (REFUSED_REASONS)
 TOKEN_BYTES = 16
+REFUSED_FULL, REFUSED_TOKEN, REFUSED_WAITING, REFUSED_TIMEOUT = 1, 2, 3, 4
+REFUSED_REASONS = {
+    REFUSED_FULL: "the bus server is full (max_clients connections)",
+    REFUSED_TOKEN: "a missing or wrong token (TCP needs the run's token)",
+    REFUSED_WAITING: "too many TCP connections are waiting to authenticate (someone may be holding them open)",
+    REFUSED_TIMEOUT: "no token within the authentication deadline",
+}
+# TCP connections without the token yet: their own small budget and a short deadline, so that they never take
+# the slots (max_clients) of authenticated or unix-socket nodes. The same values as the engine's server.rs.
+MAX_UNAUTHENTICATED = 16
+AUTH_TIMEOUT_S = 1.0
 
 FLAG_EXTENDED = 0x01
 FLAG_REMOTE = 0x02
@@ -211,6 +223,18 @@ def unpack_filter(record: bytes | memoryview, offset: int = 0) -> Filter:
     if match not in (MATCH_ANY, MATCH_STANDARD, MATCH_EXTENDED):
         raise ProtocolError(f"FILTER: match {match} is not 0, 1 or 2")
     return Filter(can_id, can_mask, match)
+
+
+def pack_refused(why: int) -> bytes:
+    """The record a refused connection gets before the server closes it."""
+    return bytes([KIND_REFUSED, why]) + bytes(RECORD_SIZE - 2)
+
+
+def refused_reason(record: bytes | memoryview) -> str | None:
+    """Why the server refused us, if ``record`` is a REFUSED record (else None)."""
+    if record[0] != KIND_REFUSED:
+        return None
+    return REFUSED_REASONS.get(record[1], f"refused (reason code {record[1]})")
 
 
 def pack_filters_ack(generation: int) -> bytes:

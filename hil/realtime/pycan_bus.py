@@ -34,7 +34,7 @@ from hil.realtime.paths import (
 from hil.realtime.protocol import (
     FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME, PROTOCOL_VERSION,
     RECORD_SIZE, TOKEN_BYTES, ProtocolError, filter_from_python_can, pack_auth, pack_filters, pack_frame, pack_hello,
-    unpack_filters_ack, unpack_welcome,
+    refused_reason, unpack_filters_ack, unpack_welcome,
 )
 
 LOG = logging.getLogger(__name__)
@@ -152,21 +152,30 @@ class TrainhilBus(BusABC):
         return sock
 
     def _handshake(self, hello: bytes, timeout: float):
-        self._sock.sendall(hello)
         buf = bytearray()
         deadline = time.monotonic() + timeout
-        while len(buf) < RECORD_SIZE:
-            self._sock.settimeout(max(deadline - time.monotonic(), 1e-3))
-            try:
+        try:
+            self._sock.sendall(hello)
+            while len(buf) < RECORD_SIZE:
+                self._sock.settimeout(max(deadline - time.monotonic(), 1e-3))
                 chunk = self._sock.recv(RECORD_SIZE - len(buf))
-            except TimeoutError:
-                raise CanInitializationError(f"trainhil: the server at {self._where()} did not answer within "
-                                             f"{timeout} s") from None
-            if not chunk:
-                why = " (TCP: a missing or wrong token is refused)" if self._tcp is not None else ""
-                raise CanInitializationError(f"trainhil: the server at {self._where()} closed the connection "
-                                             f"during the handshake{why}")
-            buf += chunk
+                if not chunk:
+                    break
+                buf += chunk
+        except TimeoutError:
+            raise CanInitializationError(f"trainhil: the server at {self._where()} did not answer within "
+                                         f"{timeout} s") from None
+        except ConnectionError as exc:  # reset or broken pipe: it refused us; a REFUSED record may say why
+            if len(buf) < RECORD_SIZE:
+                raise CanInitializationError(f"trainhil: the server at {self._where()} refused the connection "
+                                             f"during the handshake ({exc.strerror or exc})") from None
+        if len(buf) < RECORD_SIZE:
+            why = " (TCP: a missing or wrong token is refused)" if self._tcp is not None else ""
+            raise CanInitializationError(f"trainhil: the server at {self._where()} closed the connection "
+                                         f"during the handshake{why}")
+        refused = refused_reason(buf)
+        if refused is not None:
+            raise CanInitializationError(f"trainhil: the server at {self._where()} refused the connection: {refused}")
         try:
             welcome = unpack_welcome(buf)
         except ProtocolError as exc:
