@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import socket
 import statistics
 import subprocess
@@ -31,7 +32,8 @@ def start_proxy(work: Path) -> tuple[subprocess.Popen, str]:
     (work / "cfg" / "rerun" / "analytics.json").write_text(json.dumps({"analytics_enabled": False}))
     env = {**os.environ, "XDG_CONFIG_HOME": str(work / "cfg"), "XDG_DATA_HOME": str(work / "data")}
     proc = subprocess.Popen(["rerun", "--bind", "127.0.0.1", "--port", str(port), "--save", str(work / "live.rrd")],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                            start_new_session=True)  # `rerun` is a launcher: its viewer binary is a child
     for _ in range(300):
         try:
             socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
@@ -62,7 +64,7 @@ def main() -> None:
                 file_only.append(one(sc, work / f"f{k}", args.sim, None))
                 live.append(one(sc, work / f"l{k}", args.sim, LiveTarget(url=url)))
         finally:
-            proxy.terminate()
+            os.killpg(proxy.pid, signal.SIGTERM)  # the launcher and the binary it started
             proxy.wait(10)
     a, b = statistics.median(file_only), statistics.median(live)
     print(f"seed000, {args.sim:g} s simulated, median of {args.repeat}:")

@@ -131,21 +131,57 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.external:  # added to the scenario's own, validated like them
         scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
     out = Path(args.out) if args.out else Path("runs") / scenario.name
+    check_output_dir(out, args.overwrite)
     live = live_target(args)
     if live is not None and not args.quiet:
         print(f"hil: {live.describe()}", file=sys.stderr)
     if args.realtime:
         from hil.realtime.cli import run_realtime_from_args
 
-        result = run_realtime_from_args(args, scenario, out, live)
+        result = run_realtime_from_args(args, scenario, out, live, _given(args, overrides))
     else:
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
-                              record=not args.no_record, progress=not args.quiet, live=live)
+                              record=not args.no_record, progress=not args.quiet, live=live,
+                              overrides=_given(args, overrides), source=str(args.scenario))
     print_summary(result.metrics, out)
     code = EXIT_INTERRUPTED if result.log.interrupted else unsafe_exit(result.metrics) if args.check else 0
     if live is not None and live.port is not None and code != EXIT_INTERRUPTED:
         _keep_serving(live)
     return code
+
+
+RUN_FILES = ("run.rrd", "metrics.json", "bus*.asc", "bus*.blf", "bus*.mf4")
+
+
+def check_output_dir(out: Path, overwrite: bool) -> None:
+    """A directory that holds a previous run is refused (exit 2), unless ``--overwrite``: then its run files go
+    first, so nothing of the old run is mistaken for the new one."""
+    if out.exists() and not out.is_dir():
+        raise ScenarioError(f"--out {out}: exists and is not a directory")
+    old = [f for pattern in RUN_FILES for f in out.glob(pattern)] if out.is_dir() else []
+    if not old:
+        return
+    if not overwrite:
+        import datetime
+
+        when = datetime.datetime.fromtimestamp(max(f.stat().st_mtime for f in old)).strftime("%Y-%m-%d %H:%M")
+        raise ScenarioError(f"{out} holds a previous run (written {when}): pass --overwrite to replace it, or "
+                            "--out another directory")
+    import shutil
+
+    for f in old:
+        f.unlink()
+    shutil.rmtree(out / "nodes", ignore_errors=True)
+
+
+def _given(args: argparse.Namespace, overrides: dict) -> dict:
+    """Every override the command line made, as dotted keys (for the run's provenance)."""
+    given = dict(overrides)
+    if args.external:
+        given["ecu.external"] = list(args.external)
+    if args.duration is not None:
+        given["duration_s"] = args.duration
+    return given
 
 
 def live_target(args: argparse.Namespace):
@@ -226,6 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     run.add_argument("scenario", help="packaged scenario name (see `hil scenarios`) or path to a .toml file")
     run.add_argument("--out", help="output directory (default: runs/<scenario name>)")
+    run.add_argument("--overwrite", action="store_true",
+                     help="replace a previous run in the output directory (default: refuse, exit 2)")
     run.add_argument("--duration", type=positive_seconds, help="simulated seconds (default: the scenario's duration_s)")
     run.add_argument("--seed", type=int, help="random seed (default: the scenario's seed)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -20,6 +20,7 @@ from hil.plant.dynamics import PlantDiverged
 from hil.record.integrity import StopSignals, mark_running, write_json_atomic
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
 from hil.record.metrics import compute_metrics
+from hil.record.provenance import provenance
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog
 from hil.runtime.ideal import IdealLoop
@@ -75,11 +76,13 @@ def _can_loggers(rig: VirtualRig, out_dir: Path) -> list[can.ASCWriter]:
 
 def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, duration_s: float | None = None,
                  can_log: bool = False, ideal: bool = False, record: bool = True, progress: bool = False,
-                 chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None) -> RunResult:
+                 chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None,
+                 overrides: dict | None = None, source: str | None = None) -> RunResult:
     """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir.
 
     ``live``: also stream the recording to a viewer as the simulation goes (flushed every simulated second, at
-    most every LIVE_FLUSH_WALL_S of wall time); with ``record=False`` only there."""
+    most every LIVE_FLUSH_WALL_S of wall time); with ``record=False`` only there. ``overrides`` and ``source``
+    (the ``--set`` options and the scenario as named) go into metrics.json's provenance."""
     if live is not None:
         chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -142,6 +145,8 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
         metrics = compute_metrics(log, scenario.plant.coupler_band_m)
         metrics["scenario"] = scenario.name
         metrics["runtime"] = runtime
+        metrics["provenance"] = provenance(scenario, runtime, scenario.seed if seed is None else seed,
+                                           overrides=overrides, source=source)
         metrics["interrupted"] = log.interrupted
         if failure is not None:
             metrics["error"] = f"{type(failure).__name__}: {failure}"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -38,7 +39,8 @@ def sink(tmp_path):
     (config / "rerun" / "analytics.json").write_text(json.dumps({"analytics_enabled": False}))
     env = {**os.environ, "XDG_CONFIG_HOME": str(config), "XDG_DATA_HOME": str(tmp_path / "rerun-data")}
     proc = subprocess.Popen(["rerun", "--bind", "127.0.0.1", "--port", str(port), "--save", str(saved)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                            start_new_session=True)  # `rerun` is a launcher: its viewer binary is a child
     deadline = time.monotonic() + 30
     while True:  # until it accepts connections
         try:
@@ -49,7 +51,7 @@ def sink(tmp_path):
                 pytest.fail(f"rerun proxy did not start: {proc.stderr.read().decode(errors='replace')}")
             time.sleep(0.1)
     yield f"rerun+http://127.0.0.1:{port}/proxy", saved
-    proc.terminate()
+    os.killpg(proc.pid, signal.SIGTERM)  # the launcher and the binary it started
     proc.wait(10)
 
 

@@ -234,10 +234,9 @@ def test_sigterm_to_the_orchestrator_stops_everything_and_keeps_the_files(rt, tm
 
 
 def test_a_killed_plant_ends_the_run_early_with_the_data_it_saved(rt, tmp_path):
-    """The plant saves its data every few wall seconds: kill -9 at simulated t = 3.5 s (7 wall s at pace 0.5)
-    leaves the samples up to its last save (about 2.4 s: the first save is 5 wall s after the plant started,
-    0.3 wall s before sim t = 0; asserted >= 1.5 s for a loaded machine), an ERROR event, and an interrupted,
-    readable run."""
+    """The plant streams its signal rows every STREAM_EVERY_WALL_S (0.25 s) and saves the rest every few wall
+    seconds: kill -9 at simulated t = 3.5 s (7 wall s at pace 0.5) leaves the samples up to its last stream write
+    (about 3.3 s; asserted >= 1.5 s for a loaded machine), an ERROR event, and an interrupted, readable run."""
     from hil.realtime.plant_node import SAVE_EVERY_WALL_S
 
     assert SAVE_EVERY_WALL_S * PACE <= 2.5

@@ -187,7 +187,7 @@ def test_check_exits_with_its_own_code_naming_the_verdicts_and_violations_reach_
     """A law that pushes with 300 kN on every unit (power-limited to 4.8 MW) overspeeds within 10 s: --check fails the run (exit 3, not 2
     or 130), names the verdict, and the recording of this fault-free run has the violation as an event."""
     argv = ["run", str(CRUISE), "--set", "controller.law=mylaw:Push", "--set", "controller.params.force_n=300000.0",
-            "--duration", "10", "--quiet", "--out", str(user_dir / "r")]
+            "--duration", "10", "--quiet", "--overwrite", "--out", str(user_dir / "r")]
     assert main(argv) == 0  # without --check the verdict is reported, not enforced
     assert main([*argv, "--check"]) == EXIT_UNSAFE == 3
     err = capsys.readouterr().err

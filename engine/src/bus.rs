@@ -278,16 +278,29 @@ impl Bus {
             tx.t_end as f64 * 1e-9, tx.frame_id as f64, (tx.t_end - tx.t_enqueue) as f64 * 1e-9,
             (tx.t_start - tx.t_enqueue) as f64 * 1e-9,
         ]);
-        self.close_windows(tx.t_end, false);
-        self.window_busy += tx.t_end - tx.t_start;
+        self.account(tx.t_start, tx.t_end);
         if let Some(trace) = self.trace.as_mut() {
             trace.push(tx);
         }
         tx
     }
 
-    /// Emit a load sample for every window that ended before t (at or before t if inclusive); a frame counts
-    /// in the window its transmission ends in.
+    /// Book a transmission's bus time in the load windows it spans, each its own part (a frame that straddles a
+    /// boundary would otherwise put more than a window's length into the later one: a load above 1).
+    fn account(&mut self, start: u64, end: u64) {
+        while end > self.window_end {
+            if start < self.window_end {
+                self.window_busy += self.window_end - start.max(self.window_end - self.window_ns);
+            }
+            self.stats.load.push(self.window_end as f64 * 1e-9);
+            self.stats.load.push(self.window_busy as f64 / self.window_ns as f64);
+            self.window_busy = 0;
+            self.window_end += self.window_ns;
+        }
+        self.window_busy += end - start.max(self.window_end - self.window_ns);
+    }
+
+    /// Emit a load sample for every window that ended before t (at or before t if inclusive).
     fn close_windows(&mut self, t: u64, inclusive: bool) {
         while t > self.window_end || (inclusive && t == self.window_end) {
             self.stats.load.push(self.window_end as f64 * 1e-9);
@@ -404,15 +417,28 @@ mod tests {
     }
 
     #[test]
-    fn load_windows_count_a_frame_where_it_ends() {
+    fn load_windows_split_a_frame_that_spans_them() {
         let mut b = Bus::new("b", BitTiming::new(1_000_000, 1_000_000).unwrap(), Policy::Priority, 8, false, 1_000);
         let a = b.attach("A", Sink::None, None, false);
         b.enqueue(a, 0, &[], 0, None);
-        let end = b.arbitrate(0).unwrap().unwrap(); // 53 us (the all-zero frame) > one 1 us window
+        let end = b.arbitrate(0).unwrap().unwrap(); // 53 us (the all-zero frame) over 53 windows of 1 us
         b.complete();
         b.finish(end);
-        let windows = b.stats.load.len() / 2;
-        assert_eq!(windows as u64, end / 1_000);
-        assert_eq!(*b.stats.load.last().unwrap(), 53.0); // the whole frame in its last window (as the Python model)
+        let loads: Vec<f64> = b.stats.load.chunks(2).map(|w| w[1]).collect();
+        assert_eq!(loads.len() as u64, end / 1_000);
+        assert!(loads.iter().all(|&l| l == 1.0), "{loads:?}"); // each window full, none above 1
+    }
+
+    #[test]
+    fn a_frame_across_a_window_boundary_is_shared_by_both() {
+        let mut b = Bus::new("b", BitTiming::new(1_000_000, 1_000_000).unwrap(), Policy::Priority, 8, false, 100_000);
+        let a = b.attach("A", Sink::None, None, false);
+        b.enqueue(a, 0, &[], 80_000, None);
+        let end = b.arbitrate(80_000).unwrap().unwrap(); // 80 us .. 133 us: 20 us in the first window, 33 in the next
+        b.complete();
+        b.finish(200_000);
+        let loads: Vec<f64> = b.stats.load.chunks(2).map(|w| w[1]).collect();
+        assert_eq!(end, 133_000);
+        assert_eq!(loads, vec![0.2, 0.33]);
     }
 }

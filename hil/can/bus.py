@@ -222,13 +222,21 @@ class CanBusModel:
         log = self.log
         log.frames_sent += 1
         log.frames.append((tx.t_end * 1e-9, tx.frame_id, (tx.t_end - tx.t_enqueue) * 1e-9, (tx.t_start - tx.t_enqueue) * 1e-9))
-        self._close_windows(tx.t_end)
-        self._window_busy += tx.t_end - tx.t_start
+        self._book_load(tx.t_start, tx.t_end)
+
+    def _book_load(self, start: int, end: int) -> None:
+        """Book a transmission's bus time in the load windows it spans, each its own part (a frame that straddles a
+        boundary would otherwise put more than a window's length into the later one: a load above 1)."""
+        while end > self._window_end:
+            if start < self._window_end:
+                self._window_busy += self._window_end - max(start, self._window_end - self._window_ns)
+            self.log.load.append((self._window_end * 1e-9, self._window_busy / self._window_ns))
+            self._window_busy = 0
+            self._window_end += self._window_ns
+        self._window_busy += end - max(start, self._window_end - self._window_ns)
 
     def _close_windows(self, t: int, inclusive: bool = False) -> None:
-        """Emit load samples for every window that ended before t (at or before t if inclusive).
-
-        A frame counts in the window its transmission ends in."""
+        """Emit load samples for every window that ended before t (at or before t if inclusive)."""
         while t > self._window_end or (inclusive and t == self._window_end):
             self.log.load.append((self._window_end * 1e-9, self._window_busy / self._window_ns))
             self._window_busy = 0

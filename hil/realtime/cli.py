@@ -115,7 +115,7 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: the run name, i.e. the python-can channel prefix NAME/bus1 (default: fresh)")
 
 
-def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=None):
+def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=None, overrides: dict | None = None):
     """``hil run --realtime``: the RunResult of a real-time run; ScenarioError (``hil`` prints it, exit 2) naming an
     option that does not combine with it."""
     from hil.realtime.orchestrator import run_realtime
@@ -146,7 +146,8 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
             raise ScenarioError(str(exc)) from None
     return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
-                        run=args.run_name, on_channels=print_channels, live=live)
+                        run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
+                        source=str(args.scenario))
 
 
 def print_channels(channels) -> None:

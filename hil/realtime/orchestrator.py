@@ -56,6 +56,7 @@ from hil.record.canlog import asc_listener, open_asc
 from hil.record.live import LiveTarget
 from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.metrics import compute_metrics
+from hil.record.provenance import provenance
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.safety import record_violations
@@ -151,7 +152,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  seed: int | None = None, ecus_per_process: int = 1, record: bool = True, progress: bool = False,
                  plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None, can_log: bool = False,
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
-                 live: LiveTarget | None = None):
+                 live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: the plant polls this long before each publication (0: sleep only). ``on_start(t0)`` is
@@ -267,6 +268,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     metrics["scenario"] = scenario.name
     metrics["runtime"] = "realtime"
     metrics["pace"] = float(pace)
+    metrics["provenance"] = provenance(scenario, "realtime", seed, pace=float(pace), overrides=overrides, source=source)
     metrics["interrupted"] = log.interrupted
     missing = join.missing() if join is not None and join.waiting and not stop.requested else None
     if missing is not None:
@@ -520,6 +522,8 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
             sat[k] = sat.get(k, 0) + v
     log.codec_saturations = sat
     log.sim_time_s = float(plant.get("sim_time_s", 0.0))
+    if len(log.signals):  # a plant killed between saves streamed further than its plant.json says
+        log.sim_time_s = max(log.sim_time_s, float(log.signals.last(0)))
     log.wall_time_s = float(plant.get("wall_time_s") or wall)  # the plant's: sim t = 0 to its last step
     log.interrupted = bool(stop_reason) or bool(plant.get("interrupted", True))
     return log, _timing_metrics(plant, ecus, servers)

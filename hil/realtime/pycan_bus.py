@@ -8,7 +8,7 @@
 Channel: ``"<run>/<bus>"`` names the socket ``<runtime_root>/<run>/<bus>.sock`` (runtime root:
 ``$XDG_RUNTIME_DIR/trainhil`` or ``<tempdir>/trainhil-<uid>``, see ``hil.realtime.paths``), or an absolute
 path to a ``.sock`` file. Frames received carry the time their transmission ended on the emulated bus
-(epoch seconds). Acceptance filters are applied by the server; until it confirms a new set, python-can
+(epoch seconds), and ``channel`` = the bus's 0-based index (bus1 -> 0; see ``bus_index``). Acceptance filters are applied by the server; until it confirms a new set, python-can
 filters in software as well. Only classical data frames are emulated (no CAN FD, remote or error frames
 from nodes). The bitrate is the server's; a ``bitrate`` argument that differs is logged and ignored.
 """
@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+import re
 import select
 import socket
 import stat
@@ -40,6 +41,14 @@ from hil.realtime.protocol import (
 LOG = logging.getLogger(__name__)
 INTERFACE = "trainhil"
 _node_seq = itertools.count(1)
+
+
+def bus_index(channel: str):
+    """A received message's ``channel``: the bus's 0-based index (``.../bus1`` -> 0), as Vector and PCAN number their
+    channels, so that python-can's log writers (which add 1) log busN as channel N, as the rig's own --can-log
+    does; a bus not named ``bus<N>`` keeps its channel name."""
+    m = re.search(r"bus(\d+)(?:\.sock)?$", channel)
+    return int(m.group(1)) - 1 if m and int(m.group(1)) >= 1 else channel
 
 
 class TrainhilBus(BusABC):
@@ -79,6 +88,7 @@ class TrainhilBus(BusABC):
             LOG.warning("trainhil %s: bitrate %s requested, the emulated bus runs at %d bit/s",
                         self.channel_name, wanted, welcome.bitrate)
         self.channel_info = f"trainhil {self.channel_name} ({welcome.bitrate} bit/s, node {name})"
+        self.channel_index = bus_index(self.channel_name)
         self._sock.setblocking(False)
         self._rbuf = bytearray(RECORD_SIZE)
         self._rview = memoryview(self._rbuf)
@@ -269,7 +279,7 @@ class TrainhilBus(BusABC):
         _, flags, dlc, can_id, timestamp, data = FRAME.unpack(record)
         return Message(timestamp=timestamp, arbitration_id=can_id, is_extended_id=bool(flags & FLAG_EXTENDED),
                        is_remote_frame=bool(flags & FLAG_REMOTE), is_error_frame=bool(flags & FLAG_ERROR),
-                       dlc=dlc, data=data[:dlc], is_rx=not flags & FLAG_ECHO, channel=self.channel_name, check=False)
+                       dlc=dlc, data=data[:dlc], is_rx=not flags & FLAG_ECHO, channel=self.channel_index, check=False)
 
     # ---- filters, shutdown, discovery
     def _apply_filters(self, filters) -> None:

@@ -18,6 +18,7 @@ from hil.realtime.node import load_scenario_json
 from hil.realtime.orchestrator import RUN_FILE, merge_nodes, write_recording
 from hil.record.integrity import RUNNING, write_json_atomic
 from hil.record.metrics import compute_metrics
+from hil.record.provenance import provenance
 from hil.record.runlog import Event
 from hil.record.safety import record_violations
 
@@ -45,13 +46,12 @@ def recover(out_dir: Path, wait_s: float = NODES_GRACE_S) -> dict:
     lost = Event(0.0, "WARN", "rig", "recovered by hil recover: the rig's orchestrator stopped during the run; its bus "
                                      "load and latency tables and its own events were lost with it")
     log, extra = merge_nodes(sc, layout, nodes_dir, [], [lost], None, pace, duration, 0.0, "the orchestrator died")
-    if len(log.signals):  # a plant killed too saved last some seconds ago; its stream goes further
-        log.sim_time_s = max(log.sim_time_s, float(log.signals.last(0)))
     record_violations(log, sc.plant.coupler_band_m)
     t0 = run.get("t0")
     write_recording(sc, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (float(t0), pace))
     metrics = compute_metrics(log, sc.plant.coupler_band_m)
     metrics.update(extra)
+    metrics["provenance"] = provenance(sc, "realtime", int(run.get("seed", sc.seed)), pace=pace)
     metrics.update(scenario=sc.name, runtime="realtime", pace=pace, interrupted=True, recovered=True,
                    recovered_missing=["bus load and latency tables", "orchestrator events"])
     write_json_atomic(out_dir / "metrics.json", metrics)

@@ -9,11 +9,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hil.can.cli import positive_seconds
 from hil.sweep.spec import SweepError, SweepSpec, load_sweep, packaged_sweeps
 
 
 def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
-    """Add ``hil sweep SWEEP --out DIR [--workers N] [--dask ADDRESS|local] [--no-plots] [--quiet]``."""
+    """Add ``hil sweep SWEEP --out DIR [--set K=V] [--duration S] [--workers N] [--dask ADDRESS|local] [--no-plots]``."""
     p = subparsers.add_parser("sweep", help="run a grid of scenario variants in parallel, write results.csv and plots")
     p.add_argument("sweep", help="packaged sweep name (see `hil sweeps`) or path to a sweep .toml file")
     p.add_argument("--out", help="output directory (default: runs/sweep-<name>); rerun with the same --out to resume")
@@ -21,6 +22,9 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
                                                "LocalCluster's workers; ignored with a tcp:// scheduler")
     p.add_argument("--dask", metavar="ADDRESS", help="run on a Dask cluster: tcp://host:port of a scheduler, or `local` "
                                                      "for a LocalCluster on this machine")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a scenario field in every run, as hil run --set (joins the file's [overrides]; repeatable)")
+    p.add_argument("--duration", type=positive_seconds, help="simulated seconds of every run (replaces the file's)")
     p.add_argument("--no-plots", action="store_true", help="write results.csv only")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_sweep)
@@ -50,7 +54,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise SweepError(f"--workers must be >= 1, got {args.workers}")
-    spec = load_sweep(args.sweep)
+    from hil.cli import parse_assignment
+
+    spec = load_sweep(args.sweep, dict(parse_assignment(a) for a in args.set), args.duration)
     out = Path(args.out) if args.out else Path("runs") / f"sweep-{spec.name}"
     result = run_sweep(spec, out, workers=args.workers, dask=args.dask, progress=not args.quiet)
     plots = [] if args.no_plots or not result.rows else _plots(spec, result.rows, out)

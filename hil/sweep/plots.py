@@ -27,6 +27,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
+from matplotlib.ticker import NullFormatter, ScalarFormatter
 
 AxisValue = float | str
 _TRUE = {"true", "1", "yes", "y", "t"}
@@ -176,7 +177,30 @@ def heatmap_grid(rows: Sequence[Mapping[str, Any]], metric: str, x: str, y: str 
 
 
 def _fmt(v: AxisValue) -> str:
-    return f"{v:g}" if isinstance(v, float) else str(v)
+    """An axis value as people write it: 1000000, not 1e+06; 0.05, not 5e-02."""
+    if isinstance(v, float):
+        return str(int(v)) if v.is_integer() and abs(v) < 1e12 else f"{v:g}"
+    return str(v)
+
+
+def value_decimals(values: np.ndarray) -> int | None:
+    """Decimals that keep every two different values of a grid apart when written (fixed point), or None for
+    values too large or too small for fixed point (then 4 significant digits). 2473.4 and 2477.9, not 2.47e+03."""
+    finite = np.unique(values[np.isfinite(values)])
+    if finite.size == 0:
+        return 0
+    big = np.abs(finite).max()
+    if big >= 1e7 or 0 < big < 1e-4:
+        return None
+    steps = np.diff(finite)
+    if not steps.size:
+        return None  # one value: nothing to keep apart
+    step = steps.min()
+    return int(min(6, max(0, 1 - math.floor(math.log10(step)))))
+
+
+def _value_text(v: float, decimals: int | None) -> str:
+    return f"{v:.4g}" if decimals is None else f"{v:.{decimals}f}"
 
 
 def _where_text(where: Mapping[str, Any] | None) -> str:
@@ -194,14 +218,14 @@ def _save(fig: Figure, path: Path) -> Path:
     return path
 
 
-def _cell_text(g: Grid, i: int, j: int) -> str:
+def _cell_text(g: Grid, i: int, j: int, decimals: int | None) -> str:
     if g.runs[i, j] == 0:
         return "no run"
     if g.failed[i, j]:
         return f"failed\n{g.failed[i, j]}/{g.runs[i, j]}"
     if g.undefined[i, j]:
         return f"n/a\n{g.undefined[i, j]}/{g.runs[i, j]}"
-    return f"{g.values[i, j]:.3g}"
+    return _value_text(float(g.values[i, j]), decimals)
 
 
 def draw_heatmap(g: Grid, path: Path, where: Mapping[str, Any] | None = None) -> Path:
@@ -213,14 +237,17 @@ def draw_heatmap(g: Grid, path: Path, where: Mapping[str, Any] | None = None) ->
     cmap = colormaps["viridis"].with_extremes(bad="#d9d9d9")  # NaN cells (no run, failed, undefined) grey
     image = ax.imshow(np.ma.masked_invalid(g.values), origin="lower", aspect="auto", cmap=cmap,
                       vmin=finite.min() if finite.size else 0.0, vmax=finite.max() if finite.size else 1.0)
-    fig.colorbar(image, ax=ax, label=g.metric)
+    bar = fig.colorbar(image, ax=ax, label=g.metric)
+    bar.formatter = ScalarFormatter(useOffset=False)  # 2474, 2476, ... not 2.47e+03 with an offset
+    bar.update_ticks()
     norm = image.norm
+    decimals = value_decimals(g.values)
     for i in range(ny):
         for j in range(nx):
             v = g.values[i, j]
             dark = math.isfinite(v) and norm(v) < 0.6
             box = dict(facecolor="white", alpha=0.8, edgecolor="none", pad=1.5) if g.unsafe[i, j] else None
-            ax.text(j, i, _cell_text(g, i, j), ha="center", va="center", fontsize=8,
+            ax.text(j, i, _cell_text(g, i, j, decimals), ha="center", va="center", fontsize=8,
                     color="white" if dark and box is None else "black", bbox=box)
             if g.unsafe[i, j]:
                 ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="///", edgecolor="red", linewidth=1.5))
@@ -270,6 +297,13 @@ def draw_lines(g: Grid, path: Path, where: Mapping[str, Any] | None = None) -> P
     ax.legend(handles, labels, fontsize=8)
     if not numeric:
         ax.set_xticks(pos, [_fmt(v) for v in g.x_values])
+    elif pos.min() > 0 and pos.max() >= 4 * pos.min():  # e.g. bit rates 125000 .. 1000000: a log axis
+        ax.set_xscale("log")
+        ax.set_xticks(pos, [_fmt(v) for v in g.x_values])
+        ax.xaxis.set_minor_formatter(NullFormatter())
+    else:
+        ax.ticklabel_format(axis="x", useOffset=False, style="plain")
+    ax.ticklabel_format(axis="y", useOffset=False)
     ax.set_xlabel(g.x)
     ax.set_ylabel(g.metric)
     ax.grid(True, alpha=0.3)

@@ -6,7 +6,9 @@ e.g. ``radio.loss.model``, ``radio.loss.p``), then every metric of ``metrics.jso
 summed instead, so the columns do not explode: ``e2e`` (per ECU) -> ``e2e_total.<status>``,
 ``codec_saturations`` (per signal) -> ``codec_saturations_total``, ``radio`` (per link) ->
 ``radio_total.<counter>``; ``per_bus.<bus>.latency_max_by_id`` is left out (it stays in each run's
-metrics.json). Empty cells are undefined values (None) or metrics of failed runs; a failed run's ``error`` is the first
+metrics.json). Safety keeps one column per verdict and figure (``safety.overspeed.count``, ``.total_s``,
+``.first_s``, ``.violated``, and ``safety.safe``); the violations themselves are rows of
+``DIR/safety_violations.csv`` (with the run id). Of the provenance, the scenario hash and the version. Empty cells are undefined values (None) or metrics of failed runs; a failed run's ``error`` is the first
 line of its error.txt (type: message), cut to 200 characters. Runs not finished
 (an interrupted sweep) have no row yet.
 
@@ -24,10 +26,13 @@ from hil.sweep.spec import GridPoint, SweepSpec, flatten
 
 RESULTS = "results.csv"
 FIXED_COLUMNS = ["run_id", "seed", "status", "error"]
-STRING_COLUMNS = {"run_id", "status", "error", "scenario", "runtime"}
+STRING_COLUMNS = {"run_id", "status", "error", "scenario", "runtime", "provenance.scenario_sha256", "provenance.version"}
 NONDETERMINISTIC = {"wall_time_s", "realtime_factor"}
 ERROR_CHARS = 200  # the error column is the first line of error.txt, cut to this length
 SUMMED = {"e2e": "e2e_total", "codec_saturations": "codec_saturations_total", "radio": "radio_total"}
+PROVENANCE_COLUMNS = ("scenario_sha256", "version")  # the rest of a run's provenance stays in its metrics.json
+SAFETY_DETAILS = "safety_violations.csv"
+SAFETY_COLUMNS = ["run_id", "verdict", "where", "start_s", "end_s", "duration_s", "worst", "worst_at_s", "limit", "cause"]
 
 
 def flatten_metrics(metrics: dict[str, Any]) -> dict[str, Any]:
@@ -36,12 +41,23 @@ def flatten_metrics(metrics: dict[str, Any]) -> dict[str, Any]:
     for key, value in metrics.items():
         if key in SUMMED:
             out.update(_summed(value, SUMMED[key]))
+        elif key == "safety":
+            out.update(flatten(_verdicts(value), key))
+        elif key == "provenance":
+            out.update({f"{key}.{k}": value.get(k) for k in PROVENANCE_COLUMNS})
         elif key == "per_bus":
             per_bus = {bus: {k: v for k, v in stats.items() if k != "latency_max_by_id"} for bus, stats in value.items()}
             out.update(flatten(per_bus, key))
         else:
             out.update(flatten(value, key))
     return out
+
+
+def _verdicts(safety: dict[str, Any]) -> dict[str, Any]:
+    """``safe`` and per verdict its scalars (violated, count, total_s, first_s); the violations themselves go to
+    SAFETY_DETAILS, one row each."""
+    return {k: ({kk: vv for kk, vv in v.items() if kk != "violations"} if isinstance(v, dict) else v)
+            for k, v in safety.items() if k != "overspeed_margin"}
 
 
 def _summed(table: dict[str, Any], name: str) -> dict[str, Any]:
@@ -82,7 +98,27 @@ def write_results(spec: SweepSpec, out_dir: Path) -> tuple[list[dict[str, Any]],
         for r in rows:
             writer.writerow({k: _cell(r.get(k)) for k in columns})
     tmp.replace(path)
+    _write_safety_details(spec, out_dir)
     return load_results(out_dir), path
+
+
+def _write_safety_details(spec: SweepSpec, out_dir: Path) -> Path:
+    """DIR/safety_violations.csv: every listed safety violation of every finished run, with the run's id."""
+    path = out_dir / SAFETY_DETAILS
+    tmp = path.with_name(f".{SAFETY_DETAILS}.tmp")
+    with tmp.open("w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=SAFETY_COLUMNS)
+        writer.writeheader()
+        for p in spec.points:
+            metrics_file = out_dir / "runs" / p.run_id / "metrics.json"
+            if not metrics_file.is_file():
+                continue
+            safety = json.loads(metrics_file.read_text(encoding="utf-8")).get("safety") or {}
+            for verdict in safety.values():
+                for v in (verdict.get("violations", []) if isinstance(verdict, dict) else []):
+                    writer.writerow({"run_id": p.run_id, **{k: _cell(v.get(k)) for k in SAFETY_COLUMNS[1:]}})
+    tmp.replace(path)
+    return path
 
 
 def _cell(value: Any) -> str:

@@ -234,10 +234,19 @@ def resolve_sweep(name_or_path: str | Path) -> Path:
     return resolve_packaged(name_or_path, "sweeps", "sweep", SweepError)
 
 
-def load_sweep(name_or_path: str | Path) -> SweepSpec:
-    """Read, parse and validate a sweep file and its whole grid; every failure is a SweepError naming the file."""
+def load_sweep(name_or_path: str | Path, overrides: dict[str, Any] | None = None,
+               duration_s: float | None = None) -> SweepSpec:
+    """Read, parse and validate a sweep file and its whole grid; every failure is a SweepError naming the file.
+
+    ``overrides`` (``hil sweep --set``) join the file's ``[overrides]``, set in every run; ``duration_s``
+    (``--duration``) replaces the file's. Both change the run ids, so they never reuse runs made without them."""
     path = resolve_sweep(name_or_path)
-    return sweep_from_dict(read_toml(path, SweepError), str(path), path.parent)
+    data = read_toml(path, SweepError)
+    if overrides:
+        data["overrides"] = {**data.get("overrides", {}), **overrides}
+    if duration_s is not None:
+        data["duration_s"] = duration_s
+    return sweep_from_dict(data, str(path), path.parent)
 
 
 def sweep_from_dict(data: dict[str, Any], source: str = "<sweep>", base_dir: Path | None = None) -> SweepSpec:

@@ -1,0 +1,48 @@
+"""What produced a run, for its metrics.json: the scenario (name, source, a hash of its resolved content), the law
+and its resolved parameters, the ECU programs, the seed, every override, the versions, the runtime and the pace.
+
+The hash is over the validated scenario as JSON (every default filled in), so two runs with the same hash ran the
+same scenario whatever files and ``--set`` options produced it.
+"""
+from __future__ import annotations
+
+import hashlib
+import platform
+from typing import Any
+
+from hil.scenario.model import Scenario
+
+
+def scenario_hash(sc: Scenario) -> str:
+    """sha256 of the resolved scenario (hex)."""
+    return hashlib.sha256(sc.model_dump_json().encode()).hexdigest()
+
+
+def provenance(sc: Scenario, runtime: str, seed: int, *, pace: float | None = None,
+               overrides: dict[str, Any] | None = None, source: str | None = None) -> dict[str, Any]:
+    """The ``provenance`` block of metrics.json (see the module docstring)."""
+    import rerun
+    import trainhil_engine
+
+    from ecu_sim.controllers.base import get_controller
+    from hil import __version__
+
+    law = get_controller(sc.controller.law)
+    return {
+        "scenario": sc.name,
+        "scenario_source": source,
+        "scenario_sha256": scenario_hash(sc),
+        "law": sc.controller.law,
+        "law_params": law.Params(**sc.controller.params).model_dump(mode="json"),
+        "ecu_program": sc.ecu.program,
+        "ecu_units": [o.model_dump(mode="json", exclude_none=True) for o in sc.ecu.units],
+        "external_units": list(sc.ecu.external),
+        "seed": int(seed),
+        "overrides": dict(overrides or {}),
+        "runtime": runtime,
+        "pace": pace,
+        "version": __version__,
+        "frame_engine": trainhil_engine.VERSION,
+        "python": platform.python_version(),
+        "rerun_sdk": rerun.__version__,
+    }
