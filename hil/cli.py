@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ecu_sim.references import ReferenceLoadError
 from hil.can.cli import positive_seconds
+from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
 
@@ -268,7 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, help="random seed (default: the scenario's seed)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario field, e.g. --set radio.latency_s=0.2 --set can.bitrate=250000 (repeatable)")
-    run.add_argument("--can-log", action="store_true", help="write one ASC CAN log per bus (python-can reads it)")
+    run.add_argument("--can-log", nargs="?", const="asc", choices=("asc", "blf", "mf4"), metavar="FORMAT",
+                     help="write one CAN log per bus: asc (the default), blf or mf4 (needs asammdf); python-can reads "
+                          "each, bus1 on channel 0 (channel 1 in the ASC/BLF files)")
     run.add_argument("--ideal", action="store_true", help="run the ideal network-free reference loop instead")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -313,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except ScenarioError as exc:
+    except (ScenarioError, CanLogUnavailable) as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except (FileNotFoundError, ReferenceLoadError) as exc:  # ReferenceLoadError: user code named in the scenario

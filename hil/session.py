@@ -15,7 +15,7 @@ from typing import Any
 
 import can
 
-from hil.record.canlog import asc_listener, open_asc
+from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.plant.dynamics import PlantDiverged
 from hil.record.integrity import StopSignals, mark_running, write_json_atomic
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
@@ -64,27 +64,29 @@ class IncrementalRecorder:
         self.writer.flush()
 
 
-def _can_loggers(rig: VirtualRig, out_dir: Path) -> list[can.ASCWriter]:
-    """One ASC log per bus, each frame stamped with the end of its transmission (simulated seconds)."""
+def _can_loggers(rig: VirtualRig, out_dir: Path, fmt: str) -> list:
+    """One CAN log per bus, each frame stamped with the end of its transmission (simulated seconds)."""
     writers = []
     for i, bus in enumerate(rig.buses):
-        w = open_asc(out_dir / f"{bus.name}.asc", i, "virtual time")
-        bus.frame_listeners.append(asc_listener(w, i, lambda t_ns: t_ns * 1e-9))
+        w = open_can_log(out_dir, bus.name, i, "virtual time", fmt)
+        bus.frame_listeners.append(frame_listener(w, i, lambda t_ns: t_ns * 1e-9))
         writers.append(w)
     return writers
 
 
 def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, duration_s: float | None = None,
-                 can_log: bool = False, ideal: bool = False, record: bool = True, progress: bool = False,
+                 can_log: str | bool | None = None, ideal: bool = False, record: bool = True, progress: bool = False,
                  chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None,
                  overrides: dict | None = None, source: str | None = None) -> RunResult:
-    """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir.
+    """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir
+    (``can_log``: "asc", "blf" or "mf4", True for ASC).
 
     ``live``: also stream the recording to a viewer as the simulation goes (flushed every simulated second, at
     most every LIVE_FLUSH_WALL_S of wall time); with ``record=False`` only there. ``overrides`` and ``source``
     (the ``--set`` options and the scenario as named) go into metrics.json's provenance."""
     if live is not None:
         chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
+    fmt = None if ideal else log_format(can_log)  # checked before anything is written
     out_dir.mkdir(parents=True, exist_ok=True)
     duration = scenario.duration_s if duration_s is None else duration_s
     runtime = "ideal" if ideal else "virtual"
@@ -100,7 +102,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
             files.append(out_dir / "run.rrd")
     recorder = IncrementalRecorder(writer) if writer else None
     bar = _progress_bar(duration, scenario.name) if progress else None
-    loggers: list[can.ASCWriter] = []
+    loggers: list = []
     rig, failure = None, None
     try:
         stop.arm()  # from here SIGTERM/SIGHUP stop the run like Ctrl-C (the run loop returns what it has)
@@ -114,9 +116,9 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
                 from hil.record.frames import FrameRecorder
 
                 recorder.frames = FrameRecorder(rig.buses, rig.db)
-            if can_log:
-                loggers = _can_loggers(rig, out_dir)
-                files += [out_dir / f"{b.name}.asc" for b in rig.buses]
+            if fmt is not None:
+                loggers = _can_loggers(rig, out_dir, fmt)
+                files += [log_path(out_dir, b.name, fmt) for b in rig.buses]
             log = rig.run(duration, progress=(lambda t: bar.update(round(t - bar.n, 3))) if bar else None,
                           on_chunk=_every(_marking(recorder, out_dir, scenario.name, runtime), chunk_s,
                                           min_flush_wall_s) if recorder else None)

@@ -199,7 +199,8 @@ def test_csv_rows_equal_single_runs_of_the_same_points(pool_sweep, tmp_path):
         expected = deterministic(flatten_metrics(single))
         got = {k: v for k, v in deterministic(rows[law]).items() if k in expected}
         assert expected.keys() - {"scenario"} <= got.keys()
-        expected.pop("scenario"), got.pop("scenario")  # the scenario's name: seed000-consensus vs seed000
+        for key in ("scenario", "provenance.scenario_sha256"):  # the scenario's name: seed000-consensus vs seed000
+            expected.pop(key), got.pop(key)
         assert got == expected
         assert rows[law]["frames_sent"] > 10_000 and rows[law]["seed"] == 0
 
@@ -271,3 +272,38 @@ def test_metrics_flatten_to_columns_with_per_item_tables_summed():
         "e2e_total.OK": 17, "e2e_total.CRC": 1, "codec_saturations_total": 7, "radio_total.lost": 7,
         "events_by_level.WARN": 2}
     assert canonical_json({"b": 1, "a": [1.5]}) == '{"a":[1.5],"b":1}'
+
+
+def test_results_keep_one_column_per_verdict_and_the_violations_go_to_a_side_file(pool_sweep):
+    """issue 14: results.csv had 410 columns, mostly safety.*.violations_N.*"""
+    import csv
+
+    spec, res = pool_sweep
+    columns = list(res.rows[0])
+    assert len(columns) < 200 and not [c for c in columns if ".violations" in c or "overspeed_margin" in c]
+    assert {"safety.safe", "safety.coupler_out_of_band.count", "safety.overspeed.total_s",
+            "safety.gap_below_le.first_s", "provenance.scenario_sha256"} <= set(columns)
+    with (res.out_dir / "safety_violations.csv").open() as f:
+        details = list(csv.DictReader(f))
+    ok = {r["run_id"]: r for r in res.rows if r["status"] == "ok"}
+    for run_id, row in ok.items():
+        mine = [d for d in details if d["run_id"] == run_id]
+        assert len(mine) == sum(min(row[f"safety.{v}.count"], 50) for v in
+                                ("gap_below_le", "collision", "coupler_out_of_band", "overspeed"))
+    assert details and details[0]["verdict"] and float(details[0]["start_s"]) >= 0.0
+
+
+def test_set_and_duration_adjust_every_run_of_a_sweep(tmp_path):
+    path = write(tmp_path, RUNS)
+    plain = load_sweep(path)
+    adjusted = load_sweep(path, {"radio.latency_s": 0.3, "can.bitrate": 250000}, 1.5)
+    assert len(adjusted.points) == len(plain.points) == 4
+    for p in adjusted.points:
+        assert (p.scenario.radio.latency_s, p.scenario.can.bitrate, p.scenario.duration_s) == (0.3, 250000, 1.5)
+    assert not {p.run_id for p in adjusted.points} & {p.run_id for p in plain.points}  # never reuses other runs
+    bad = subprocess.run([sys.executable, "-m", "hil.cli", "sweep", str(path), "--duration", "-1"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--duration" in bad.stderr
+    typo = subprocess.run([sys.executable, "-m", "hil.cli", "sweep", str(path), "--set", "radio.latncy_s=0.3"],
+                          capture_output=True, text=True, timeout=120)
+    assert typo.returncode == 2 and "radio.latncy_s" in typo.stderr and "Traceback" not in typo.stderr

@@ -52,7 +52,7 @@ from hil.realtime.external import ExternalUnitMissing, JoinWait
 from hil.realtime.live_tail import SIGNAL_STREAM, LiveTail
 from hil.realtime.paths import remove_run_dir, remove_stale_run_dirs, validate_name
 from hil.realtime.socketcan import check_channels
-from hil.record.canlog import asc_listener, open_asc
+from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget
 from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.metrics import compute_metrics
@@ -150,14 +150,15 @@ def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]):
 
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
                  seed: int | None = None, ecus_per_process: int = 1, record: bool = True, progress: bool = False,
-                 plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None, can_log: bool = False,
+                 plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None,
+                 can_log: str | bool | None = None,
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: the plant polls this long before each publication (0: sleep only). ``on_start(t0)`` is
     called with the epoch time of simulated t = 0 once every node is ready (tools, tests). ``can_log``: write
-    ``<bus>.asc`` per bus, frames stamped in simulated seconds as in a virtual-time run. ``run``: the run name
+    ``<bus>.<asc|blf|mf4>`` per bus, frames stamped in simulated seconds as in a virtual-time run. ``run``: the run name
     (the python-can channel prefix; default: a fresh one); ``on_channels(channels)`` is called once the buses are
     up, before the nodes start, so that an external device can join (``ecu.external``). ``live``: stream the
     recording to a viewer as the run goes (hil/realtime/live_tail.py)."""
@@ -166,9 +167,10 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     if ecus_per_process < 1:
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
     socketcan = scenario.can.transport == "socketcan"
+    fmt = log_format(can_log)
     if socketcan:  # configuration only: every node opens the host's interfaces; no bus servers
         check_channels(scenario.can.socketcan_channels, scenario.trains.count)
-        if can_log:
+        if fmt is not None:
             raise ValueError("can_log needs the emulated transport (with socketcan, use python -m can.logger -i socketcan)")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -203,8 +205,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             for i in range(0 if socketcan else layout.n_trains):
                 server = server_cls(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate))
-                if can_log:
-                    asc.append(_attach_can_log(server, i, out_dir, clock, pace))
+                if fmt is not None:
+                    asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
                 servers.append(server.start())
             faults = _faults(scenario, layout, servers, seed)
             if on_channels is not None:
@@ -256,7 +258,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         faults.finish(log, t0, pace)
     record_violations(log, scenario.plant.coupler_band_m)  # every safety violation on the timeline
     extra["realtime"]["bus_servers"] = server_stats
-    files = [out_dir / f"bus{i + 1}.asc" for i in range(len(asc))]
+    files = [log_path(out_dir, f"bus{i + 1}", fmt) for i in range(len(asc))] if fmt else []
     if record:
         write_recording(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
         files.append(out_dir / "run.rrd")
@@ -312,15 +314,15 @@ def node_environment(sc: Scenario) -> dict[str, str]:
     return env
 
 
-def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace: float):
-    """Log every frame of ``server`` to ``bus<i+1>.asc`` in simulated seconds (written by the server's thread)."""
+def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace: float, fmt: str):
+    """Log every frame of ``server`` to ``bus<i+1>.<fmt>`` in simulated seconds (written by the server's thread)."""
     epoch0 = server.epoch0
 
     def to_seconds(t_end_ns: int) -> float:  # the server stamps epoch0 + t_end / pace; sim t = (stamp - t0) * pace
         return (epoch0 + t_end_ns * 1e-9 / pace - clock["t0"]) * pace
 
-    writer = open_asc(out_dir / f"bus{i + 1}.asc", i, "real time")
-    server.frame_listeners.append(asc_listener(writer, i, to_seconds))
+    writer = open_can_log(out_dir, f"bus{i + 1}", i, "real time", fmt)
+    server.frame_listeners.append(frame_listener(writer, i, to_seconds))
     return writer
 
 
