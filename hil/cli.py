@@ -131,8 +131,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, overrides)
     if args.external:  # added to the scenario's own, validated like them
         scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
+    if not args.realtime:  # before anything is written
+        from hil.runtime.firmware import refuse_external_units
+
+        refuse_external_units(scenario, "the ideal loop" if args.ideal else "virtual time")
     out = Path(args.out) if args.out else Path("runs") / scenario.name
     check_output_dir(out, args.overwrite)
+    from hil.faults.schedule import late_faults
+
+    for warning in late_faults(scenario, scenario.duration_s if args.duration is None else args.duration):
+        print(f"hil: warning: {warning}", file=sys.stderr)
     live = live_target(args)
     if live is not None and not args.quiet:
         print(f"hil: {live.describe()}", file=sys.stderr)
@@ -145,6 +153,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
                               record=not args.no_record, progress=not args.quiet, live=live,
                               overrides=_given(args, overrides), source=str(args.scenario))
     print_summary(result.metrics, out)
+    if result.metrics.get("stopped_early"):  # a plant or radio process died: not the Ctrl-C code
+        print(f"hil: error: the run stopped early: {result.metrics['stopped_early']} (what ran is in {out})",
+              file=sys.stderr)
+        return EXIT_FAILED
     code = EXIT_INTERRUPTED if result.log.interrupted else unsafe_exit(result.metrics) if args.check else 0
     if live is not None and live.port is not None and code != EXIT_INTERRUPTED:
         _keep_serving(live)
@@ -157,8 +169,12 @@ RUN_FILES = ("run.rrd", "metrics.json", "bus*.asc", "bus*.blf", "bus*.mf4")
 def check_output_dir(out: Path, overwrite: bool) -> None:
     """A directory that holds a previous run is refused (exit 2), unless ``--overwrite``: then its run files go
     first, so nothing of the old run is mistaken for the new one."""
-    if out.exists() and not out.is_dir():
-        raise ScenarioError(f"--out {out}: exists and is not a directory")
+    try:
+        if out.exists() and not out.is_dir():
+            raise ScenarioError(f"--out {out}: exists and is not a directory")
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # no permission, a read-only place such as /sys, a name component over 255 bytes
+        raise ScenarioError(f"--out {out}: cannot create the output directory: {exc.strerror}") from None
     old = [f for pattern in RUN_FILES for f in out.glob(pattern)] if out.is_dir() else []
     if not old:
         return
@@ -230,8 +246,8 @@ By default the run is in virtual time, as fast as the machine allows and reprodu
 runs the same firmware, plant and buses as processes paced to the wall clock; --ideal runs the network-free
 reference loop. --check makes an unsafe run fail, for CI.
 
-Exit codes: 0 done (with --check: and safe); 1 the run could not go on (a real-time node failed to start, an
-external unit never joined, the plant diverged, the disk is full); 2 bad input (scenario, --set, options);
+Exit codes: 0 done (with --check: and safe); 1 the run could not go on (a real-time node failed to start or
+died, an external unit never joined, the plant diverged, the disk is full); 2 bad input (scenario, --set, options);
 3 unsafe: --check and a safety verdict was violated (named on stderr); 130 interrupted (Ctrl-C, SIGTERM)."""
 
 RUN_EXAMPLES = """examples:

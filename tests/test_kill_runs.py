@@ -36,7 +36,7 @@ def test_virtual_run_killed_at_a_random_moment_leaves_readable_incomplete_result
     out = tmp_path / "run"
     (out).mkdir()
     write_json_atomic(out / "metrics.json", {"interrupted": False, "sim_time_s": 600.0, "stale": True})  # a past run
-    outcome = kill_run(hil_run_argv(out), out, delay, sig)
+    outcome = kill_run(hil_run_argv(out, extra=("--overwrite",)), out, delay, sig)  # replacing the past run
     rep = outcome.report
     assert outcome.intact, outcome.as_dict()
     assert outcome.returncode == 130 and not outcome.traceback

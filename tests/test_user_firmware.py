@@ -159,12 +159,13 @@ def test_installed_packages_publish_laws_and_programs_by_entry_point(tmp_path, m
         sys.modules.pop("trainhil_plugin_demo", None)
 
 
-def test_an_external_unit_is_refused_outside_real_time_with_a_pointer_to_ecu_program(capsys):
-    code = main(["run", str(CRUISE), "--external", "train2/unit3", "--duration", "0.5", "--no-record", "--quiet"])
+def test_an_external_unit_is_refused_outside_real_time_with_a_pointer_to_ecu_program(capsys, tmp_path):
+    code = main(["run", str(CRUISE), "--external", "train2/unit3", "--duration", "0.5", "--no-record", "--quiet",
+                 "--out", str(tmp_path / "r")])
     assert code == 2
     err = capsys.readouterr().err
     assert "ecu.external = ['train2/unit3']: an external unit needs a real-time run (hil run --realtime)" in err
-    assert "name it in ecu.program" in err
+    assert "name it in ecu.program" in err and not (tmp_path / "r").exists()  # refused before anything is written
     with pytest.raises(ScenarioError, match="not the ideal loop"):
         from hil.runtime.ideal import IdealLoop
 

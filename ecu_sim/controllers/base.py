@@ -16,9 +16,10 @@ from ecu_sim.view import AgentInfo, Command, LocalView
 
 
 class ControllerParams(BaseModel):
-    """Base of every law's parameter model (unknown keys are errors)."""
+    """Base of every law's parameter model: unknown keys are errors, and so are values of the wrong kind
+    (strict: ``p1 = true`` or ``p1 = "20"`` is not read as a number; an integer is a float)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
 
 class Controller(ABC):

@@ -119,6 +119,9 @@ pub fn filters_accept(filters: &Option<Vec<Filter>>, can_id: u32, extended: bool
 
 /// Why a frame from a node cannot go on the emulated bus.
 pub fn frame_error(can_id: u32, dlc: u8, flags: u8) -> Option<String> {
+    if flags & !(FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO) != 0 {
+        return Some(format!("flags {flags:#04x}: unknown flag bits"));
+    }
     if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO) != 0 {
         return Some(format!("flags {flags:#04x}: only classical data frames can be sent (no remote, error or echo frames)"));
     }
@@ -747,7 +750,7 @@ impl Server {
         let raw = &r[4..24];
         let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());
         let name = std::str::from_utf8(&raw[..end]).map_err(|_| Fault::Protocol(format!("HELLO: node name {:?} is not UTF-8", &raw[..end])))?;
-        let name = if name.is_empty() { "?".to_string() } else { name.to_string() };
+        let name = if name.is_empty() { "?".to_string() } else { loggable(name) };
         let welcome = pack_welcome(self.cfg.bitrate as u32, self.epoch0_ns as f64 * 1e-9, self.clients[i].cid);
         if version != PROTOCOL_VERSION {
             let _ = self.clients[i].stream.write(&welcome); // tells the node our version before we hang up
@@ -789,6 +792,12 @@ impl Server {
                                                          self.cfg.channel, c.name, c.cid)));
         }
     }
+}
+
+/// A node name as it goes into logs: control characters (newlines, escapes) become '?', so no node can forge a
+/// log line (the Python server's ``loggable`` does the same).
+fn loggable(name: &str) -> String {
+    name.chars().map(|c| if c.is_control() { '?' } else { c }).collect()
 }
 
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {

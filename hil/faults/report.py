@@ -93,6 +93,8 @@ def fault_report(faults: list, layout: TrainLayout, log: RunLog, can: dict[str, 
                                "start_s": None, "end_s": None, "detected": False, "detected_s": None,
                                "detection_latency_s": None, "detected_by": None, "detection": None,
                                "detectors": {}}
+        if k not in windows:
+            row["not_injected_because"] = never_triggered(spec, run_end)
         if k in windows:
             start, end = windows[k]
             row["start_s"], row["end_s"] = start, end
@@ -135,3 +137,11 @@ def _first_detection(rules: list[tuple[str, str]], events: list[Event], start: f
         if any(s.search(ev.source) and t.search(ev.text) for s, t in compiled):
             return ev
     return None
+
+
+def never_triggered(spec, run_end_s: float) -> str:
+    """Why a scheduled fault was not injected: its time lies beyond the run, or its position was never reached."""
+    at = getattr(spec, "at_s", None)
+    if at is not None:
+        return f"scheduled at t = {at:g} s, after the end of the run (t = {run_end_s:g} s)"
+    return "its position trigger was not reached during the run"

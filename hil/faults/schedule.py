@@ -131,3 +131,10 @@ def _details(spec) -> str:
     if ids:
         parts.append("frames " + ", ".join(f"0x{i:03X}" for i in ids))
     return f" ({', '.join(parts)})" if parts else ""
+
+
+def late_faults(sc, duration_s: float) -> list[str]:
+    """Warnings for faults timed at or after the end of the run: they will not be injected (said at load time,
+    and in the fault report's ``not_injected_because``)."""
+    return [f"faults.{i}: at_s = {f.at_s:g} is not before the end of the run (t = {duration_s:g} s): it will not be "
+            "injected" for i, f in enumerate(sc.faults) if f.at_s is not None and f.at_s >= duration_s]

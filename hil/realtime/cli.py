@@ -19,6 +19,7 @@ from hil.can.cli import positive_int, positive_number, positive_seconds
 from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError
 from hil.realtime.pacing import set_fifo_priority
 from hil.realtime.native_server import NativeBusServer
+from hil.realtime.paths import remove_run_dir
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
                "can.Bus(interface='trainhil', channel='<run>/<bus>').")
@@ -93,6 +94,7 @@ def cmd_bus_server(args: argparse.Namespace) -> int:
             signal.signal(s, h)
         stats = server.stats.as_dict()
         server.close()
+        remove_run_dir(args.run)  # if no other server of the run is left in it
     _print_stats(stats)
     if args.stats_json:
         Path(args.stats_json).write_text(json.dumps(stats, indent=1))

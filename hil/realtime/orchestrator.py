@@ -71,6 +71,7 @@ KILL_GRACE_S = 3.0
 TIMING_ROOT = "/timing"  # rerun entities of the real-time timing (lateness, e2e latency)
 
 
+SIGNAL_NAMES = ("SIGINT", "SIGTERM", "SIGHUP")  # stop reasons that are a user's request, not a failure
 RUN_FILE = "run.json"  # in the nodes directory: the run's name, T0, pace, duration and seed
 RUNNING_NOTE = ("a real-time run writes run.rrd and these metrics when it ends; if the rig was killed, "
                 "`hil recover {out}` rebuilds both from what the nodes recorded")
@@ -272,6 +273,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     metrics["pace"] = float(pace)
     metrics["provenance"] = provenance(scenario, "realtime", seed, pace=float(pace), overrides=overrides, source=source)
     metrics["interrupted"] = log.interrupted
+    if stop_reason and stop_reason not in SIGNAL_NAMES:
+        metrics["stopped_early"] = stop_reason  # a node died or hung: the run could not go on (hil run: exit 1)
     missing = join.missing() if join is not None and join.waiting and not stop.requested else None
     if missing is not None:
         metrics["error"] = f"ExternalUnitMissing: {stop_reason or missing}"
@@ -440,7 +443,8 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
             if on_tick is not None:
                 on_tick(sim_now)
             if now > end_wall + STOP_GRACE_S:
-                return "nodes did not finish"
+                late = ", ".join(f"{n.kind} {n.name}" for n in nodes if n.proc.poll() is None)
+                return f"nodes did not finish: {late}"
             time.sleep(0.05 if on_tick is None else 0.01)
     finally:
         if bar is not None:

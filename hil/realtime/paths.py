@@ -86,7 +86,11 @@ def _private_dir(path: Path, create: bool) -> Path:
 def run_dir(run: str, create: bool = False) -> Path:
     """The private directory of run ``run`` (the root and the run directory created if ``create``)."""
     validate_name(run, "run")
-    root = _private_dir(runtime_root(), create)
+    try:
+        root = _private_dir(runtime_root(), create)
+    except InsecureRunDirError as exc:  # e.g. another user made <tempdir>/trainhil-<uid> first
+        raise InsecureRunDirError(f"{exc}; or set XDG_RUNTIME_DIR to a private directory of yours, e.g. "
+                                  "`mkdir -m 700 ~/.run && export XDG_RUNTIME_DIR=~/.run`") from None
     return _private_dir(root / run, create)
 
 

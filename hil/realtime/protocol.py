@@ -40,6 +40,7 @@ server's parser and the property tests rely on it never raising anything else.
 from __future__ import annotations
 
 import struct
+import unicodedata
 from typing import NamedTuple
 
 PROTOCOL_VERSION = 1
@@ -125,6 +126,8 @@ class Filter(NamedTuple):
 
 def frame_error(can_id: int, dlc: int, flags: int) -> str | None:
     """Why a frame from a node cannot go on the emulated bus (None if it can)."""
+    if flags & ~(FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO):
+        return f"flags {flags:#04x}: unknown flag bits"
     if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO):
         return f"flags {flags:#04x}: only classical data frames can be sent (no remote, error or echo frames)"
     if dlc > MAX_DLC:
@@ -171,7 +174,13 @@ def unpack_hello(record: bytes | memoryview, offset: int = 0) -> Hello:
         name = raw.rstrip(b"\0").decode()
     except UnicodeDecodeError as exc:
         raise ProtocolError(f"HELLO: node name {raw!r} is not UTF-8") from exc
-    return Hello(name or "?", bool(options & OPTION_RECEIVE_OWN), version)
+    return Hello(loggable(name) or "?", bool(options & OPTION_RECEIVE_OWN), version)
+
+
+def loggable(name: str) -> str:
+    """A node name as it goes into logs: control characters (newlines, escapes) become '?', so no node can forge a
+    log line (the engine's server does the same)."""
+    return "".join("?" if unicodedata.category(c) == "Cc" else c for c in name)
 
 
 def pack_welcome(bitrate: int, epoch0: float, client_id: int, version: int = PROTOCOL_VERSION) -> bytes:

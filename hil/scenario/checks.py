@@ -149,8 +149,15 @@ def unit_name_error(name: str, n_trains: int, units_per_train: int) -> str | Non
     return None
 
 
+MAX_NAME_CHARS = 100
+
+
 def _name_error(name: str) -> str | None:
     """The scenario name names the output directory (runs/<name>): no path separators, not empty."""
+    if len(name) > MAX_NAME_CHARS:
+        return f"name = {name[:40]!r}...: {len(name)} characters, at most {MAX_NAME_CHARS} (it names the run directory)"
+    if any(not c.isprintable() for c in name):
+        return f"name = {name!r}: control characters (newlines, tabs) are not allowed (it names the run directory)"
     if not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0"):
         return f"name = {name!r}: must be a non-empty name without '/', '\\\\' or NUL (it names the run directory)"
     return None

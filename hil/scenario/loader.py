@@ -81,6 +81,9 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrid
         scenario = Scenario(**data)
     except ValidationError as exc:
         raise ScenarioError(format_validation_errors(source, exc)) from None
+    except RecursionError:
+        raise ScenarioError(f"{source}: nested too deeply (arrays or tables inside each other beyond what a "
+                            "scenario has)") from None
     _validate_firmware(source, scenario)
     return scenario
 
@@ -91,6 +94,8 @@ def read_toml(path: Path, error: type[ValueError]) -> dict[str, Any]:
         return tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise error(f"{path}: not valid TOML here: nested too deeply") from None
     except UnicodeDecodeError as exc:
         raise error(f"{path}: not valid TOML: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except OSError as exc:

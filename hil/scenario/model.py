@@ -16,6 +16,14 @@ from hil.scenario.checks import scenario_inconsistency, wrong_kind
 KMH = 1.0 / 3.6
 
 
+# Bounds a physical train group and its networks justify (issue 16): beyond them a value is a typo, and it would
+# overflow the nanosecond clock or run for ever instead of failing with a message that names it.
+MAX_DURATION_S = 1e7  # 116 days of simulated time
+MAX_PERIOD_S = 10.0  # ECU phases and staggers
+MAX_RADIO_DELAY_S = 60.0  # a train radio that delays a frame longer than a minute is down, not slow
+MAX_SEGMENTS = 10_000  # track, reference and blackout segments per list
+
+
 class Section(BaseModel):
     """Base of every scenario section: strict about unknown keys, immutable once loaded."""
 
@@ -298,7 +306,8 @@ class ActuatorFault(Section):
 class PlantConfig(Section):
     """Longitudinal dynamics of every unit of every train."""
 
-    step_s: float = Field(default=0.001, gt=0, le=0.1)
+    step_s: float = Field(default=0.001, ge=1e-5, le=0.1, description="10 us .. 0.1 s: finer steps resolve nothing a "
+                          "train does and cost without end")
     davis_c0: float = Field(default=0.01176, ge=0, description="N/kg")
     davis_c1: float = Field(default=0.00077616, ge=0, description="N*s/(m*kg)")
     davis_c2: float = Field(default=1.6e-5, ge=0, description="N*s^2/(m^2*kg)")
@@ -346,8 +355,8 @@ class CurveSegment(Section):
 
 
 class TrackConfig(Section):
-    grades: list[GradeSegment] = []
-    curves: list[CurveSegment] = []
+    grades: list[GradeSegment] = Field(default=[], max_length=MAX_SEGMENTS)
+    curves: list[CurveSegment] = Field(default=[], max_length=MAX_SEGMENTS)
     curve_coefficient: float = Field(default=600.0, description="curve resistance per kg = g * coefficient / R / 1000")
 
 
@@ -392,7 +401,7 @@ class ReferenceConfig(Section):
 
     by: Literal["position", "time"] = "position"
     x0_m: float
-    segments: list[SpeedSegment] = Field(min_length=1)
+    segments: list[SpeedSegment] = Field(min_length=1, max_length=MAX_SEGMENTS)
     period_s: float = Field(default=0.01, gt=0, description="wayside Reference frame period")
 
     @model_validator(mode="after")
@@ -439,8 +448,8 @@ class EcuConfig(Section):
                                   "each external unit's first valid TractionCmd")
 
     cycle_s: float = Field(default=0.01, gt=0)
-    phase_s: float = Field(default=0.002, ge=0, description="first cycle after each sensor publication")
-    stagger_s: float = Field(default=0.0001, ge=0, description="phase step between successive ECUs of a bus")
+    phase_s: float = Field(default=0.002, ge=0, le=MAX_PERIOD_S, description="first cycle after each sensor publication")
+    stagger_s: float = Field(default=0.0001, ge=0, le=MAX_PERIOD_S, description="phase step between successive ECUs of a bus")
     neighbour_timeout_s: float = Field(default=0.1, gt=0, description="older neighbour data is dropped")
     reference_timeout_s: float = Field(default=0.5, gt=0, description="older reference -> service brake")
     radio_contact_timeout_s: float = Field(default=2.0, gt=0, description="lost train ahead this long -> emergency brake")
@@ -490,13 +499,13 @@ class Blackout(Section):
 class RadioConfig(Section):
     """Train-to-train link between the tail of train i and the head of train i+1."""
 
-    latency_s: float = Field(default=0.0, ge=0)
-    jitter_s: float = Field(default=0.0, ge=0)
+    latency_s: float = Field(default=0.0, ge=0, le=MAX_RADIO_DELAY_S)
+    jitter_s: float = Field(default=0.0, ge=0, le=MAX_RADIO_DELAY_S)
     jitter_distribution: Literal["uniform", "normal", "exponential"] = "uniform"
     loss: LossModel = LossModel()
     range_m: float = Field(default=10_000.0, gt=0, description="beta: no frame passes beyond this distance")
-    blackouts: list[Blackout] = []
-    rate_cap_hz: float | None = Field(default=None, gt=0, description="max frames/s per direction")
+    blackouts: list[Blackout] = Field(default=[], max_length=MAX_SEGMENTS)
+    rate_cap_hz: float | None = Field(default=None, ge=0.01, le=1e6, description="max frames/s per direction")
     forward_aux: bool = Field(default=True, description="also forward the AgentAux frame (acceleration, command)")
 
 
@@ -511,7 +520,7 @@ class RecordingConfig(Section):
 class Scenario(Section):
     name: str
     description: str = ""
-    duration_s: float = Field(gt=0)
+    duration_s: float = Field(gt=0, le=MAX_DURATION_S)
     seed: int = 0
     trains: TrainsConfig
     plant: PlantConfig = PlantConfig()
@@ -563,10 +572,10 @@ class Scenario(Section):
 class FaultTrigger(Section):
     """When a fault starts and how long it lasts: at a time, or when a train's head reaches a position."""
 
-    at_s: float | None = Field(default=None, ge=0, description="time trigger (simulated s)")
+    at_s: float | None = Field(default=None, ge=0, le=MAX_DURATION_S, description="time trigger (simulated s)")
     at_position_m: float | None = Field(default=None, description="position trigger: the head of trigger_train reaches it")
     trigger_train: int | None = Field(default=None, ge=1, description="1-based; default: the fault's train (else train 1)")
-    duration_s: float | None = Field(default=None, gt=0, description="omit: to the end of the run")
+    duration_s: float | None = Field(default=None, gt=0, le=MAX_DURATION_S, description="omit: to the end of the run")
 
     @model_validator(mode="after")
     def _one_trigger(self) -> "FaultTrigger":
@@ -677,7 +686,7 @@ class RadioLatencyFault(RadioFault):
     """Extra latency on every frame (frames are never reordered)."""
 
     kind: Literal["radio_latency"]
-    latency_s: float = Field(gt=0)
+    latency_s: float = Field(gt=0, le=MAX_RADIO_DELAY_S)
 
 
 class ActuatorDegradationFault(UnitFault):
