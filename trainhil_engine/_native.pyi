@@ -8,8 +8,14 @@ def frame_bits(can_id: int, data: bytes | bytearray, extended: bool = False) -> 
     """Exact bits on the wire of a classical data frame, SOF through the 3-bit intermission."""
 
 def frame_duration_ns(can_id: int, data: bytes | bytearray, nominal_bitrate: int, data_bitrate: int | None = None,
-                      extended: bool = False, fd: bool = False) -> int:
-    """Duration of a data frame at a nominal and a data bitrate (CAN FD frames are refused until modelled)."""
+                      extended: bool = False, fd: bool = False, brs: bool = True) -> int:
+    """Duration of a data frame at a nominal and a data bitrate; a CAN FD frame (``fd``) runs its data phase at the
+    data rate when ``brs`` is set. An FD payload must have a CAN FD length (0..8, 12, 16, 20, 24, 32, 48, 64)."""
+
+def fd_frame_bits(can_id: int, data: bytes | bytearray, extended: bool = False, brs: bool = True,
+                  esi: bool = False) -> tuple[int, int]:
+    """Exact bits of a CAN FD data frame (ISO 11898-1:2015), SOF through the intermission: (bits at the nominal
+    rate, bits at the data rate; 0 without BRS)."""
 
 def e2e_crc(data_id: int, payload: bytes | bytearray) -> int:
     """CRC-8 SAE J1850 over [data_id] + payload[1:]."""

@@ -262,7 +262,7 @@ impl Bus {
         }
         let Some(won) = self.pop_winner() else { return Ok(None) };
         self.nodes[won.node].queued -= 1;
-        let t_end = t + self.timing.frame_ns(won.frame_id, won.data.as_slice(), won.extended, false)?;
+        let t_end = t + self.timing.frame_ns(won.frame_id, won.data.as_slice(), won.extended, false, false)?;
         self.current = Some(Transmission { node: won.node, frame_id: won.frame_id, extended: won.extended, data: won.data,
                                            t_enqueue: won.t_enqueue, t_start: t, t_end });
         self.busy_until = t_end;

@@ -3,8 +3,9 @@
 //! A classical data frame is counted from SOF through the 3-bit intermission: the stuffed part
 //! (SOF..CRC sequence, stuff bits computed from the real ID, DLC, data and CRC bits) plus the
 //! never-stuffed trailer (CRC delimiter, ACK slot, ACK delimiter, 7 EOF bits, 3 IFS bits).
-//! Frames carry up to 64 data bytes so CAN FD can be added here; the duration function already
-//! takes a nominal (arbitration) and a data bit time.
+//! CAN FD frames (ISO 11898-1:2015) are timed by `fd_frame_bits`: dynamic stuffing through the data field, the
+//! stuff count and CRC-17/21 with fixed stuff bits, the arbitration and tail at the nominal rate and, with BRS,
+//! the data phase at the data rate.
 
 /// CRC-15 generator polynomial of classical CAN (x^15 + x^14 + x^10 + x^8 + x^7 + x^4 + x^3 + 1).
 pub const CRC15_POLY: u16 = 0x4599;
@@ -22,7 +23,7 @@ const EXT_ID_LIMIT: u32 = 1 << 29;
 pub enum FrameError {
     IdOutOfRange { can_id: u32, extended: bool },
     TooLong { can_id: u32, len: usize, limit: usize },
-    FdNotSupported { can_id: u32 },
+    NotAnFdLength { can_id: u32, len: usize },
 }
 
 impl std::fmt::Display for FrameError {
@@ -35,8 +36,10 @@ impl std::fmt::Display for FrameError {
             FrameError::TooLong { can_id, len, limit } => {
                 write!(f, "data length {len} > {limit} bytes (classical CAN) for can_id={can_id:#x}")
             }
-            FrameError::FdNotSupported { can_id } => {
-                write!(f, "can_id={can_id:#x}: the CAN FD frame format is not modelled yet")
+            FrameError::NotAnFdLength { can_id, len } => {
+                let pad = fd_padded_len(*len).map(|l| format!("pad it to {l}")).unwrap_or("at most 64".into());
+                write!(f, "data length {len} is not a CAN FD length (0..8, 12, 16, 20, 24, 32, 48, 64) for \
+                           can_id={can_id:#x}: {pad}")
             }
         }
     }
@@ -249,6 +252,105 @@ pub fn frame_bits(can_id: u32, data: &[u8], extended: bool) -> Result<u32, Frame
     Ok(c.bits + 8 * data.len() as u32 + 15 + stuffed + TRAILER_BITS)
 }
 
+// ------------------------------------------------------------------------------------------------ CAN FD
+
+/// The payload lengths a CAN FD frame can carry, by DLC code 0..15 (ISO 11898-1:2015, table 5).
+pub const FD_LENGTHS: [usize; 16] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64];
+/// Stuff count (3-bit Gray code + parity), CRC-17 and their 6 fixed stuff bits: payloads up to 16 bytes.
+const FD_CRC17_FIELD: u32 = 4 + 17 + 6;
+/// Stuff count, CRC-21 and their 7 fixed stuff bits: payloads above 16 bytes.
+const FD_CRC21_FIELD: u32 = 4 + 21 + 7;
+/// Nominal-rate bits after the data phase: ACK slot, ACK delimiter, EOF (7), IFS (3).
+const FD_TAIL_BITS: u32 = 1 + 1 + 7 + 3;
+
+/// The DLC code of a CAN FD payload length, or None if no DLC gives exactly that length (pad it first).
+pub fn fd_dlc(len: usize) -> Option<u8> {
+    FD_LENGTHS.iter().position(|&l| l == len).map(|d| d as u8)
+}
+
+/// The smallest CAN FD payload length that carries `len` bytes (the frame is padded up to it), or None above 64.
+pub fn fd_padded_len(len: usize) -> Option<usize> {
+    FD_LENGTHS.iter().copied().find(|&l| l >= len)
+}
+
+/// A CAN FD frame's bits by phase: at the nominal rate (arbitration and the tail) and at the data rate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FdBits {
+    pub nominal: u32,
+    pub data: u32,
+}
+
+impl FdBits {
+    pub fn total(&self) -> u32 {
+        self.nominal + self.data
+    }
+}
+
+/// Exact bits of a CAN FD data frame (ISO 11898-1:2015), SOF through the intermission, split by phase.
+///
+/// Dynamic stuffing covers SOF through the end of the data field. The stuff count and the CRC field use fixed
+/// stuff bits (one before the stuff count and one after every 4 bits after it), so the CRC value and the stuff
+/// count value do not change the length: only the CRC width does (17 bits up to 16 data bytes, 21 above). With
+/// BRS the data rate runs from the sample point of BRS to the sample point of the CRC delimiter; counting BRS at
+/// the nominal rate and the CRC delimiter at the data rate gives exactly that total, whatever the sample points.
+/// Without BRS every bit is at the nominal rate (`data` is 0). `data` must have a length of `FD_LENGTHS`.
+pub fn fd_frame_bits(can_id: u32, data: &[u8], extended: bool, brs: bool, esi: bool) -> Result<FdBits, FrameError> {
+    let limit = if extended { EXT_ID_LIMIT } else { STD_ID_LIMIT };
+    if can_id >= limit {
+        return Err(FrameError::IdOutOfRange { can_id, extended });
+    }
+    let dlc = fd_dlc(data.len()).ok_or(FrameError::NotAnFdLength { can_id, len: data.len() })?;
+    let mut c = Header::new();
+    if extended {
+        // SOF, base ID, SRR, IDE, ID extension, RRS, FDF, res
+        c.feed(((can_id >> 18) as u64) << 2 | 0b11, 1 + 11 + 2);
+        c.feed(((can_id & 0x3FFFF) as u64) << 3 | 0b010, 18 + 3);
+    } else {
+        c.feed((can_id as u64) << 4 | 0b0010, 1 + 11 + 4); // SOF, ID, RRS, IDE, FDF, res
+    }
+    let arbitration = c.bits + 1 + c.stuffed; // up to BRS; a stuff bit BRS itself triggers follows it, at the data rate
+    c.feed(brs as u64, 1);
+    c.feed(esi as u64, 1);
+    c.feed(dlc as u64, 4);
+    let t = tables();
+    let (mut st, mut stuffed) = (c.st, c.stuffed);
+    for &byte in data {
+        let (next, add) = t.stuff8[st as usize][byte as usize];
+        st = next;
+        stuffed += add as u32;
+    }
+    let dynamic = c.bits + 8 * data.len() as u32 + stuffed;
+    let crc_field = if data.len() <= 16 { FD_CRC17_FIELD } else { FD_CRC21_FIELD };
+    let data_phase = dynamic - arbitration + crc_field + 1; // ... through the CRC delimiter
+    Ok(if brs {
+        FdBits { nominal: arbitration + FD_TAIL_BITS, data: data_phase }
+    } else {
+        FdBits { nominal: arbitration + data_phase + FD_TAIL_BITS, data: 0 }
+    })
+}
+
+/// The unstuffed bits SOF..end of data of a CAN FD frame (the reference the fast count is checked against).
+pub fn fd_unstuffed_bits(can_id: u32, data: &[u8], extended: bool, brs: bool, esi: bool) -> Bits {
+    let mut b = Bits(Vec::with_capacity(600));
+    b.push(0, 1);
+    if extended {
+        b.push((can_id >> 18) as u64, 11);
+        b.push(0b11, 2);
+        b.push((can_id & 0x3FFFF) as u64, 18);
+        b.push(0b010, 3); // RRS, FDF, res
+    } else {
+        b.push(can_id as u64, 11);
+        b.push(0b0010, 4); // RRS, IDE, FDF, res
+    }
+    b.push(brs as u64, 1);
+    b.push(esi as u64, 1);
+    b.push(fd_dlc(data.len()).unwrap_or(0) as u64, 4);
+    for &byte in data {
+        b.push(byte as u64, 8);
+    }
+    b
+}
+
 /// Worst-case classical frame length incl. the 3-bit IFS (Davis et al. 2007, eq. 1).
 pub fn worst_case_frame_bits(dlc: u32, extended: bool) -> u32 {
     let g = if extended { 54 } else { 34 };
@@ -270,10 +372,11 @@ impl BitTiming {
     }
 
     /// Duration in ns of a data frame, SOF through the intermission. Classical frames run at the nominal rate
-    /// throughout; `fd` frames are refused until the FD format is modelled.
-    pub fn frame_ns(&self, can_id: u32, data: &[u8], extended: bool, fd: bool) -> Result<u64, FrameError> {
+    /// throughout; `fd` frames switch to the data rate when `brs` is set (`fd_frame_bits`).
+    pub fn frame_ns(&self, can_id: u32, data: &[u8], extended: bool, fd: bool, brs: bool) -> Result<u64, FrameError> {
         if fd {
-            return Err(FrameError::FdNotSupported { can_id });
+            let b = fd_frame_bits(can_id, data, extended, brs, false)?;
+            return Ok(b.nominal as u64 * self.nominal_bit_ns + b.data as u64 * self.data_bit_ns);
         }
         Ok(frame_bits(can_id, data, extended)? as u64 * self.nominal_bit_ns)
     }
@@ -282,6 +385,70 @@ impl BitTiming {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A CAN FD frame worked out by hand: ID 0x000, no data, BRS, ESI = 0. SOF, 11 ID bits, RRS and IDE are 14
+    /// zeros: stuff bits after the 5th and the 10th. Then FDF 1, res 0, BRS 1 (arbitration ends: 17 bits + 2 stuff),
+    /// ESI 0 and DLC 0000 make 5 zeros: one stuff bit, in the data phase. Data phase: ESI, DLC, that stuff bit, the
+    /// stuff count and CRC-17 with 6 fixed stuff bits (27), the CRC delimiter: 1 + 4 + 1 + 27 + 1 = 34. Nominal:
+    /// 19 + ACK slot, ACK delimiter, EOF, IFS (12) = 31.
+    #[test]
+    fn fd_empty_frame_by_hand() {
+        assert_eq!(fd_frame_bits(0, &[], false, true, false).unwrap(), FdBits { nominal: 31, data: 34 });
+        assert_eq!(fd_frame_bits(0, &[], false, false, false).unwrap(), FdBits { nominal: 65, data: 0 });
+        let t = BitTiming::new(500_000, 2_000_000).unwrap();
+        assert_eq!(t.frame_ns(0, &[], false, true, true).unwrap(), 31 * 2000 + 34 * 500);
+    }
+
+    /// 64 bytes of 0x55 (alternating bits: no dynamic stuffing in the data), ID 0x555, BRS: the header
+    /// 0 10101010101 0010 1 0 1111 has no run of five, so no stuff bits at all. Arbitration: SOF, ID, RRS, IDE,
+    /// FDF, res, BRS = 17; data phase: ESI 1 + DLC 4 + 512 data + stuff count and CRC-21 with 7 fixed stuff bits
+    /// (32) + CRC delimiter 1 = 550; nominal 17 + 12 = 29.
+    #[test]
+    fn fd_64_byte_frame_by_hand() {
+        let b = fd_frame_bits(0x555, &[0x55; 64], false, true, false).unwrap();
+        assert_eq!(b, FdBits { nominal: 29, data: 550 });
+        assert_eq!(stuff_count(&fd_unstuffed_bits(0x555, &[0x55; 64], false, true, false).0), 0);
+    }
+
+    #[test]
+    fn fd_fast_count_equals_bit_by_bit_stuffing() {
+        let mut seed = 0x2545F4914F6CDD1Du64;
+        let mut next = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for _ in 0..5000 {
+            let extended = next() % 2 == 0;
+            let id = (next() as u32) % if extended { EXT_ID_LIMIT } else { STD_ID_LIMIT };
+            let len = FD_LENGTHS[(next() % 16) as usize];
+            let data: Vec<u8> = (0..len).map(|_| if next() % 3 == 0 { 0 } else { next() as u8 }).collect();
+            let (brs, esi) = (next() % 2 == 0, next() % 5 == 0);
+            let raw = fd_unstuffed_bits(id, &data, extended, brs, esi);
+            let crc_field = if len <= 16 { FD_CRC17_FIELD } else { FD_CRC21_FIELD };
+            let expected = stuff(&raw.0).0.len() as u32 + crc_field + 1 + FD_TAIL_BITS;
+            let got = fd_frame_bits(id, &data, extended, brs, esi).unwrap();
+            assert_eq!(got.total(), expected, "id {id:#x} len {len} brs {brs}");
+            // the arbitration phase: SOF..BRS and the stuff bits among them (a stuff bit after BRS is data phase)
+            let head = if extended { 1 + 11 + 2 + 18 + 3 + 1 } else { 1 + 11 + 4 + 1 };
+            let arb = stuff(&raw.0[..head - 1]).0.len() as u32 + 1;
+            if brs {
+                assert_eq!(got.nominal, arb + FD_TAIL_BITS);
+            }
+        }
+    }
+
+    #[test]
+    fn fd_lengths_and_padding() {
+        assert_eq!(fd_dlc(12), Some(9));
+        assert_eq!(fd_dlc(64), Some(15));
+        assert_eq!(fd_dlc(13), None);
+        assert_eq!(fd_padded_len(13), Some(16));
+        assert_eq!(fd_padded_len(65), None);
+        assert!(matches!(fd_frame_bits(1, &[0; 13], false, true, false), Err(FrameError::NotAnFdLength { len: 13, .. })));
+        assert!(matches!(fd_frame_bits(0x800, &[], false, true, false), Err(FrameError::IdOutOfRange { .. })));
+    }
 
     /// A frame worked out by hand: ID 0x000, DLC 0. Bits SOF..DLC are 19 zeros and the CRC of zeros is zero, so
     /// the stuffed part is 34 zeros with a 1 after every fifth (each stuff bit ends the run): 6 stuff bits.
@@ -361,8 +528,8 @@ mod tests {
         assert!(frame_bits(0x800, &[], true).is_ok());
         assert!(matches!(frame_bits(1, &[0; 9], false), Err(FrameError::TooLong { .. })));
         let t = BitTiming::new(500_000, 500_000).unwrap();
-        assert_eq!(t.frame_ns(0, &[], false, false).unwrap(), 53 * 2000);
-        assert!(matches!(t.frame_ns(0, &[], false, true), Err(FrameError::FdNotSupported { .. })));
+        assert_eq!(t.frame_ns(0, &[], false, false, false).unwrap(), 53 * 2000);
+        assert!(matches!(t.frame_ns(0, &[0; 9], false, true, true), Err(FrameError::NotAnFdLength { .. })));
         assert!(BitTiming::new(300_000, 300_000).is_none());
     }
 

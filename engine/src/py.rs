@@ -44,12 +44,23 @@ fn frame_bits(can_id: i64, data: PyBackedBytes, extended: bool) -> PyResult<u32>
     frame::frame_bits(id, &data, extended).map_err(frame_err)
 }
 
-/// Duration in ns of a data frame at a nominal (arbitration) and a data bit rate.
+/// Duration in ns of a data frame at a nominal (arbitration) and a data bit rate; a CAN FD frame (`fd`) runs its
+/// data phase at the data rate when `brs` (bit rate switch) is set.
 #[pyfunction]
-#[pyo3(signature = (can_id, data, nominal_bitrate, data_bitrate = None, extended = false, fd = false))]
-fn frame_duration_ns(can_id: u32, data: PyBackedBytes, nominal_bitrate: u64, data_bitrate: Option<u64>, extended: bool, fd: bool) -> PyResult<u64> {
+#[pyo3(signature = (can_id, data, nominal_bitrate, data_bitrate = None, extended = false, fd = false, brs = true))]
+fn frame_duration_ns(can_id: u32, data: PyBackedBytes, nominal_bitrate: u64, data_bitrate: Option<u64>, extended: bool,
+                     fd: bool, brs: bool) -> PyResult<u64> {
     let timing = timing(nominal_bitrate, data_bitrate.unwrap_or(nominal_bitrate))?;
-    timing.frame_ns(can_id, &data, extended, fd).map_err(frame_err)
+    timing.frame_ns(can_id, &data, extended, fd, brs).map_err(frame_err)
+}
+
+/// Exact bits of a CAN FD data frame, SOF through the intermission: (at the nominal rate, at the data rate).
+#[pyfunction]
+#[pyo3(signature = (can_id, data, extended = false, brs = true, esi = false))]
+fn fd_frame_bits(can_id: i64, data: PyBackedBytes, extended: bool, brs: bool, esi: bool) -> PyResult<(u32, u32)> {
+    let id = u32::try_from(can_id).map_err(|_| PyValueError::new_err(format!("can_id={can_id:#x} must be a non-negative identifier")))?;
+    let b = frame::fd_frame_bits(id, &data, extended, brs, esi).map_err(frame_err)?;
+    Ok((b.nominal, b.data))
 }
 
 /// CRC-8 SAE J1850 over [data_id] + payload[1:].
@@ -605,6 +616,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MAX_DATA", MAX_DATA)?;
     m.add_function(wrap_pyfunction!(frame_bits, m)?)?;
     m.add_function(wrap_pyfunction!(frame_duration_ns, m)?)?;
+    m.add_function(wrap_pyfunction!(fd_frame_bits, m)?)?;
     m.add_function(wrap_pyfunction!(e2e_crc, m)?)?;
     m.add_function(wrap_pyfunction!(wait_readable, m)?)?;
     m.add_class::<MessageCodec>()?;
@@ -612,7 +624,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Network>()?;
     m.add_class::<BusServerCore>()?;
     m.add_class::<FrameLink>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "e2e_crc", "MessageCodec", "Mailbox", "Network",
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "MessageCodec", "Mailbox", "Network",
                           "BusServerCore", "FrameLink", "wait_readable"])?;
     Ok(())
 }
