@@ -33,10 +33,11 @@ def is_import_reference(text: str) -> bool:
 
 
 def _import_module(module: str, reference: str):
-    """Import ``module``, with the current directory searched after ``sys.path`` (as ``python -m`` would)."""
+    """Import ``module``, with the current directory searched after ``sys.path`` (as ``python -m`` would; it stays
+    there, so that the user's module can import its siblings later too, as in the real-time nodes, which get the
+    module's folder on their ``PYTHONPATH``)."""
     cwd = os.getcwd()
-    added = cwd not in sys.path and "" not in sys.path
-    if added:
+    if cwd not in sys.path and "" not in sys.path:
         sys.path.append(cwd)
     try:
         return importlib.import_module(module)
@@ -46,9 +47,6 @@ def _import_module(module: str, reference: str):
         raise ReferenceLoadError(f"{reference!r}: importing module {module!r} failed: {_one_line(exc)}") from None
     except Exception as exc:  # the user's module raised at import: say which and what, no traceback
         raise ReferenceLoadError(f"{reference!r}: importing module {module!r} failed: {_one_line(exc)}") from None
-    finally:
-        if added and cwd in sys.path:
-            sys.path.remove(cwd)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -263,6 +263,18 @@ def test_real_time_nodes_import_the_users_law_and_ecu_program(tmp_path):
     with pytest.raises(ValueError, match="top level of an importable module"):
         rig.run(0.1, realtime=True)
 
+    def silent_train1(setup):  # a local ECU factory: virtual time only, as a local law
+        ecu = standard_program(setup)
+        ecu.alive = not setup.name.startswith("train1/")
+        return ecu
+
+    local = Rig(CRUISE, ecu=silent_train1)
+    assert local.scenario.ecu.program.startswith("local:tests.test_hil_testing.")
+    run = local.run(0.2)
+    assert len(run.frame_times(0x080, "bus1")) == 0 and len(run.frame_times(0x080, "bus2")) > 0
+    with pytest.raises(ValueError, match="the ECU program of this rig must be defined at the top level"):
+        local.run(0.1, realtime=True)
+
 
 # --------------------------------------------------------------------------- the plugin in a pytest session
 

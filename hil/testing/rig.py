@@ -74,7 +74,7 @@ def program_reference(ecu: EcuLike) -> tuple[str, bool]:
     ref = reference_of(ecu)
     if ref is not None:
         return ref, True
-    name = f"local:{getattr(ecu, '__module__', '?')}.{getattr(ecu, '__qualname__', repr(ecu))}"
+    name = f"local:{getattr(ecu, '__module__', '?')}.{getattr(ecu, '__qualname__', type(ecu).__name__)}#{id(ecu):x}"
     register_program(name, ecu)
     return name, False
 
