@@ -135,7 +135,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from hil.runtime.firmware import refuse_external_units
 
         refuse_external_units(scenario, "the ideal loop" if args.ideal else "virtual time")
-    out = Path(args.out) if args.out else Path("runs") / scenario.name
+    out = Path(args.out) if args.out else default_output_dir(scenario.name, args)
     check_output_dir(out, args.overwrite)
     from hil.faults.schedule import late_faults
 
@@ -164,6 +164,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 RUN_FILES = ("run.rrd", "metrics.json", "bus*.asc", "bus*.blf", "bus*.mf4")
+
+
+def default_output_dir(name: str, args: argparse.Namespace) -> Path:
+    """runs/<name>, runs/<name>-ideal or runs/<name>-realtime: one runtime's run never refuses another's."""
+    return Path("runs") / (name + ("-ideal" if args.ideal else "-realtime" if args.realtime else ""))
 
 
 def check_output_dir(out: Path, overwrite: bool) -> None:
@@ -253,7 +258,7 @@ died, an external unit never joined, the plant diverged, the disk is full); 2 ba
 RUN_EXAMPLES = """examples:
   hil run seed000                                        the main demo (800 s simulated, about a minute)
   hil run seed000 --duration 60 --seed 3 --can-log       one ASC log per bus beside the recording
-  hil run seed000 --set radio.latency_s=0.3 --set can.bitrate=250000
+  hil run seed000 --set radio.latency_s=0.3 --set can.bitrate=250000 --out runs/seed000-slow-radio
   hil run my_scenario.toml --ideal                       the ideal loop of your own scenario
   hil run seed000 --realtime --pace 1 --duration 20 --ecus-per-process 12
   hil run seed000 --duration 60 --check                  exit 3 if any safety verdict is violated
@@ -278,7 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
                          description=RUN_DESCRIPTION, epilog=RUN_EXAMPLES,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     run.add_argument("scenario", help="packaged scenario name (see `hil scenarios`) or path to a .toml file")
-    run.add_argument("--out", help="output directory (default: runs/<scenario name>)")
+    run.add_argument("--out", help="output directory (default: runs/<scenario name>, with -ideal or -realtime "
+                                   "appended for those runtimes)")
     run.add_argument("--overwrite", action="store_true",
                      help="replace a previous run in the output directory (default: refuse, exit 2)")
     run.add_argument("--duration", type=positive_seconds, help="simulated seconds (default: the scenario's duration_s)")

@@ -57,3 +57,14 @@ def test_heatmap_cells_keep_close_values_apart_and_axes_read_as_written():
     assert [_value_text(v, value_decimals(loads)) for v in loads] == ["0.3452", "0.3467"]
     assert _value_text(1.5e9, value_decimals(np.array([1.5e9, 2e9]))) == "1.5e+09"
     assert [_fmt(v) for v in (125000.0, 1000000.0, 0.05, "fifo")] == ["125000", "1000000", "0.05", "fifo"]
+
+
+def test_each_runtime_has_its_own_default_directory():
+    """`hil run seed000` then `hil run seed000 --ideal` (as the README's table is made) must not refuse each other."""
+    from argparse import Namespace
+
+    from hil.cli import default_output_dir
+
+    assert default_output_dir("seed000", Namespace(ideal=False, realtime=False)) == Path("runs/seed000")
+    assert default_output_dir("seed000", Namespace(ideal=True, realtime=False)) == Path("runs/seed000-ideal")
+    assert default_output_dir("faults", Namespace(ideal=False, realtime=True)) == Path("runs/faults-realtime")
