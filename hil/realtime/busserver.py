@@ -52,7 +52,6 @@ from hil.realtime.protocol import (
 )
 from hil.can.stats import BusLog
 from hil.realtime.pacing import set_timer_slack
-from hil.tables import SampleTable
 
 LOG = logging.getLogger(__name__)
 DEFAULT_SPIN_US = 200
@@ -554,8 +553,8 @@ class BusServer:
         t = now if m.current is None else min(now, m.current.t_end - 1)
         m.finish(t)
         self._next_window = (now // self._window_ns + 1) * self._window_ns
-        if not self._keep_log and len(m.log.frames) >= 1 << 16:
-            m.log.frames = SampleTable(m.log.frames.width)  # bounded memory: the histograms keep the stats
+        if not self._keep_log and len(m.log.frames.array) >= 1 << 16:
+            m.log.frames.release(len(m.log.frames))  # bounded memory: the statistics and histograms stay
 
     # ---- nodes
     def _accept(self, now: int) -> None:

@@ -173,7 +173,7 @@ class RerunWriter:
     def write_bus(self, bus: BusLog, start_load: int, start_frames: int) -> tuple[int, int]:
         """Send bus load windows and frame latencies not yet written; return the new (load, frames) offsets."""
         self._check_open()
-        load, frames = bus.load.array[start_load:], bus.frames.array[start_frames:]
+        load, frames = bus.load.array[start_load:], bus.frames.rows_from(start_frames)
         if len(load):
             self._send(bp.bus_path(bus.name, "load"), self._indexes(load[:, 0]), load[:, 1])
         if len(frames):

@@ -1,0 +1,54 @@
+"""Peak memory (RSS) of `hil run seed000` against its simulated length: 100, 1000 and 10000 s by default.
+
+Each run is a fresh `hil run` process (with its recording, as a user runs it); the figure is its peak resident set
+size (getrusage of the child). The bus statistics are kept as the frames come and the per-frame rows are let go
+once recorded (hil/can/frame_stats.py); what still grows is the sampled signals (63 values at 10 Hz for seed000,
+about 5 kB per simulated second) that the metrics are computed from at the end.
+    python bench/bench_memory.py [--sims 100,1000,10000] [--scenario seed000]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def peak_rss_mb(argv: list[str]) -> tuple[float, float]:
+    """(peak RSS of the child in MB, its wall time in s)."""
+    t0 = time.perf_counter()
+    pid = os.fork()
+    if pid == 0:  # a fresh child per run: its getrusage peak is its own
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)  # its summary is not the bench's output
+        os.execvp(argv[0], argv)
+    _, status, usage = os.wait4(pid, 0)
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"{' '.join(argv)} failed with {os.waitstatus_to_exitcode(status)}")
+    return usage.ru_maxrss / 1024.0, time.perf_counter() - t0
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sims", default="100,1000,10000", help="simulated seconds, comma-separated")
+    p.add_argument("--scenario", default="seed000")
+    args = p.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, sim in enumerate(float(s) for s in args.sims.split(",")):
+            argv = [sys.executable, "-m", "hil.cli", "run", args.scenario, "--duration", repr(sim), "--quiet",
+                    "--out", os.path.join(tmp, f"r{k}")]
+            rss, wall = peak_rss_mb(argv)
+            rows.append((sim, rss, wall))
+            print(f"{args.scenario} {sim:8.0f} s simulated: peak RSS {rss:7.1f} MB   ({wall:6.1f} s wall)", flush=True)
+    (s0, r0, _), (s1, r1, _) = rows[0], rows[-1]
+    if s1 > s0:
+        print(f"growth: {(r1 - r0) * 1024 / (s1 - s0):.1f} kB per simulated second")
+
+
+if __name__ == "__main__":
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    main()
