@@ -263,7 +263,7 @@ def test_a_position_trigger_fires_when_the_head_passes():
 def test_runs_without_faults_are_untouched():
     sc = small([])
     rig, log = run(sc, 1.0)
-    assert rig.faults is None and rig.buses[0].errors is None and not hasattr(log, "fault_report")
+    assert rig.faults is None and rig.buses[0].errors is None and log.fault_report is None
 
 
 # --------------------------------------------------------------------------- the packaged scenario

@@ -130,8 +130,7 @@ class RealtimeFaults:
                      and n.proc.poll() is None), None)
 
     def _unit_name(self, u: int) -> str:
-        train, unit = self.layout.train_unit(u)
-        return f"train{train + 1}/unit{unit + 1}"
+        return self.layout.unit_name(u)
 
     def _event(self, t: float, level: str, text: str) -> None:
         self.events.append(Event(t, level, "rig", text))
@@ -245,7 +244,7 @@ class RealtimeFaults:
         log.events.extend(self.events)
         log.events.sort(key=lambda e: e.t)
         can = {f"bus{i + 1}": bf.summary() for i, bf in enumerate(self.buses)}
-        log.fault_report = fault_report(self.specs, self.layout, log, can, {"ecu_restarts": self.restarts})  # type: ignore[attr-defined]
+        log.fault_report = fault_report(self.specs, self.layout, log, can, {"ecu_restarts": self.restarts})
 
 
 def spawn_ecu(node_cls, run: str, nodes_dir: Path, seed: int, duration: float, pace: float, u: int, name: str,

@@ -97,5 +97,5 @@ class VirtualFaults:
         """Detections matched to faults and ``log.fault_report`` for the metrics."""
         sc = self.rig.sc
         can = {bus.name: bf.summary() for bus, bf in zip(self.rig.buses, self.buses)}
-        log.fault_report = fault_report(list(sc.faults), self.rig.layout, log, can,  # type: ignore[attr-defined]
+        log.fault_report = fault_report(list(sc.faults), self.rig.layout, log, can,
                                         {"ecu_restarts": self.ecus.restarts})

@@ -7,12 +7,12 @@ runs until the simulated duration or "stop"/SIGTERM, then writes its results int
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any, Iterable
 
 import can
 
+from hil.record.integrity import write_json_atomic
 from hil.scenario.model import CanConfig, Scenario
 
 
@@ -54,6 +54,4 @@ def open_bus(run: str, train: int, ids: Iterable[int], can_cfg: CanConfig, name:
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write atomically (the orchestrator may read while a node is being killed)."""
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=1, allow_nan=False))
-    tmp.replace(path)
+    write_json_atomic(path, data)

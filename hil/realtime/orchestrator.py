@@ -54,6 +54,7 @@ from hil.realtime.paths import remove_run_dir, remove_stale_run_dirs, validate_n
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget
+from hil.record import paths
 from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.metrics import compute_metrics
 from hil.record.provenance import provenance
@@ -68,7 +69,6 @@ READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a 
 GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the message before sim time 0
 STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
 KILL_GRACE_S = 3.0
-TIMING_ROOT = "/timing"  # rerun entities of the real-time timing (lateness, e2e latency)
 
 
 SIGNAL_NAMES = ("SIGINT", "SIGTERM", "SIGHUP")  # stop reasons that are a user's request, not a failure
@@ -520,8 +520,7 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
     log.radio_stats = radio
     for s in servers:
         log.buses.append(s.log if t0 is None else _sim_bus_log(s, t0, pace, duration))
-    not_delivered = sum(v.get("offered", 0) - v.get("delivered", 0) for v in radio.values())
-    log.frames_lost = sum(b.frames_dropped for b in log.buses) + not_delivered
+    log.tally_frames_lost()
     sat: dict[str, int] = {}
     for d in [plant, *ecus]:
         for k, v in d.get("codec_saturations", {}).items():
@@ -613,11 +612,11 @@ def _write_log(w: RerunWriter, log: RunLog, nodes_dir: Path, signals_from: int =
 
 def _timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:
     """(entity path, .npy of (sim time, value s)) of every timing series the nodes left."""
-    out = [(TIMING_ROOT + "/plant/lateness_ms", nodes_dir / "timing_plant.npy"),
-           (TIMING_ROOT + "/e2e_latency_ms", nodes_dir / "timing_e2e.npy")]
+    out = [(paths.TIMING + "/plant/lateness_ms", nodes_dir / "timing_plant.npy"),
+           (paths.TIMING + "/e2e_latency_ms", nodes_dir / "timing_e2e.npy")]
     for f in sorted(nodes_dir.glob("timing_ecu_*_*.npy")):
         train, unit = f.stem.split("_")[-2:]
-        out.append((f"{TIMING_ROOT}/train{train}/unit{unit}/ecu_lateness_ms", f))
+        out.append((f"{paths.TIMING}/train{train}/unit{unit}/ecu_lateness_ms", f))
     return [(entity, f) for entity, f in out if f.exists()]
 
 

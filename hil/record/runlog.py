@@ -43,9 +43,17 @@ class RunLog:
     interrupted: bool = False  # stopped early (Ctrl-C): everything up to sim_time_s is valid
     sim_time_s: float = 0.0
     wall_time_s: float = 0.0
+    fault_report: dict | None = None  # the faults block of metrics.json, set by hil.faults when faults are scheduled
 
     def __post_init__(self) -> None:
         self.signals = SampleTable(3 + 5 * self.layout.n_units)
+
+    def tally_frames_lost(self) -> int:
+        """Frames lost in the network: dropped from TX queues (or by a fault) on the buses, and offered to the radio
+        but not delivered. Sets and returns ``frames_lost`` (both runtimes count it here)."""
+        not_delivered = sum(s.get("offered", 0) - s.get("delivered", 0) for s in self.radio_stats.values())
+        self.frames_lost = sum(b.frames_dropped for b in self.buses) + not_delivered
+        return self.frames_lost
 
     def add_sample(self, t: float, x_r: float, v_r: float, x: np.ndarray, v: np.ndarray, a: np.ndarray,
                    force_cmd: np.ndarray, force_applied: np.ndarray) -> None:

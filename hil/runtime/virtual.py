@@ -265,8 +265,7 @@ class VirtualRig:
                 bus.finish(now)
         radio = {name: dict(link.stats) for name, link in (self.gateway.links.items() if self.gateway else [])}
         log.radio_stats = radio
-        not_delivered = sum(s.get("offered", 0) - s.get("delivered", 0) for s in radio.values())
-        log.frames_lost = sum(b.frames_dropped for b in log.buses) + not_delivered
+        log.tally_frames_lost()
         log.codec_saturations = self.db.total_saturations()
         log.e2e = {ecu.name: ecu.e2e_summary() for ecu in self.ecus}
         log.sim_time_s = now * 1e-9
