@@ -14,14 +14,7 @@ from typing import Any
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.controllers.base import Controller
-from ecu_sim.references import (
-    PROGRAM_GROUP,
-    ReferenceLoadError,
-    entry_point,
-    entry_point_names,
-    is_import_reference,
-    load_reference,
-)
+from ecu_sim.references import PROGRAM_GROUP, ReferenceLoadError, known_names, resolve
 from ecu_sim.runtime import Ecu, NeighbourLink
 from ecu_sim.view import AgentInfo
 
@@ -82,17 +75,9 @@ def register_program(name: str, program: Any) -> None:
 
 def get_program(name: str) -> EcuProgram:
     """A program by registered name, published name or ``module:QualName`` reference."""
-    if name in _PROGRAMS:
-        return _PROGRAMS[name]
-    if is_import_reference(name):
-        return as_program(load_reference(name), name)
-    published = entry_point(PROGRAM_GROUP, name)
-    if published is not None:
-        return as_program(published, name)
-    raise ReferenceLoadError(f"unknown ECU program {name!r} (known: {', '.join(known_programs())}; "
-                             "or a 'package.module:ClassOrFactory' reference)")
+    return resolve(name, _PROGRAMS, PROGRAM_GROUP, as_program, "ECU program", "ClassOrFactory")
 
 
 def known_programs() -> list[str]:
     """Registered and published program names."""
-    return sorted(set(_PROGRAMS) | set(entry_point_names(PROGRAM_GROUP)))
+    return known_names(_PROGRAMS, PROGRAM_GROUP)

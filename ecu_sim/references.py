@@ -15,6 +15,7 @@ import importlib
 import importlib.metadata
 import os
 import sys
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,27 @@ def load_reference(reference: str) -> Any:
         except AttributeError:
             raise ReferenceLoadError(f"{reference!r}: module {module_name!r} has no attribute {qualname!r}") from None
     return obj
+
+
+def resolve(name: str, registry: Mapping[str, Any], group: str, check: Callable[[Any, str], Any], what: str,
+            example: str) -> Any:
+    """The one lookup of laws and programs: a name registered here, a ``module:QualName`` reference, or a name an
+    installed package publishes in entry-point ``group``; ``check(obj, name)`` vets what was loaded. An unknown
+    name is an error listing the known ones (``what``: "controller law"; ``example``: "ClassName")."""
+    if name in registry:
+        return registry[name]
+    if is_import_reference(name):
+        return check(load_reference(name), name)
+    published = entry_point(group, name)
+    if published is not None:
+        return check(published, name)
+    raise ReferenceLoadError(f"unknown {what} {name!r} (known: {', '.join(known_names(registry, group))}; "
+                             f"or a 'package.module:{example}' reference)")
+
+
+def known_names(registry: Mapping[str, Any], group: str) -> list[str]:
+    """Registered and published names."""
+    return sorted(set(registry) | set(entry_point_names(group)))
 
 
 def entry_point(group: str, name: str) -> Any | None:

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import can
 
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.plant.dynamics import PlantDiverged

@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
-from ecu_sim.references import LAW_GROUP, ReferenceLoadError, entry_point, entry_point_names, is_import_reference, load_reference
+from ecu_sim.references import LAW_GROUP, ReferenceLoadError, known_names, resolve
 from ecu_sim.view import AgentInfo, Command, LocalView
 
 
@@ -80,15 +80,7 @@ def get_controller(name: str) -> type[Controller]:
     says why the reference does not load."""
     import ecu_sim.controllers  # noqa: F401  (imports every law module, filling the registry)
 
-    if name in _REGISTRY:
-        return _REGISTRY[name]
-    if is_import_reference(name):
-        return _check_law(load_reference(name), name)
-    published = entry_point(LAW_GROUP, name)
-    if published is not None:
-        return _check_law(published, name)
-    raise ReferenceLoadError(f"unknown controller law {name!r} (known: {', '.join(known_controllers())}; "
-                             f"or a 'package.module:ClassName' reference)")
+    return resolve(name, _REGISTRY, LAW_GROUP, _check_law, "controller law", "ClassName")
 
 
 def _check_law(obj: object, reference: str) -> type[Controller]:
@@ -105,7 +97,7 @@ def known_controllers() -> list[str]:
     """Registered and published law names."""
     import ecu_sim.controllers  # noqa: F401
 
-    return sorted(set(_REGISTRY) | set(entry_point_names(LAW_GROUP)))
+    return known_names(_REGISTRY, LAW_GROUP)
 
 
 def build_controller(name: str, params: dict[str, Any], agent: AgentInfo, plant_info: PlantInfo) -> Controller:
