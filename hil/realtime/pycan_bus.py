@@ -165,7 +165,10 @@ class TrainhilBus(BusABC):
         buf = bytearray()
         deadline = time.monotonic() + timeout
         try:
-            self._sock.sendall(hello)
+            try:
+                self._sock.sendall(hello)
+            except BrokenPipeError:
+                pass  # it closed on us before reading the hello: a REFUSED record it sent first may say why
             while len(buf) < RECORD_SIZE:
                 self._sock.settimeout(max(deadline - time.monotonic(), 1e-3))
                 chunk = self._sock.recv(RECORD_SIZE - len(buf))

@@ -22,6 +22,7 @@ import signal
 import subprocess
 import sys
 import time
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -68,13 +69,15 @@ def hil_run_argv(out_dir: Path, scenario: str = "seed000", duration_s: float = 6
 
 
 def _stamps(out_dir: Path, started_file: str | None = None) -> tuple:
-    """What marks a run's start: its metrics.json stub (virtual) or nodes/scenario.json (real time) being written."""
+    """What marks a run's start: its metrics.json stub (virtual) or nodes/scenario.json (real time) being written.
+
+    The content counts too: a file replaced in the same clock tick may reuse the inode number it replaced."""
     out = []
     files = [out_dir / started_file] if started_file else [out_dir / "metrics.json", out_dir / "nodes" / "scenario.json"]
     for f in files:
         try:
             st = f.stat()
-            out.append((st.st_ino, st.st_mtime_ns))
+            out.append((st.st_ino, st.st_mtime_ns, zlib.crc32(f.read_bytes())))
         except FileNotFoundError:
             out.append(None)
     return tuple(out)
