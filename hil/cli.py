@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tomllib
 from pathlib import Path
 
 from ecu_sim.references import ReferenceLoadError
@@ -15,6 +14,7 @@ from hil.can.cli import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
+from hil.scenario.loader import parse_assignment
 
 EXIT_FAILED, EXIT_USAGE, EXIT_UNSAFE, EXIT_INTERRUPTED = 1, 2, 3, 130  # documented in RUN_DESCRIPTION, docs/cli.md
 
@@ -95,18 +95,6 @@ def _fault_lines(faults: dict | None) -> list[str]:
     missed = [f"{f['kind']} on {f['target']}" for f in faults.get("faults", []) if f.get("injected") and not f.get("detected")]
     text = f"{faults['injected']} injected, {faults['detected']} detected"
     return [f"{'faults':38s} " + text + (f" (missed: {', '.join(missed)})" if missed else "")]
-
-
-def parse_assignment(text: str) -> tuple[str, object]:
-    """``dotted.key=value`` with the value read as TOML (numbers, booleans, strings, arrays, inline tables)."""
-    key, sep, raw = text.partition("=")
-    if not sep or not key.strip():
-        raise ScenarioError(f"--set {text!r}: expected dotted.key=value, e.g. radio.latency_s=0.2")
-    try:
-        value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw  # a bare word: take it as a string (e.g. controller.law=consensus)
-    return key.strip(), value
 
 
 def _check_run_options(args: argparse.Namespace) -> None:

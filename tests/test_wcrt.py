@@ -10,7 +10,7 @@ from collections import deque
 import pytest
 
 from hil.can.frame import worst_case_frame_bits
-from hil.can.wcrt import CanMessage, bus_utilisation, response_times
+from hil.can.wcrt import BusRates, CanMessage, bus_utilisation, response_times
 
 # Davis et al. (2007), section 4 shape: three messages of C = 1 ms with T = 2.5, 3.5, 3.5 ms.
 # Here C is exact: extended frames with 2 data bytes are 54+16+13+floor(69/4) = 100 bits worst case,
@@ -123,7 +123,7 @@ def test_empty_set():
         (dict(name="x", can_id=1 << 29, period_s=0.01, dlc=8, extended=True), "can_id"),
         (dict(name="x", can_id=1, period_s=0.0, dlc=8), "period_s"),
         (dict(name="x", can_id=1, period_s=math.nan, dlc=8), "period_s"),
-        (dict(name="x", can_id=1, period_s=0.01, dlc=9), "dlc=9"),
+        (dict(name="x", can_id=1, period_s=0.01, dlc=65), "dlc=65"),
         (dict(name="x", can_id=1, period_s=0.01, dlc=8, jitter_s=-1e-3), "jitter_s"),
         (dict(name="x", can_id=1, period_s=0.01, dlc=8, deadline_s=0.0), "deadline_s"),
     ],
@@ -131,6 +131,16 @@ def test_empty_set():
 def test_bad_message_rejected(kwargs, match):
     with pytest.raises(ValueError, match=match):
         CanMessage(**kwargs)
+
+
+def test_a_length_the_bus_format_lacks_is_rejected_naming_the_message():
+    """9 data bytes: no classical frame carries them, and no CAN FD DLC gives exactly 9 (pad to 12)."""
+    nine = [CanMessage("x", 1, 0.01, 9)]
+    with pytest.raises(ValueError, match=r"message 'x': dlc=9 out of range 0..8"):
+        response_times(nine, 500_000)
+    with pytest.raises(ValueError, match=r"message 'x': length=9 is not a CAN FD payload length"):
+        response_times(nine, BusRates(500_000, 2_000_000, fd=True))
+    assert response_times([CanMessage("x", 1, 0.01, 12)], BusRates(500_000, 2_000_000, fd=True))["x"].schedulable
 
 
 def test_duplicates_and_unsupported_options_rejected():

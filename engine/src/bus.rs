@@ -8,7 +8,7 @@
 use std::cmp::{Ordering, Reverse};
 use std::collections::{BinaryHeap, HashMap, VecDeque};
 
-use crate::frame::{BitTiming, FrameError, MAX_DATA};
+use crate::frame::{fd_padded_len, BitTiming, FrameError, MAX_CLASSIC_DATA, MAX_DATA};
 
 /// Where a node's received frames go (resolved by the driver).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -23,6 +23,28 @@ pub enum Sink {
     Commands(usize),
     /// The radio gateway's end on this bus.
     Gateway(usize),
+}
+
+/// The frame format: classical CAN 2.0, or CAN FD with or without the bit-rate switch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Format {
+    #[default]
+    Classical,
+    Fd,
+    FdBrs,
+}
+
+impl Format {
+    pub fn is_fd(self) -> bool {
+        self != Format::Classical
+    }
+    pub fn brs(self) -> bool {
+        self == Format::FdBrs
+    }
+    /// The largest payload of this format.
+    pub fn max_data(self) -> usize {
+        if self.is_fd() { MAX_DATA } else { MAX_CLASSIC_DATA }
+    }
 }
 
 /// Queue policy of the TX queues.
@@ -64,6 +86,7 @@ pub struct Item {
     pub node: usize,
     pub frame_id: u32,
     pub extended: bool,
+    pub format: Format,
     pub t_enqueue: u64,
     pub data: Payload,
 }
@@ -118,6 +141,7 @@ pub struct Transmission {
     pub node: usize,
     pub frame_id: u32,
     pub extended: bool,
+    pub format: Format,
     pub data: Payload,
     pub t_enqueue: u64,
     pub t_start: u64,
@@ -142,6 +166,8 @@ pub struct Bus {
     pub policy: Policy,
     pub depth: usize,
     pub extended: bool,
+    /// The format of the frames the bus's own nodes send (a server's clients say per frame).
+    pub format: Format,
     pub nodes: Vec<Node>,
     heap: BinaryHeap<Reverse<Item>>,
     seq: u64,
@@ -161,7 +187,7 @@ pub struct Bus {
 impl Bus {
     pub fn new(name: &str, timing: BitTiming, policy: Policy, depth: usize, extended: bool, load_window_ns: u64) -> Bus {
         Bus {
-            name: name.to_string(), timing, policy, depth, extended, nodes: Vec::new(), heap: BinaryHeap::new(), seq: 0,
+            name: name.to_string(), timing, policy, depth, extended, format: Format::Classical, nodes: Vec::new(), heap: BinaryHeap::new(), seq: 0,
             receivers_std: vec![None; 1 << 11], receivers_ext: HashMap::new(), busy_until: 0, current: None, window_ns: load_window_ns,
             window_end: load_window_ns, window_busy: 0, stats: BusStats::default(), trace: None,
         }
@@ -211,8 +237,20 @@ impl Bus {
         }
     }
 
-    /// Queue a frame at time t; false (and counted as a drop) when the node's queue is full.
+    /// The bus with its nodes sending `format` frames (CAN FD: payloads padded up to the next FD length).
+    pub fn with_format(mut self, format: Format) -> Bus {
+        self.format = format;
+        self
+    }
+
+    /// Queue a frame at time t in the bus's format; false (and counted as a drop) when the node's queue is full.
     pub fn enqueue(&mut self, node: usize, frame_id: u32, data: &[u8], t: u64, extended: Option<bool>) -> bool {
+        self.enqueue_as(node, frame_id, data, t, extended, self.format)
+    }
+
+    /// Queue a frame of the given format. A CAN FD payload whose length no DLC gives is padded with zeros up to
+    /// the next one (12, 16, 20, 24, 32, 48, 64), as FD controllers do; what cannot be sent fails in `arbitrate`.
+    pub fn enqueue_as(&mut self, node: usize, frame_id: u32, data: &[u8], t: u64, extended: Option<bool>, format: Format) -> bool {
         let n = &mut self.nodes[node];
         if n.queued >= self.depth || !n.attached {
             n.dropped += 1;
@@ -221,8 +259,12 @@ impl Bus {
         n.queued += 1;
         self.seq += 1;
         let ext = extended.unwrap_or(self.extended);
-        let item = Item { key: arbitration_key(frame_id, ext), seq: self.seq, node, frame_id, extended: ext, t_enqueue: t,
-                          data: Payload::new(data) };
+        let mut payload = Payload::new(&data[..data.len().min(MAX_DATA)]);
+        if format.is_fd() {
+            payload.len = fd_padded_len(data.len()).unwrap_or(data.len()) as u8;
+        }
+        let item = Item { key: arbitration_key(frame_id, ext), seq: self.seq, node, frame_id, extended: ext, format, t_enqueue: t,
+                          data: payload };
         match self.policy {
             Policy::Priority => self.heap.push(Reverse(item)),
             Policy::Fifo => n.fifo.push_back(item),
@@ -262,9 +304,10 @@ impl Bus {
         }
         let Some(won) = self.pop_winner() else { return Ok(None) };
         self.nodes[won.node].queued -= 1;
-        let t_end = t + self.timing.frame_ns(won.frame_id, won.data.as_slice(), won.extended, false, false)?;
-        self.current = Some(Transmission { node: won.node, frame_id: won.frame_id, extended: won.extended, data: won.data,
-                                           t_enqueue: won.t_enqueue, t_start: t, t_end });
+        let f = won.format;
+        let t_end = t + self.timing.frame_ns(won.frame_id, won.data.as_slice(), won.extended, f.is_fd(), f.brs())?;
+        self.current = Some(Transmission { node: won.node, frame_id: won.frame_id, extended: won.extended, format: f,
+                                           data: won.data, t_enqueue: won.t_enqueue, t_start: t, t_end });
         self.busy_until = t_end;
         Ok(Some(t_end))
     }
@@ -404,6 +447,35 @@ mod tests {
         assert_eq!(b.complete().frame_id, 3);
         assert_eq!(b.frames_dropped(), 1);
         assert!(!b.pending());
+    }
+
+    #[test]
+    fn an_fd_bus_times_frames_at_both_rates_and_pads_payloads() {
+        let timing = BitTiming::new(1_000_000, 5_000_000).unwrap();
+        let mut b = Bus::new("b", timing, Policy::Priority, 8, false, 100_000_000).with_format(Format::FdBrs);
+        let a = b.attach("A", Sink::None, None, false);
+        assert!(b.enqueue(a, 0x10, &[7; 10], 0, None)); // 10 bytes: padded to 12 (DLC 9)
+        let end = b.arbitrate(0).unwrap().unwrap();
+        let tx = b.complete();
+        assert_eq!(tx.data.as_slice(), &[7, 7, 7, 7, 7, 7, 7, 7, 7, 7, 0, 0]);
+        let bits = crate::frame::fd_frame_bits(0x10, tx.data.as_slice(), false, true, false).unwrap();
+        assert_eq!(end, bits.nominal as u64 * 1000 + bits.data as u64 * 200);
+    }
+
+    #[test]
+    fn classical_and_fd_frames_share_one_bus() {
+        let timing = BitTiming::new(500_000, 2_000_000).unwrap();
+        let mut b = Bus::new("b", timing, Policy::Priority, 8, false, 100_000_000);
+        let a = b.attach("A", Sink::None, None, false);
+        let c = b.attach("C", Sink::None, None, false);
+        b.enqueue_as(a, 0x20, &[1; 8], 0, None, Format::Classical);
+        b.enqueue_as(c, 0x21, &[1; 8], 0, None, Format::FdBrs);
+        let t1 = b.arbitrate(0).unwrap().unwrap();
+        assert_eq!(b.complete().format, Format::Classical); // the lower ID wins whatever the format
+        assert_eq!(t1, crate::frame::frame_bits(0x20, &[1; 8], false).unwrap() as u64 * 2000);
+        let t2 = b.arbitrate(t1).unwrap().unwrap();
+        assert_eq!(b.complete().format, Format::FdBrs);
+        assert!(t2 - t1 < t1, "8 bytes with BRS at 4x the rate are shorter than the classical frame");
     }
 
     #[test]

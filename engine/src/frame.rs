@@ -72,12 +72,18 @@ pub fn crc15(bits: &[u8]) -> u16 {
 
 /// Check the identifier and the payload length of a classical frame.
 pub fn validate(can_id: u32, len: usize, extended: bool) -> Result<(), FrameError> {
+    validate_as(can_id, len, extended, false)
+}
+
+/// Check the identifier and the payload length of a classical or (`fd`) a CAN FD frame, before padding.
+pub fn validate_as(can_id: u32, len: usize, extended: bool, fd: bool) -> Result<(), FrameError> {
     let limit = if extended { EXT_ID_LIMIT } else { STD_ID_LIMIT };
     if can_id >= limit {
         return Err(FrameError::IdOutOfRange { can_id, extended });
     }
-    if len > MAX_CLASSIC_DATA {
-        return Err(FrameError::TooLong { can_id, len, limit: MAX_CLASSIC_DATA });
+    let max = if fd { MAX_DATA } else { MAX_CLASSIC_DATA };
+    if len > max {
+        return Err(FrameError::TooLong { can_id, len, limit: max });
     }
     Ok(())
 }

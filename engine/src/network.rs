@@ -129,7 +129,7 @@ impl Network {
     /// Frames queued at the same instant all join one arbitration.
     pub fn send(&mut self, bus: usize, node: usize, frame_id: u32, data: &[u8]) -> Result<bool, FrameError> {
         let b = &mut self.buses[bus];
-        frame::validate(frame_id, data.len(), b.extended)?;
+        frame::validate_as(frame_id, data.len(), b.extended, b.format.is_fd())?;
         let now = self.queue.now;
         let ok = b.enqueue(node, frame_id, data, now, None);
         if ok && b.current.is_none() && !self.arbitration_pending[bus] {

@@ -9,7 +9,7 @@ use pyo3::prelude::*;
 use pyo3::pybacked::PyBackedBytes;
 use pyo3::types::{PyBytes, PyDict, PyList, PyTuple};
 
-use crate::bus::{Bus, Policy, Sink};
+use crate::bus::{Bus, Format, Policy, Sink};
 use crate::codec::{CodecError, MessageLayout, SignalSpec};
 use crate::e2e::{self, STATUS_NAMES};
 use crate::frame::{self, BitTiming, FrameError, MAX_DATA};
@@ -360,13 +360,29 @@ impl Network {
         Network { core: CoreNetwork::default(), refills: Vec::new(), busy: std::time::Duration::ZERO }
     }
 
-    /// Add a bus; returns its index.
-    #[pyo3(signature = (name, bitrate, policy_name = "priority", depth = 64, extended = false, load_window_ns = 100_000_000))]
-    fn add_bus(&mut self, name: &str, bitrate: u64, policy_name: &str, depth: usize, extended: bool, load_window_ns: u64) -> PyResult<usize> {
+    /// Add a bus; returns its index. With `fd` its nodes send CAN FD frames, switching to `data_bitrate`
+    /// (default: `bitrate`) in the data phase when `brs` is set.
+    #[pyo3(signature = (name, bitrate, policy_name = "priority", depth = 64, extended = false, load_window_ns = 100_000_000,
+                        fd = false, data_bitrate = None, brs = true))]
+    #[allow(clippy::too_many_arguments)]
+    fn add_bus(&mut self, name: &str, bitrate: u64, policy_name: &str, depth: usize, extended: bool, load_window_ns: u64,
+               fd: bool, data_bitrate: Option<u64>, brs: bool) -> PyResult<usize> {
         if load_window_ns == 0 {
             return Err(PyValueError::new_err("load_window_ns must be positive"));
         }
-        let bus = Bus::new(name, timing(bitrate, bitrate)?, policy(policy_name)?, depth, extended, load_window_ns);
+        let data_rate = data_bitrate.unwrap_or(bitrate);
+        if !fd && data_rate != bitrate {
+            return Err(PyValueError::new_err("data_bitrate is for CAN FD buses (fd=True)"));
+        }
+        if data_rate < bitrate {
+            return Err(PyValueError::new_err(format!("data_bitrate {data_rate} is below the nominal bitrate {bitrate}")));
+        }
+        let format = match (fd, brs) {
+            (false, _) => Format::Classical,
+            (true, false) => Format::Fd,
+            (true, true) => Format::FdBrs,
+        };
+        let bus = Bus::new(name, timing(bitrate, data_rate)?, policy(policy_name)?, depth, extended, load_window_ns).with_format(format);
         Ok(self.core.add_bus(bus))
     }
 

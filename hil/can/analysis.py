@@ -28,7 +28,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from ecu_sim.codec import MessageCodec, TrainDb
-from hil.can.frame import bit_time_ns, worst_case_frame_bits
+from hil.can.wcrt import BusRates, as_rates
 from hil.can.wcrt import CanMessage, response_times
 from hil.scenario.model import Scenario
 
@@ -103,16 +103,24 @@ class TrainBusSetup:
     radio_link_jitter_s: float = 0.0  # the radio's own spread of delivery times (a bound)
     extended: bool = False
     queue_policy: str = "priority"
+    fd: bool = False  # CAN FD frames
+    data_bitrate: int | None = None  # CAN FD with BRS: the data phase's bitrate
+    brs: bool = True
 
     def __post_init__(self) -> None:
         try:
-            bit_time_ns(self.bitrate)
+            self.rates
         except ValueError as exc:
             raise CanAnalysisError(f"bitrate: {exc}") from None
         if self.n_trains is not None and not 0 <= self.bus_index < self.n_trains:
             raise CanAnalysisError(f"bus{self.bus_index + 1}: the train has buses bus1..bus{self.n_trains}")
         if not (math.isfinite(self.radio_link_jitter_s) and self.radio_link_jitter_s >= 0):
             raise CanAnalysisError(f"radio jitter {self.radio_link_jitter_s!r} s must be finite and >= 0")
+
+    @property
+    def rates(self) -> BusRates:
+        """The bus's bit timing (classical, or CAN FD with its data phase)."""
+        return BusRates(self.bitrate, self.data_bitrate if self.fd else None, self.fd, self.brs)
 
     @classmethod
     def from_scenario(cls, sc: Scenario, bus_index: int = 0) -> "TrainBusSetup":
@@ -126,7 +134,8 @@ class TrainBusSetup:
         return cls(units=sc.trains.units, bitrate=sc.can.bitrate, cycle_s=sc.ecu.cycle_s,
                    sensor_period_s=sc.can.sensor_period_s, reference_period_s=sc.reference.period_s,
                    n_trains=sc.trains.count, bus_index=bus_index, forward_aux=radio.forward_aux,
-                   radio_link_jitter_s=radio.jitter_s, extended=sc.can.extended_ids, queue_policy=sc.can.queue_policy)
+                   radio_link_jitter_s=radio.jitter_s, extended=sc.can.extended_ids, queue_policy=sc.can.queue_policy,
+                   fd=sc.can.fd, data_bitrate=sc.can.data_rate if sc.can.fd else None, brs=sc.can.brs)
 
     def radio_sides(self, bus_index: int | None = None) -> tuple[bool, bool]:
         """(has a train ahead, has one behind) for a bus: bus1 has none ahead, the last none behind."""
@@ -143,11 +152,6 @@ class TrainBusSetup:
                                   ahead, behind, self.forward_aux, radio_jitter_s, self.extended)
 
 
-def best_case_frame_bits(dlc: int, extended: bool = False) -> int:
-    """Fewest bits a data frame can take (no stuff bits), incl. the 3-bit intermission: g + 8s + 13."""
-    return (54 if extended else 34) + 8 * dlc + 13
-
-
 def _source_bounds(db: TrainDb, setup: TrainBusSetup, jitter: tuple[float, float]) -> tuple[float, float]:
     """(tail, head) sources' largest response-time spread, WCRT - best case, over the train's buses.
 
@@ -155,17 +159,17 @@ def _source_bounds(db: TrainDb, setup: TrainBusSetup, jitter: tuple[float, float
     on the bus ahead. ``jitter`` is that of the forwarded frames on every bus.
     """
     tail, head = setup.units - 1, 0
-    tau = bit_time_ns(setup.bitrate) * 1e-9
+    rates = setup.rates
     worst = [0.0, 0.0]
     for k in ([None] if setup.n_trains is None else range(setup.n_trains)):
         ahead, behind = setup.radio_sides(k)
         if not (ahead or behind):
             continue
-        bounds = response_times(setup.messages(db, jitter, k), setup.bitrate)
+        bounds = response_times(setup.messages(db, jitter, k), rates)
         for side, unit, feeds in ((0, tail, behind), (1, head, ahead)):
             if feeds:
                 codecs = [db.agent_state(unit)] + ([db.agent_aux(unit)] if setup.forward_aux else [])
-                spread = (bounds[c.name].r_s - best_case_frame_bits(c.dlc, setup.extended) * tau for c in codecs)
+                spread = (bounds[c.name].r_s - rates.best_case_ns(c.dlc, setup.extended) * 1e-9 for c in codecs)
                 worst[side] = max(worst[side], *spread)
     return worst[0], worst[1]
 
@@ -230,17 +234,18 @@ class FrameTiming:
         return self.measured_s is not None and self.measured_s > self.wcrt_s
 
 
-def analyse(messages: Sequence[CanMessage], bitrate: int, measured: Mapping[int, float] | None = None) -> list[FrameTiming]:
+def analyse(messages: Sequence[CanMessage], bitrate: int | BusRates,
+            measured: Mapping[int, float] | None = None) -> list[FrameTiming]:
     """Timing of every frame, highest priority (lowest ID) first; ``measured``: frame ID -> max latency (s)."""
-    bounds = response_times(list(messages), bitrate)
-    tau = bit_time_ns(bitrate) * 1e-9
+    rates = as_rates(bitrate)
+    bounds = response_times(list(messages), rates)
     measured = measured or {}
     out = []
     for m in sorted(messages, key=lambda m: m.can_id):
         r = bounds[m.name]
-        bits = worst_case_frame_bits(m.dlc, m.extended)
-        out.append(FrameTiming(m.name, m.can_id, m.dlc, m.extended, bits, bits * tau, m.period_s, m.jitter_s,
-                               m.deadline, r.r_s, r.schedulable, measured.get(m.can_id)))
+        bits = sum(rates.worst_case_bits(m.dlc, m.extended))
+        out.append(FrameTiming(m.name, m.can_id, m.dlc, m.extended, bits, rates.worst_case_ns(m.dlc, m.extended) * 1e-9,
+                               m.period_s, m.jitter_s, m.deadline, r.r_s, r.schedulable, measured.get(m.can_id)))
     return out
 
 
@@ -257,8 +262,8 @@ def analyse_train_bus(db: TrainDb, setup: TrainBusSetup, measured: Mapping[int, 
     """
     jitter = forwarded_jitter(db, setup)
     if all(map(math.isfinite, jitter)):
-        return analyse(setup.messages(db, jitter), setup.bitrate, measured)
-    timings = analyse(setup.messages(db, 0.0), setup.bitrate, measured)
+        return analyse(setup.messages(db, jitter), setup.rates, measured)
+    timings = analyse(setup.messages(db, 0.0), setup.rates, measured)
     radio = {c.frame_id for c in (db.radio_ahead_state, db.radio_ahead_aux, db.radio_behind_state, db.radio_behind_aux)}
     first = min((t.can_id for t in timings if t.can_id in radio), default=None)
     if first is None:
@@ -291,7 +296,7 @@ HEADER = ["frame", "ID", "DLC", "bits", "C ms", "T ms", "J ms", "WCRT ms", "D ms
 MEASURED_HEADER = ["measured ms", "meas/WCRT", "flag"]
 
 
-def format_table(timings: Sequence[FrameTiming], bitrate: int | None = None) -> str:
+def format_table(timings: Sequence[FrameTiming], bitrate: int | BusRates | None = None) -> str:
     """Aligned text table (IDs in hex, times in ms), the measured columns if any frame has a measurement,
     then the bus utilisation and a count of unschedulable frames and of measurements above their bound."""
     with_measured = any(t.measured_s is not None for t in timings)
@@ -303,7 +308,7 @@ def format_table(timings: Sequence[FrameTiming], bitrate: int | None = None) -> 
         if with_measured:
             cells[-1] = r[-1].ljust(widths[-1])
         lines.append("  ".join(cells).rstrip())
-    rate = f" at {bitrate / 1000:g} kbit/s" if bitrate else ""
+    rate = f" at {as_rates(bitrate)}" if bitrate else ""
     lines.append(f"bus utilisation{rate}: {100 * utilisation(timings):.2f} % "
                  f"(sum of C/T over {len(timings)} frames, worst-case frame lengths)")
     bad = [t.name for t in timings if not t.schedulable]

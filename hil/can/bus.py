@@ -14,7 +14,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
-from hil.can.frame import frame_bits
+from hil.can.frame import bit_time_ns as _bit_ns, fd_frame_bits, fd_pad, frame_bits
 from hil.can.stats import BusLog
 
 RxCallback = Callable[[int, bytes, int], None]  # (frame_id, data, t_end_ns)
@@ -70,14 +70,17 @@ class CanBusModel:
     """Arbitration and timing of one CAN bus, told the time by its driver."""
 
     def __init__(self, name: str, bitrate: int, policy: str = "priority", depth: int = 64, extended: bool = False,
-                 log: BusLog | None = None, load_window_s: float = 0.1) -> None:
+                 log: BusLog | None = None, load_window_s: float = 0.1, fd: bool = False,
+                 data_bitrate: int | None = None, brs: bool = True) -> None:
+        """``fd``: the nodes send CAN FD frames, their data phase at ``data_bitrate`` when ``brs`` is set."""
         if policy not in ("priority", "fifo"):
             raise ValueError(f"queue policy must be 'priority' or 'fifo', got {policy!r}")
         self.name = name
         self.bitrate = bitrate
-        self.bit_ns = 1_000_000_000 // bitrate
-        if self.bit_ns * bitrate != 1_000_000_000:
-            raise ValueError(f"bitrate {bitrate} has no whole-nanosecond bit time")
+        self.bit_ns = _bit_ns(bitrate)
+        self.fd, self.brs = fd, fd and brs
+        self.data_bitrate = data_bitrate if fd and data_bitrate is not None else bitrate
+        self.data_bit_ns = _bit_ns(self.data_bitrate)
         self.policy = policy
         self.depth = depth
         self.extended = extended
@@ -138,6 +141,8 @@ class CanBusModel:
         node.queued += 1
         self._seq += 1
         ext = self.extended if extended is None else extended
+        if self.fd:
+            data = fd_pad(data)
         item = (arbitration_key(frame_id, ext), self._seq, data, t, node, frame_id, ext)
         if self._priority:
             heapq.heappush(self._heap, item)
@@ -167,12 +172,19 @@ class CanBusModel:
             return None
         _, _, data, t_enq, node, frame_id, ext = won
         node.queued -= 1
-        t_end = t + frame_bits(frame_id, data, ext) * self.bit_ns
+        t_end = t + self.duration_ns(frame_id, data, ext)
         self.current = Transmission(node, frame_id, data, t_enq, t, t_end, ext)
         self.busy_until = t_end
         if errors is not None:
             errors.on_start(self.current, won)  # may destroy the frame: it then ends with its error frame
         return self.current
+
+    def duration_ns(self, frame_id: int, data: bytes, extended: bool) -> int:
+        """A data frame's time on this bus, SOF through the intermission (CAN FD: both phases)."""
+        if not self.fd:
+            return frame_bits(frame_id, data, extended) * self.bit_ns
+        nominal, data_phase = fd_frame_bits(frame_id, data, extended, self.brs)
+        return nominal * self.bit_ns + data_phase * self.data_bit_ns
 
     def complete(self) -> Transmission:
         """End the current transmission: deliver it, update statistics."""

@@ -19,6 +19,7 @@ from pathlib import Path
 from ecu_sim.codec import DbcMismatchError, TrainDb, default_dbc_path
 from hil.can.analysis import CanAnalysisError, TrainBusSetup, analyse_train_bus, forwarded_jitter, format_table
 from hil.scenario import ScenarioError, load_scenario
+from hil.scenario.loader import parse_assignment
 
 MEASURED_KEY = "latency_max_by_id"
 DESCRIPTION = ("Every frame of a train bus: worst-case length, WCRT (Davis et al. 2007) and bus utilisation; "
@@ -63,6 +64,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cycle", type=positive_seconds, metavar="S",
                    help="period in s of every frame: ECU cycle, sensor and reference (default: the scenario's, else the DBC's)")
     p.add_argument("--scenario", metavar="NAME|PATH", help="take units, periods, bitrate and radio from this scenario")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="with --scenario: override one of its fields, e.g. --set can.fd=true --set can.data_bitrate=5000000")
     p.add_argument("--bus", default="bus1", help="which train's bus, busK (default bus1); also where --measured reads")
     p.add_argument("--measured", metavar="RUN_DIR", help=f"a `hil run` output dir: per_bus[bus].{MEASURED_KEY} of its metrics.json")
 
@@ -114,8 +117,10 @@ def read_measured(run_dir: Path, bus: str) -> tuple[dict[int, float], dict]:
 
 def _setup(args: argparse.Namespace, bus_index: int, db: TrainDb) -> tuple[TrainBusSetup, str]:
     """The bus to analyse, and a one-line description of where it came from."""
+    if args.set and not args.scenario:
+        raise CanAnalysisError("--set overrides a scenario's fields: give the scenario with --scenario")
     if args.scenario:
-        sc = load_scenario(args.scenario)
+        sc = load_scenario(args.scenario, dict(parse_assignment(a) for a in args.set))
         setup = TrainBusSetup.from_scenario(sc, bus_index)
         where = f"bus{bus_index + 1} of scenario {sc.name} ({sc.trains.count} trains)"
     else:
@@ -148,7 +153,7 @@ def _analyse(args: argparse.Namespace) -> None:
     timings = analyse_train_bus(db, setup, measured)
     ahead, behind = forwarded_jitter(db, setup)
     print(f"DBC {db.path}: {where}")
-    print(f"  {setup.units} units, {setup.bitrate / 1000:g} kbit/s, periods: ECU {_period(setup.cycle_s)}, "
+    print(f"  {setup.units} units, {setup.rates}, periods: ECU {_period(setup.cycle_s)}, "
           f"sensor {_period(setup.sensor_period_s)}, reference {_period(setup.reference_period_s)}")
     print(f"  forwarded-frame release jitter bound: ahead {ahead * 1e3:.3f} ms, behind {behind * 1e3:.3f} ms "
           f"(source WCRT - best case + radio jitter {setup.radio_link_jitter_s * 1e3:g} ms)")
@@ -159,7 +164,7 @@ def _analyse(args: argparse.Namespace) -> None:
         ran = metrics.get("scenario")
         print(f"  measured: {Path(args.measured) / 'metrics.json'} (run of {ran or 'an unnamed scenario'}), bus{bus_index + 1}")
     print()
-    print(format_table(timings, setup.bitrate))
+    print(format_table(timings, setup.rates))
     extra = sorted(set(measured) - {t.can_id for t in timings})
     if extra:
         print("measured IDs not on the analysed bus: " + ", ".join(f"0x{i:03X}" for i in extra))

@@ -20,6 +20,11 @@ plus 23. The sender then retransmits automatically: the frame goes back to its T
 so its measured latency includes every attempt. A corruption the receivers do not detect (CAN's residual
 error rate) is delivered with its corrupted bits, for the E2E CRC to catch, and counted as ``undetected``.
 
+CAN FD frames get the same confinement. Their bits up to a detection are timed at both rates (the data phase at
+the data bitrate), the error frame at the nominal rate. A corrupted FD frame is not modelled bit by bit: it is
+rejected by its CRC check after the ACK delimiter (CRC-17/21, with the stuff count, leave no residual error to
+speak of), which is the latest a receiver can find an error, so its error frame is taken at its longest.
+
 Every transmission, destroyed or not, ends with 11 recessive bits (ACK delimiter + EOF + intermission, or the
 error delimiter + intermission), so the recovery count of a bus-off node is: one sequence per frame on a busy
 bus, and idle time / 11 bits in between. Not modelled: the error-passive transmitter's 8-bit suspend
@@ -39,7 +44,7 @@ from enum import IntEnum
 import numpy as np
 
 from hil.can.bus import CanBusModel, CanNode, Transmission, _Item
-from hil.can.frame import _crc15_bitwise, stuffed_bits
+from hil.can.frame import _crc15_bitwise, fd_frame_bits, stuffed_bits
 
 ERROR_PASSIVE_AT = 128
 BUS_OFF_ABOVE = 255
@@ -49,6 +54,8 @@ ERROR_FLAG_PHASE_BITS = 12  # 6-bit error flag + up to 6 bits of the other nodes
 ERROR_DELIMITER_BITS = 8
 INTERMISSION_BITS = 3
 ERROR_TAIL_BITS = ERROR_FLAG_PHASE_BITS + ERROR_DELIMITER_BITS + INTERMISSION_BITS
+FD_TAIL_BITS = 1 + 1 + 7 + 3  # CAN FD after the CRC delimiter: ACK slot, ACK delimiter, EOF, IFS (nominal rate)
+FD_EOF_IFS_BITS = 7 + 3
 EPISODE_GAP_S = 0.1  # error frames less than this apart are one episode (one summary event)
 
 EventSink = Callable[[int, str, str], None]  # (t_ns, level, text)
@@ -346,8 +353,8 @@ class BusErrors:
                 self.bus.enqueue(b.node, b.frame_id, b.data, tx.t_start, b.extended)  # keep it babbling
         for sel in self.error_flags:
             if sel.hit(tx.frame_id):
-                wire = wire_bits(tx.frame_id, tx.data, tx.extended)
-                at = int(self.rng.integers(1, len(wire) - 7))  # after SOF .. the ACK delimiter
+                n_bits = len(wire_bits(tx.frame_id, tx.data, tx.extended)) if not self.bus.fd else sum(self._fd_phases(tx)) - 3
+                at = int(self.rng.integers(1, n_bits - 7))  # after SOF .. the ACK delimiter
                 self.stats["injected_error_flags"] += 1
                 self._fail(tx, "error flag", at)
                 return
@@ -356,7 +363,14 @@ class BusErrors:
                 self._corrupt(tx, sel.bits)
                 return
 
+    def _fd_phases(self, tx: Transmission) -> tuple[int, int]:
+        """A CAN FD frame's bits at the nominal and at the data rate, SOF through the intermission."""
+        return fd_frame_bits(tx.frame_id, tx.data, tx.extended, self.bus.brs)
+
     def _corrupt(self, tx: Transmission, bits: int) -> None:
+        if self.bus.fd:
+            self._corrupt_fd(tx)
+            return
         wire = wire_bits(tx.frame_id, tx.data, tx.extended)
         span = len(wire) - 10  # bits after SOF up to and including the CRC delimiter
         positions = self.rng.choice(np.arange(1, span + 1), size=min(bits, span), replace=False)
@@ -371,10 +385,27 @@ class BusErrors:
             self.undetected_frames.append((tx.t_start, tx.frame_id, seen.can_id, seen.data, tx.data, flips))
             tx.frame_id, tx.data, tx.extended = seen.can_id, seen.data, seen.extended
 
+    def _corrupt_fd(self, tx: Transmission) -> None:
+        """A corrupted CAN FD frame: rejected, found by its CRC check after the ACK delimiter (not bit by bit: the
+        wire model above is classical CAN's; CRC-17/21 with the stuff count leave no residual error to model)."""
+        nominal, data_phase = self._fd_phases(tx)
+        self.stats["corrupted"] += 1
+        self.stats["rejected"] += 1
+        self._fail(tx, "crc", nominal + data_phase - FD_EOF_IFS_BITS - 1)
+
     def _fail(self, tx: Transmission, error: str, at: int) -> None:
         tx.error = error
-        tx.t_end = tx.t_start + (at + 1 + ERROR_TAIL_BITS) * self._bit
+        tx.t_end = tx.t_start + self._bits_ns(tx, at + 1) + ERROR_TAIL_BITS * self._bit
         self.bus.busy_until = tx.t_end
+
+    def _bits_ns(self, tx: Transmission, k: int) -> int:
+        """The time of a frame's first ``k`` bits (CAN FD with BRS: the data phase at the data rate)."""
+        if not self.bus.brs:
+            return k * self._bit
+        nominal, data_phase = self._fd_phases(tx)
+        arbitration = nominal - FD_TAIL_BITS
+        fast = min(max(k - arbitration, 0), data_phase)
+        return (k - fast) * self._bit + fast * self.bus.data_bit_ns
 
     def on_complete(self, tx: Transmission) -> bool:
         """End of a transmission: counters, events; a destroyed frame is requeued (False: do not deliver it)."""

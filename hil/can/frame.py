@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import operator
 
+import trainhil_engine as engine
+
 CRC15_POLY = 0x4599  # x^15 + x^14 + x^10 + x^8 + x^7 + x^4 + x^3 + 1 (x^15 implicit)
 _CRC_MASK = 0x7FFF
 STD_ID_LIMIT = 1 << 11
@@ -230,3 +232,59 @@ def frame_duration_ns(bits: int, bitrate: int) -> int:
     if _int_field(bits, "bits") < 0:
         raise ValueError(f"bits={bits!r} must be a non-negative integer")
     return bits * bit_time_ns(bitrate)
+
+
+# ---- CAN FD (ISO 11898-1:2015); the exact count per frame is the engine's (engine/src/frame.rs)
+FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)  # payload length by DLC code 0..15
+MAX_FD_DATA_BYTES = 64
+_FD_ARBITRATION_BITS = {False: 1 + 11 + 1 + 1 + 1 + 1 + 1, True: 1 + 11 + 2 + 18 + 1 + 1 + 1 + 1}  # SOF..BRS
+_FD_CONTROL_BITS = 1 + 4  # ESI, DLC: the data phase's dynamically stuffed bits before the data field
+_FD_TAIL_BITS = 1 + 1 + 7 + 3  # ACK slot, ACK delimiter, EOF, IFS: nominal rate
+
+
+def fd_padded_len(length: int) -> int:
+    """The smallest CAN FD payload length that carries ``length`` bytes (FD frames are padded up to it)."""
+    for n in FD_LENGTHS:
+        if n >= length:
+            return n
+    raise ValueError(f"{length} data bytes exceed the {MAX_FD_DATA_BYTES} of a CAN FD frame")
+
+
+def fd_pad(data: bytes) -> bytes:
+    """``data`` padded with zero bytes up to the next CAN FD length."""
+    return data + bytes(fd_padded_len(len(data)) - len(data))
+
+
+def fd_frame_bits(can_id: int, data: bytes, extended: bool = False, brs: bool = True) -> tuple[int, int]:
+    """Exact bits of a CAN FD data frame: (at the nominal rate, at the data rate; 0 without BRS)."""
+    return engine.fd_frame_bits(can_id, data, extended, brs)
+
+
+def _fd_crc_field_bits(length: int) -> int:
+    """Stuff count (4), CRC-17 or CRC-21, their fixed stuff bits, and the CRC delimiter."""
+    return (4 + 17 + 6 if length <= 16 else 4 + 21 + 7) + 1
+
+
+def best_case_fd_frame_bits(length: int, extended: bool = False, brs: bool = True) -> tuple[int, int]:
+    """The fewest bits a CAN FD frame of ``length`` data bytes can take (no dynamic stuff bits), as (nominal, data)."""
+    if length not in FD_LENGTHS:
+        raise ValueError(f"length={length!r} is not a CAN FD payload length {FD_LENGTHS}")
+    arbitration = _FD_ARBITRATION_BITS[bool(extended)]
+    data_phase = _FD_CONTROL_BITS + 8 * length + _fd_crc_field_bits(length)
+    nominal = arbitration + _FD_TAIL_BITS
+    return (nominal, data_phase) if brs else (nominal + data_phase, 0)
+
+
+def worst_case_fd_frame_bits(length: int, extended: bool = False, brs: bool = True) -> tuple[int, int]:
+    """An upper bound on the bits of a CAN FD frame of ``length`` data bytes, as (nominal, data) like
+    :func:`fd_frame_bits`. Dynamic stuffing adds at most one bit per 4 after the first of SOF..data; the bound
+    puts as many of them as can fall there in the (slower) arbitration phase. The CRC field's stuffing is fixed."""
+    if length not in FD_LENGTHS:
+        raise ValueError(f"length={length!r} is not a CAN FD payload length {FD_LENGTHS}")
+    arbitration = _FD_ARBITRATION_BITS[bool(extended)]
+    dynamic = arbitration + _FD_CONTROL_BITS + 8 * length
+    stuff_total = (dynamic - 1) // 4
+    stuff_arbitration = min((arbitration - 1) // 4, stuff_total)
+    nominal = arbitration + stuff_arbitration + _FD_TAIL_BITS
+    data_phase = dynamic - arbitration + stuff_total - stuff_arbitration + _fd_crc_field_bits(length)
+    return (nominal, data_phase) if brs else (nominal + data_phase, 0)

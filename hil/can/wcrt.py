@@ -16,13 +16,69 @@ from fractions import Fraction
 
 from hil.can.frame import (
     EXT_ID_LIMIT,
+    MAX_FD_DATA_BYTES,
     STD_ID_LIMIT,
+    best_case_fd_frame_bits,
     bit_time_ns,
+    worst_case_fd_frame_bits,
     worst_case_frame_bits,
 )
 
 _NS_PER_S = 1_000_000_000
 _MAX_ITERATIONS = 1_000_000  # a fixed point below utilisation 1 is reached long before this
+
+
+@dataclass(frozen=True)
+class BusRates:
+    """A bus's bit timing as the analysis needs it: the nominal bitrate and, for CAN FD, the data-phase one."""
+
+    nominal: int
+    data: int | None = None  # CAN FD with BRS: the data phase's bitrate (default: the nominal one)
+    fd: bool = False
+    brs: bool = True
+
+    def __post_init__(self) -> None:
+        bit_time_ns(self.nominal)
+        if self.data is not None:
+            bit_time_ns(self.data)
+            if not self.fd:
+                raise ValueError("a data bitrate is for CAN FD (fd=True)")
+            if self.data < self.nominal:
+                raise ValueError(f"data bitrate {self.data} is below the nominal bitrate {self.nominal}")
+
+    @property
+    def tau_ns(self) -> int:
+        """The nominal bit time (the queueing resolution of arbitration)."""
+        return bit_time_ns(self.nominal)
+
+    def worst_case_bits(self, dlc: int, extended: bool) -> tuple[int, int]:
+        """(bits at the nominal rate, bits at the data rate) of the longest frame of ``dlc`` data bytes."""
+        if not self.fd:
+            return worst_case_frame_bits(dlc, extended), 0
+        return worst_case_fd_frame_bits(dlc, extended, self.brs)
+
+    def best_case_ns(self, dlc: int, extended: bool) -> int:
+        """The shortest transmission of a frame of ``dlc`` data bytes (no stuff bits), incl. the intermission."""
+        if not self.fd:
+            return ((54 if extended else 34) + 8 * dlc + 13) * self.tau_ns
+        nominal, data = best_case_fd_frame_bits(dlc, extended, self.brs)
+        return nominal * self.tau_ns + data * bit_time_ns(self.data or self.nominal)
+
+    def worst_case_ns(self, dlc: int, extended: bool) -> int:
+        """The longest transmission of a frame of ``dlc`` data bytes, incl. the intermission."""
+        nominal, data = self.worst_case_bits(dlc, extended)
+        return nominal * self.tau_ns + data * bit_time_ns(self.data or self.nominal)
+
+    def __str__(self) -> str:
+        if not self.fd:
+            return f"{self.nominal / 1000:g} kbit/s"
+        data = f", data phase {(self.data or self.nominal) / 1e6:g} Mbit/s" if self.brs else ", no bit-rate switch"
+        return f"{self.nominal / 1000:g} kbit/s CAN FD{data}"
+
+
+def as_rates(bitrate: "int | BusRates") -> BusRates:
+    """A classical bus's bitrate, or the rates of any bus, as ``BusRates``."""
+    return bitrate if isinstance(bitrate, BusRates) else BusRates(bitrate)
 
 
 @dataclass(frozen=True)
@@ -41,7 +97,8 @@ class CanMessage:
         limit = EXT_ID_LIMIT if self.extended else STD_ID_LIMIT
         if not _is_int(self.can_id) or not 0 <= self.can_id < limit:
             raise ValueError(f"message {self.name!r}: can_id={self.can_id!r} out of range 0..{limit - 1:#x}")
-        worst_case_frame_bits(self.dlc, self.extended)  # validates dlc
+        if not _is_int(self.dlc) or not 0 <= self.dlc <= MAX_FD_DATA_BYTES:
+            raise ValueError(f"message {self.name!r}: dlc={self.dlc!r} out of range 0..{MAX_FD_DATA_BYTES} (data bytes)")
         _check_time(self.name, "period_s", self.period_s, positive=True)
         _check_time(self.name, "jitter_s", self.jitter_s, positive=False)
         if self.deadline_s is not None:
@@ -150,7 +207,7 @@ def _worst_instance(
 
 
 def response_times(
-    messages: list[CanMessage], bitrate: int, error_overhead: None = None
+    messages: list[CanMessage], bitrate: int | BusRates, error_overhead: None = None
 ) -> dict[str, WcrtResult]:
     """Worst-case response time of every message on an error-free bus, keyed by message name.
 
@@ -159,10 +216,11 @@ def response_times(
     """
     if error_overhead is not None:
         raise NotImplementedError(f"error_overhead={error_overhead!r}: only an error-free bus (None) is modelled")
-    tau = bit_time_ns(bitrate)
+    rates = as_rates(bitrate)
+    tau = rates.tau_ns
     _check_unique(messages)
     order = sorted(messages, key=lambda m: m.can_id)
-    cs = [worst_case_frame_bits(m.dlc, m.extended) * tau for m in order]
+    cs = [_worst_ns(rates, m) for m in order]
     ts = [_ns(m.period_s) for m in order]
     js = [_ns(m.jitter_s) for m in order]
     results: dict[str, WcrtResult] = {}
@@ -192,7 +250,15 @@ def response_times(
     return results
 
 
-def bus_utilisation(messages: list[CanMessage], bitrate: int) -> float:
+def bus_utilisation(messages: list[CanMessage], bitrate: int | BusRates) -> float:
     """Sum of C_k / T_k with worst-case frame lengths."""
-    tau = bit_time_ns(bitrate)
-    return float(sum(Fraction(worst_case_frame_bits(m.dlc, m.extended) * tau, _ns(m.period_s)) for m in messages))
+    rates = as_rates(bitrate)
+    return float(sum(Fraction(_worst_ns(rates, m), _ns(m.period_s)) for m in messages))
+
+
+def _worst_ns(rates: BusRates, m: CanMessage) -> int:
+    """C_m: the longest transmission of message m, or ValueError naming it (a length its format lacks)."""
+    try:
+        return rates.worst_case_ns(m.dlc, m.extended)
+    except ValueError as exc:
+        raise ValueError(f"message {m.name!r}: {exc}") from None

@@ -30,7 +30,7 @@ def add_compare_parser(sub) -> None:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from hil.cli import parse_assignment
+    from hil.scenario.loader import parse_assignment
     from hil.compare.report import choose_family, table_rows, text_table, write_outputs
     from hil.compare.runner import CompareItem, run_items
 

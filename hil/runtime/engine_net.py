@@ -21,6 +21,7 @@ from hil.can.bus import Transmission
 from hil.radio.gateway import link_name, standard_routes
 from hil.radio.link import RadioLink
 from hil.record.runlog import BusLog
+from hil.scenario.model import CanConfig
 
 LOAD_WINDOW_NS = 100_000_000  # the bus model's load window (0.1 s), as the Python model's default
 
@@ -64,13 +65,13 @@ class EngineBus:
 
     errors = None  # CAN error confinement and bus faults run on the Python bus model (hil/can/errors.py)
 
-    def __init__(self, net: engine.Network, name: str, bitrate: int, policy: str, depth: int, extended: bool,
-                 log: BusLog) -> None:
+    def __init__(self, net: engine.Network, name: str, can: CanConfig, log: BusLog) -> None:
         self.net = net
         self.name = name
-        self.bitrate = bitrate
+        self.bitrate = can.bitrate
         self.log = log
-        self.index = net.add_bus(name, bitrate, policy, depth, extended, LOAD_WINDOW_NS)
+        self.index = net.add_bus(name, can.bitrate, can.queue_policy, can.tx_queue_depth, can.extended_ids, LOAD_WINDOW_NS,
+                                 fd=can.fd, data_bitrate=can.data_rate, brs=can.brs)
         self.frame_listeners: list[Callable[[Transmission], None]] = []
         self._tracing = False
 

@@ -92,8 +92,9 @@ class VirtualRig:
         log = BusLog(f"bus{i + 1}", c.bitrate)
         self.log.buses.append(log)
         if self.net is not None:
-            return EngineBus(self.net, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log)
-        return VirtualCanBus(self.kernel, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log=log)
+            return EngineBus(self.net, f"bus{i + 1}", c, log)
+        return VirtualCanBus(self.kernel, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log=log,
+                             fd=c.fd, data_bitrate=c.data_rate, brs=c.brs)
 
     def _attach_plant(self, i: int) -> CanNode | int:
         """The plant's node on train i's bus. The engine checks and decodes its TractionCmd frames on delivery and

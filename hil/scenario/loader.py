@@ -106,3 +106,15 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
     """Read, parse and validate a scenario; every failure is a ScenarioError naming the file."""
     path = resolve(name_or_path)
     return scenario_from_dict(read_toml(path, ScenarioError), str(path), overrides)
+
+
+def parse_assignment(text: str) -> tuple[str, object]:
+    """``dotted.key=value`` with the value read as TOML (numbers, booleans, strings, arrays, inline tables)."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ScenarioError(f"--set {text!r}: expected dotted.key=value, e.g. radio.latency_s=0.2")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw  # a bare word: take it as a string (e.g. controller.law=consensus)
+    return key.strip(), value

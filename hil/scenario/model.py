@@ -22,6 +22,8 @@ MAX_DURATION_S = 1e7  # 116 days of simulated time
 MAX_PERIOD_S = 10.0  # ECU phases and staggers
 MAX_RADIO_DELAY_S = 60.0  # a train radio that delays a frame longer than a minute is down, not slow
 MAX_SEGMENTS = 10_000  # track, reference and blackout segments per list
+MIN_BITRATE = 125_000  # the slowest CAN bitrate the rig offers
+MAX_DATA_BITRATE = 10_000_000  # CAN FD data phase: 8 Mbit/s is common with SIC transceivers, 10 the upper end
 
 
 class Section(BaseModel):
@@ -469,6 +471,11 @@ class CanConfig(Section):
     queue_policy: Literal["priority", "fifo"] = "priority"
     tx_queue_depth: int = Field(default=64, ge=1, description="frames per node TX queue; overflow drops and counts")
     extended_ids: bool = False
+    fd: bool = Field(default=False, description="CAN FD frames (ISO 11898-1:2015) instead of classical CAN 2.0")
+    data_bitrate: int | None = Field(
+        default=None, ge=MIN_BITRATE, le=MAX_DATA_BITRATE,
+        description="CAN FD data-phase bitrate (bit/s), at least the nominal bitrate; default: the nominal bitrate")
+    brs: bool = Field(default=True, description="CAN FD bit-rate switch: the data phase runs at data_bitrate")
     transport: Literal["emulated", "socketcan"] = Field(
         default="emulated", description="real-time runs only: the rig's emulated buses, or the host's SocketCAN (vcan) interfaces")
     socketcan_channels: list[str] = Field(default=[], description="with transport = socketcan: one interface per train, e.g. vcan0")
@@ -478,6 +485,25 @@ class CanConfig(Section):
         if self.transport == "socketcan" and not self.socketcan_channels:
             raise ValueError("transport = 'socketcan' needs socketcan_channels (one interface per train, e.g. ['vcan0'])")
         return self
+
+    @model_validator(mode="after")
+    def _check_fd(self) -> "CanConfig":
+        if self.data_bitrate is None:
+            return self
+        if not self.fd:
+            raise ValueError("data_bitrate is a CAN FD setting: set fd = true, or leave data_bitrate out")
+        if self.data_bitrate < self.bitrate:
+            raise ValueError(f"data_bitrate {self.data_bitrate} is below the nominal bitrate {self.bitrate}: "
+                             "the data phase of a CAN FD frame is at least as fast as its arbitration")
+        if 1_000_000_000 % self.data_bitrate:
+            raise ValueError(f"data_bitrate {self.data_bitrate} has no whole-nanosecond bit time "
+                             "(e.g. 1, 2, 4, 5 or 8 Mbit/s)")
+        return self
+
+    @property
+    def data_rate(self) -> int:
+        """The data-phase bitrate: data_bitrate on a CAN FD bus with BRS, else the nominal bitrate."""
+        return self.data_bitrate if self.fd and self.brs and self.data_bitrate is not None else self.bitrate
 
 
 class LossModel(Section):

@@ -54,7 +54,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise SweepError(f"--workers must be >= 1, got {args.workers}")
-    from hil.cli import parse_assignment
+    from hil.scenario.loader import parse_assignment
 
     spec = load_sweep(args.sweep, dict(parse_assignment(a) for a in args.set), args.duration)
     out = Path(args.out) if args.out else Path("runs") / f"sweep-{spec.name}"

@@ -1,0 +1,144 @@
+"""CAN FD on the bus: the scenario fields, both bus models timing FD frames alike, error frames at both rates,
+and the response-time analysis bounding what an FD run measures."""
+from __future__ import annotations
+
+import json
+import random
+
+import numpy as np
+import pytest
+
+from hil.can.analysis import TrainBusSetup, analyse_train_bus
+from hil.can.bus import CanBusModel
+from hil.can.errors import ERROR_TAIL_BITS, FD_TAIL_BITS, BusErrors
+from hil.can.frame import (
+    FD_LENGTHS,
+    best_case_fd_frame_bits,
+    fd_frame_bits,
+    fd_pad,
+    frame_bits,
+    worst_case_fd_frame_bits,
+)
+from hil.can.wcrt import BusRates
+from hil.record.metrics import compute_metrics
+from hil.runtime.virtual import VirtualRig
+from hil.scenario import ScenarioError, load_scenario
+
+FD_5M = {"can.fd": True, "can.data_bitrate": 5_000_000}
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"can.data_bitrate": 2_000_000}, "data_bitrate is a CAN FD setting: set fd = true"),
+    ({"can.fd": True, "can.bitrate": 1_000_000, "can.data_bitrate": 500_000}, "below the nominal bitrate 1000000"),
+    ({"can.fd": True, "can.data_bitrate": 3_000_000}, "no whole-nanosecond bit time"),
+    ({"can.fd": True, "can.data_bitrate": 20_000_000}, "can.data_bitrate"),
+])
+def test_bad_fd_settings_are_named(overrides, message):
+    with pytest.raises(ScenarioError, match=message):
+        load_scenario("seed000", overrides)
+
+
+def test_fd_payloads_are_padded_to_the_next_dlc_length():
+    assert [len(fd_pad(bytes(n))) for n in (0, 8, 9, 13, 17, 21, 25, 33, 49, 64)] == [0, 8, 12, 16, 20, 24, 32, 48, 64, 64]
+    with pytest.raises(ValueError, match="65 data bytes exceed"):
+        fd_pad(bytes(65))
+
+
+def test_the_worst_and_best_case_bounds_hold_every_fd_frame():
+    """The analysis's lengths bound the exact count of every frame tried, patterns that stuff most included."""
+    rng = random.Random(3)
+    for extended in (False, True):
+        for length in FD_LENGTHS:
+            (wn, wd), (bn, bd) = worst_case_fd_frame_bits(length, extended), best_case_fd_frame_bits(length, extended)
+            for k in range(400):
+                can_id = 0 if k % 5 == 0 else rng.randrange(1 << (29 if extended else 11))
+                data = bytes(rng.choice((0x00, 0xFF, 0x0F, 0x78, 0x3C, rng.randrange(256))) for _ in range(length))
+                n, d = fd_frame_bits(can_id, data, extended)
+                assert bn <= n <= wn and bd <= d <= wd and bn + bd <= n + d <= wn + wd, (extended, length, can_id, data)
+
+
+def _frames(rig: VirtualRig) -> list[list[tuple]]:
+    rows: list[list[tuple]] = [[] for _ in rig.buses]
+    for i, bus in enumerate(rig.buses):
+        bus.frame_listeners.append(lambda tx, out=rows[i]: out.append((tx.frame_id, bytes(tx.data), tx.t_start, tx.t_end)))
+    return rows
+
+
+def test_engine_and_python_model_time_fd_frames_alike():
+    """The same FD schedule from both bus models, every frame timed at two rates (seed000 at 500k/2M, 3 s)."""
+    sc = load_scenario("seed000", {"can.fd": True, "can.data_bitrate": 2_000_000})
+    runs = []
+    for network in ("python", "engine"):
+        rig = VirtualRig(sc, network=network)
+        rows = _frames(rig)
+        runs.append((rows, rig.run(3.0)))
+    (py, py_log), (en, en_log) = runs
+    assert sum(map(len, en)) > 10_000 and py == en
+    assert np.array_equal(py_log.signals.array, en_log.signals.array)
+    frame_id, data, start, end = en[0][0]
+    nominal, fast = fd_frame_bits(frame_id, data)
+    assert end - start == nominal * 2000 + fast * 500  # 500 kbit/s arbitration, 2 Mbit/s data
+
+
+def test_fd_with_brs_unloads_the_bus_and_the_control_result_stays():
+    """seed000 over CAN FD at 500k/5M: a smaller bus load and latency than classical CAN, the same physics within
+    what the shorter delays change."""
+    classical, fd = (VirtualRig(load_scenario("seed000", o)).run(5.0) for o in ({}, FD_5M))
+    load = [max(b.load.array[:, 1]) for b in (classical.buses[0], fd.buses[0])]
+    assert load[1] < 0.6 * load[0]
+    speed = [log.signals.array for log in (classical, fd)]
+    assert np.allclose(speed[0], speed[1], atol=0.5)  # positions, speeds, forces: same run within 0.5
+
+
+def _fd_bus(data_bitrate: int = 4_000_000) -> CanBusModel:
+    return CanBusModel("b", 1_000_000, fd=True, data_bitrate=data_bitrate)
+
+
+def test_a_destroyed_fd_frame_holds_the_bus_for_its_bits_at_both_rates_and_its_error_frame_at_the_nominal():
+    bus = _fd_bus()
+    errors = BusErrors(bus, rng=np.random.default_rng(0))
+    sender = bus.attach("tx")
+    bus.attach("rx", lambda *a: None)
+    bus.enqueue(sender, 0x10, bytes(range(20)), 0)  # padded to 20 (a DLC length)
+    tx = bus.arbitrate(0)
+    assert tx is not None and len(tx.data) == 20
+    errors._fail(tx, "crc", 40)  # detected at bit 40 (inside the data phase): bits 0..40 counted
+    nominal, _ = fd_frame_bits(0x10, tx.data)
+    arbitration = nominal - FD_TAIL_BITS
+    assert tx.t_end == arbitration * 1000 + (41 - arbitration) * 250 + ERROR_TAIL_BITS * 1000
+    bus.complete()
+    assert errors.counters_of(sender).tec == 8 and errors.stats["retransmissions"] == 1  # confinement as classical
+
+
+def test_a_corrupted_fd_frame_is_rejected_after_its_ack_delimiter():
+    bus = _fd_bus()
+    errors = BusErrors(bus, rng=np.random.default_rng(0))
+    sender = bus.attach("tx")
+    bus.enqueue(sender, 0x10, bytes(8), 0)
+    tx = bus.arbitrate(0)
+    errors._corrupt(tx, 3)
+    nominal, fast = fd_frame_bits(0x10, bytes(8))
+    assert tx.error == "crc" and errors.stats["rejected"] == 1 and errors.stats["undetected"] == 0
+    assert tx.t_end == (nominal - 10) * 1000 + fast * 250 + ERROR_TAIL_BITS * 1000  # up to the ACK delimiter
+
+
+def test_a_classical_bus_is_unchanged():
+    bus = CanBusModel("b", 500_000)
+    node = bus.attach("tx")
+    bus.enqueue(node, 0x10, bytes(5), 0)
+    assert bus.arbitrate(0).t_end == frame_bits(0x10, bytes(5)) * 2000
+
+
+def test_an_fd_runs_latencies_stay_under_the_fd_bounds(tmp_path):
+    """The analysis of an FD scenario bounds the run (seed000 over 500k/5M CAN FD, bus2: radio both ways)."""
+    sc = load_scenario("seed000", FD_5M)
+    metrics = compute_metrics(VirtualRig(sc).run(3.0), sc.plant.coupler_band_m)
+    from ecu_sim.codec import TrainDb
+
+    setup = TrainBusSetup.from_scenario(sc, 1)
+    assert setup.rates == BusRates(500_000, 5_000_000, fd=True)
+    measured = {int(k, 16): v for k, v in metrics["per_bus"]["bus2"]["latency_max_by_id"].items() if v is not None}
+    timings = analyse_train_bus(TrainDb.load(), setup, measured)
+    assert len([t for t in timings if t.measured_s is not None]) >= 20
+    assert not [t.name for t in timings if t.exceeds]
+    json.dumps(metrics)  # still a JSON document
