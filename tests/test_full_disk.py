@@ -35,11 +35,14 @@ def hil_run(out: Path, *extra: str) -> subprocess.CompletedProcess:
 
 
 def test_a_full_disk_is_a_clear_error_and_the_recording_so_far_stays_readable(tiny_fs):
+    free = os.statvfs(tiny_fs).f_bavail * os.statvfs(tiny_fs).f_frsize
+    (tiny_fs / "filler").write_bytes(bytes(free - 768 * 1024))  # 768 kB left: full within seconds of recording
     out = tiny_fs / "r1"
     res = hil_run(out)
     assert res.returncode == 1, res.stderr[-2000:]
     assert f"hil: error: no space left on {out}" in res.stderr and "Traceback" not in res.stderr
     assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "run.rrd"]  # no temporary files
+    assert (out / "run.rrd").stat().st_size > 64 * 1024  # it recorded until the disk was full (less its buffers)
     stub = json.loads((out / "metrics.json").read_text())
     assert stub["interrupted"] is True and stub["status"] == "running"  # claims only what run.rrd holds
     from rerun.chunk import RrdReader

@@ -61,7 +61,7 @@ def test_realtime_run_sigterm_at_a_random_moment(rt, tmp_path: Path):
 def test_realtime_run_survives_the_death_of_a_random_node_process(rt, tmp_path: Path):
     rng = random.Random(11)
     out = tmp_path / "rt"
-    outcome = kill_run(hil_run_argv(out, duration_s=8.0, realtime=True, extra=("--pace", "0.5")), out,
+    outcome = kill_run(hil_run_argv(out, duration_s=4.0, realtime=True, extra=("--pace", "0.5")), out,
                        round(rng.uniform(0.0, 2.0), 2), signal.SIGKILL, child=True, rng=rng, started_file="nodes/plant.json")
     assert outcome.intact, outcome.as_dict()
     assert outcome.target.startswith("hil.realtime.") and outcome.signal == "SIGKILL"
