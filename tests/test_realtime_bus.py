@@ -74,7 +74,9 @@ def test_frame_record_round_trips_and_is_24_bytes():
 def test_control_records_round_trip():
     hello = protocol.pack_hello("ECU_U01", receive_own=True)
     assert protocol.unpack_hello(hello) == ("ECU_U01", True, protocol.PROTOCOL_VERSION)
-    assert protocol.unpack_welcome(protocol.pack_welcome(500_000, 1.5e9, 7)) == (500_000, 1.5e9, 7, 1)
+    assert protocol.unpack_welcome(protocol.pack_welcome(500_000, 1.5e9, 7)) == (500_000, 1.5e9, 7, 1, 0)
+    fd_welcome = protocol.pack_welcome(1_000_000, 1.5e9, 7, fd_data_bitrate=8_000_000)
+    assert protocol.unpack_welcome(fd_welcome).fd_data_bitrate == 8_000_000 and fd_welcome[20:] == (8_000_000).to_bytes(4, "little")
     filters = [protocol.Filter(0x100, 0x7FF, protocol.MATCH_STANDARD), protocol.Filter(0x18FF0000, 0x1FFF0000, 2)]
     raw = protocol.pack_filters(filters, generation=3)
     assert len(raw) == 3 * 24

@@ -559,12 +559,13 @@ impl Network {
         Ok(())
     }
 
-    /// Take the kept transmissions: [(frame_id, data, extended, t_enqueue, t_start, t_end, sender node)].
+    /// Take the kept transmissions: [(frame_id, data, extended, t_enqueue, t_start, t_end, sender node, fd, brs)].
     fn take_trace<'py>(&mut self, py: Python<'py>, bus: usize) -> PyResult<Bound<'py, PyList>> {
         let b = self.bus_mut(bus)?;
         let trace = b.trace.as_mut().map(std::mem::take).unwrap_or_default();
         let items: Vec<Bound<'py, PyTuple>> = trace.iter()
-            .map(|tx| (tx.frame_id, PyBytes::new(py, tx.data.as_slice()), tx.extended, tx.t_enqueue, tx.t_start, tx.t_end, tx.node).into_pyobject(py))
+            .map(|tx| (tx.frame_id, PyBytes::new(py, tx.data.as_slice()), tx.extended, tx.t_enqueue, tx.t_start, tx.t_end, tx.node,
+                       tx.format.is_fd(), tx.format.brs()).into_pyobject(py))
             .collect::<PyResult<_>>()?;
         PyList::new(py, items)
     }
@@ -682,11 +683,15 @@ impl BusServerCore {
     /// Serve on listening sockets the caller made (their fds are taken over: pass duplicates).
     #[new]
     #[pyo3(signature = (channel, listener_fd, tcp_fd, token, bitrate, policy_name, depth, extended, load_window_ns, pace,
-                        spin_ns, max_clients, hello_timeout_s, keep_log))]
+                        spin_ns, max_clients, hello_timeout_s, keep_log, fd = false, data_bitrate = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(channel: String, listener_fd: i32, tcp_fd: Option<i32>, token: Option<Vec<u8>>, bitrate: u64, policy_name: &str,
            depth: usize, extended: bool, load_window_ns: u64, pace: f64, spin_ns: u64, max_clients: usize,
-           hello_timeout_s: f64, keep_log: bool) -> PyResult<Self> {
+           hello_timeout_s: f64, keep_log: bool, fd: bool, data_bitrate: Option<u64>) -> PyResult<Self> {
+        let data_bitrate = data_bitrate.unwrap_or(bitrate);
+        if data_bitrate < bitrate || (!fd && data_bitrate != bitrate) {
+            return Err(PyValueError::new_err(format!("data bitrate {data_bitrate}: a CAN FD bus's, at least the nominal {bitrate}")));
+        }
         let token = match token {
             None => None,
             Some(t) => Some(<[u8; 16]>::try_from(t.as_slice()).map_err(|_| PyValueError::new_err("a bus token is 16 bytes"))?),
@@ -695,7 +700,8 @@ impl BusServerCore {
             return Err(PyValueError::new_err("pace and load_window_ns must be positive"));
         }
         let cfg = crate::server::ServerConfig {
-            channel, bitrate, policy: policy(policy_name)?, depth, extended, load_window_ns, pace, spin_ns, max_clients,
+            channel, bitrate, data_bitrate, format: if fd { Format::FdBrs } else { Format::Classical }, policy: policy(policy_name)?,
+            depth, extended, load_window_ns, pace, spin_ns, max_clients,
             hello_timeout: std::time::Duration::from_secs_f64(hello_timeout_s.max(0.0)), keep_log, token,
         };
         let handle = crate::server::start(cfg, listener_fd, tcp_fd)
@@ -750,7 +756,7 @@ impl BusServerCore {
         }
     }
 
-    /// [(frame_id, data, extended, t_enqueue, t_start, t_end)] completed since the last call (model ns).
+    /// [(frame_id, data, extended, t_enqueue, t_start, t_end, fd, brs)] completed since the last call (model ns).
     fn take_trace<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
         let Some(h) = self.handle.as_ref() else { return Ok(PyList::empty(py)) };
         let trace = {
@@ -758,7 +764,8 @@ impl BusServerCore {
             s.bus.trace.as_mut().map(std::mem::take).unwrap_or_default()
         };
         let items: Vec<Bound<'py, PyTuple>> = trace.iter()
-            .map(|tx| (tx.frame_id, PyBytes::new(py, tx.data.as_slice()), tx.extended, tx.t_enqueue, tx.t_start, tx.t_end).into_pyobject(py))
+            .map(|tx| (tx.frame_id, PyBytes::new(py, tx.data.as_slice()), tx.extended, tx.t_enqueue, tx.t_start, tx.t_end,
+                       tx.format.is_fd(), tx.format.brs()).into_pyobject(py))
             .collect::<PyResult<_>>()?;
         PyList::new(py, items)
     }
@@ -881,15 +888,22 @@ impl FrameLink {
         }
     }
 
-    /// Send frames [(frame_id, data)] (classical; `extended` for 29-bit IDs) as FRAME records.
-    #[pyo3(signature = (frames, extended = false))]
-    fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool) -> PyResult<()> {
+    /// Send frames [(frame_id, data)] as FRAME records: `extended` for 29-bit IDs, `fd` for CAN FD frames (with
+    /// the bit-rate switch unless `brs` is false).
+    #[pyo3(signature = (frames, extended = false, fd = false, brs = true))]
+    fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
         let mut out = Vec::with_capacity(frames.len() * crate::server::RECORD_SIZE);
+        let format = match (fd, brs) {
+            (false, _) => Format::Classical,
+            (true, false) => Format::Fd,
+            (true, true) => Format::FdBrs,
+        };
+        let flags = if extended { 1 } else { 0 } | crate::server::format_flags(format);
         for (id, data) in &frames {
             if data.len() > 8 {
                 return Err(PyValueError::new_err(format!("frame {id:#x}: {} data bytes > 8", data.len())));
             }
-            out.extend_from_slice(&crate::server::pack_frame(*id, data, if extended { 1 } else { 0 }, 0.0));
+            out.extend_from_slice(&crate::server::pack_frame(*id, data, flags, 0.0));
         }
         let mut sent = 0;
         while sent < out.len() {

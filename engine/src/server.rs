@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crate::bus::{Bus, Policy, Sink, Transmission};
+use crate::bus::{Bus, Format, Policy, Sink, Transmission};
 use crate::frame::BitTiming;
 
 pub const RECORD_SIZE: usize = 24;
@@ -43,6 +43,10 @@ const FLAG_EXTENDED: u8 = 0x01;
 const FLAG_REMOTE: u8 = 0x02;
 const FLAG_ERROR: u8 = 0x04;
 const FLAG_ECHO: u8 = 0x08;
+/// A CAN FD frame (FDF set); with FLAG_BRS its data phase runs at the bus's data bitrate.
+const FLAG_FD: u8 = 0x10;
+const FLAG_BRS: u8 = 0x20;
+const KNOWN_FLAGS: u8 = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO | FLAG_FD | FLAG_BRS;
 const MAX_FILTERS: usize = 1024;
 const READ_RECORDS: usize = 32; // per node and turn: a babbling node cannot stall the loop
 const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames beyond this (overruns)
@@ -117,16 +121,40 @@ pub fn filters_accept(filters: &Option<Vec<Filter>>, can_id: u32, extended: bool
     filters.iter().any(|f| (f.matching == 0 || (f.matching == 2) == extended) && (can_id ^ f.can_id) & f.can_mask == 0)
 }
 
-/// Why a frame from a node cannot go on the emulated bus.
-pub fn frame_error(can_id: u32, dlc: u8, flags: u8) -> Option<String> {
-    if flags & !(FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO) != 0 {
+/// The format a FRAME record's flags give.
+pub fn record_format(flags: u8) -> Format {
+    match (flags & FLAG_FD != 0, flags & FLAG_BRS != 0) {
+        (false, _) => Format::Classical,
+        (true, false) => Format::Fd,
+        (true, true) => Format::FdBrs,
+    }
+}
+
+/// The FRAME record flags of a transmission.
+pub fn format_flags(format: Format) -> u8 {
+    match format {
+        Format::Classical => 0,
+        Format::Fd => FLAG_FD,
+        Format::FdBrs => FLAG_FD | FLAG_BRS,
+    }
+}
+
+/// Why a frame from a node cannot go on the emulated bus (`fd_bus`: a CAN FD bus, which carries both formats).
+pub fn frame_error(can_id: u32, dlc: u8, flags: u8, fd_bus: bool) -> Option<String> {
+    if flags & !KNOWN_FLAGS != 0 {
         return Some(format!("flags {flags:#04x}: unknown flag bits"));
     }
     if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO) != 0 {
-        return Some(format!("flags {flags:#04x}: only classical data frames can be sent (no remote, error or echo frames)"));
+        return Some(format!("flags {flags:#04x}: only data frames can be sent (no remote, error or echo frames)"));
+    }
+    if flags & FLAG_BRS != 0 && flags & FLAG_FD == 0 {
+        return Some(format!("flags {flags:#04x}: a bit-rate switch without the FD flag"));
+    }
+    if flags & FLAG_FD != 0 && !fd_bus {
+        return Some("a CAN FD frame on a classical CAN bus".to_string());
     }
     if dlc > 8 {
-        return Some(format!("dlc {dlc} > 8 (CAN FD is not emulated)"));
+        return Some(format!("dlc {dlc} > 8: a record carries at most 8 data bytes (longer CAN FD payloads are not carried yet)"));
     }
     let extended = flags & FLAG_EXTENDED != 0;
     let limit = if extended { 1u32 << 29 } else { 1u32 << 11 };
@@ -148,13 +176,16 @@ pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECOR
     r
 }
 
-fn pack_welcome(bitrate: u32, epoch0: f64, client_id: u32) -> [u8; RECORD_SIZE] {
+/// The WELCOME record: the bitrate, the bus's epoch, the client's ID and, on a CAN FD bus, its data bitrate
+/// (0: a classical bus).
+fn pack_welcome(bitrate: u32, epoch0: f64, client_id: u32, fd_data_bitrate: u32) -> [u8; RECORD_SIZE] {
     let mut r = [0u8; RECORD_SIZE];
     r[0] = KIND_WELCOME;
     r[1] = PROTOCOL_VERSION;
     r[4..8].copy_from_slice(&bitrate.to_le_bytes());
     r[8..16].copy_from_slice(&epoch0.to_le_bytes());
     r[16..20].copy_from_slice(&client_id.to_le_bytes());
+    r[20..24].copy_from_slice(&fd_data_bitrate.to_le_bytes());
     r
 }
 
@@ -182,6 +213,10 @@ fn u32_at(r: &[u8], at: usize) -> u32 {
 pub struct ServerConfig {
     pub channel: String,
     pub bitrate: u64,
+    /// The data-phase bitrate of CAN FD frames with BRS (the nominal bitrate on a classical bus).
+    pub data_bitrate: u64,
+    /// Classical: clients may send classical frames only; an FD format: both (each frame says which).
+    pub format: Format,
     pub policy: Policy,
     pub depth: usize,
     pub extended: bool,
@@ -327,8 +362,9 @@ fn set_timer_slack() {
 
 /// Start serving on already-listening sockets (raw fds the server takes ownership of).
 pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> std::io::Result<ServerHandle> {
-    let timing = BitTiming::new(cfg.bitrate, cfg.bitrate)
-        .ok_or_else(|| std::io::Error::new(ErrorKind::InvalidInput, format!("bitrate {} has no whole-ns bit time", cfg.bitrate)))?;
+    let timing = BitTiming::new(cfg.bitrate, cfg.data_bitrate).ok_or_else(|| {
+        std::io::Error::new(ErrorKind::InvalidInput, format!("bitrate {} (data {}) has no whole-ns bit time", cfg.bitrate, cfg.data_bitrate))
+    })?;
     // SAFETY: the caller hands over fds of listening sockets it no longer uses.
     let listener = unsafe { UnixListener::from_raw_fd(listener_fd) };
     listener.set_nonblocking(true)?;
@@ -344,7 +380,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> st
     let (wake_r, wake_w) = UnixStream::pair()?;
     wake_r.set_nonblocking(true)?;
     wake_w.set_nonblocking(true)?;
-    let bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns);
+    let bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
         bad: BadInput::default(), clients: 0, now_ns: 0, messages: Vec::new(),
@@ -467,7 +503,7 @@ impl Server {
     }
 
     fn deliver(&mut self, shared: &mut Shared, tx: &Transmission) {
-        let flags = if tx.extended { FLAG_EXTENDED } else { 0 };
+        let flags = if tx.extended { FLAG_EXTENDED } else { 0 } | format_flags(tx.format);
         let stamp = (self.epoch0_ns as f64 + tx.t_end as f64 / self.cfg.pace) / 1e9;
         let record = pack_frame(tx.frame_id, tx.data.as_slice(), flags, stamp);
         let key = (tx.frame_id, tx.extended);
@@ -695,10 +731,11 @@ impl Server {
         match kind {
             KIND_FRAME if has_node => {
                 let (flags, dlc, can_id) = (r[1], r[2], u32_at(r, 4));
-                match frame_error(can_id, dlc, flags) {
+                match frame_error(can_id, dlc, flags, shared.bus.format.is_fd()) {
                     None => {
                         let node = self.clients[i].node.unwrap();
-                        shared.bus.enqueue(node, can_id, &r[16..16 + dlc as usize], now, Some(flags & FLAG_EXTENDED != 0));
+                        shared.bus.enqueue_as(node, can_id, &r[16..16 + dlc as usize], now, Some(flags & FLAG_EXTENDED != 0),
+                                              record_format(flags));
                     }
                     Some(why) => {
                         let c = &mut self.clients[i];
@@ -751,7 +788,8 @@ impl Server {
         let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());
         let name = std::str::from_utf8(&raw[..end]).map_err(|_| Fault::Protocol(format!("HELLO: node name {:?} is not UTF-8", &raw[..end])))?;
         let name = if name.is_empty() { "?".to_string() } else { loggable(name) };
-        let welcome = pack_welcome(self.cfg.bitrate as u32, self.epoch0_ns as f64 * 1e-9, self.clients[i].cid);
+        let fd_rate = if self.cfg.format.is_fd() { self.cfg.data_bitrate as u32 } else { 0 };
+        let welcome = pack_welcome(self.cfg.bitrate as u32, self.epoch0_ns as f64 * 1e-9, self.clients[i].cid, fd_rate);
         if version != PROTOCOL_VERSION {
             let _ = self.clients[i].stream.write(&welcome); // tells the node our version before we hang up
             return Err(Fault::Protocol(format!("node {name} speaks protocol version {version}, this server {PROTOCOL_VERSION}")));
@@ -832,10 +870,16 @@ mod tests {
 
     #[test]
     fn frames_the_bus_cannot_carry_are_named() {
-        assert!(frame_error(0x800, 8, 0).unwrap().contains("11-bit"));
-        assert!(frame_error(0x100, 9, 0).unwrap().contains("CAN FD"));
-        assert!(frame_error(0x100, 8, FLAG_REMOTE).is_some());
-        assert!(frame_error(0x1FFF_FFFF, 8, FLAG_EXTENDED).is_none());
+        assert!(frame_error(0x800, 8, 0, false).unwrap().contains("11-bit"));
+        assert!(frame_error(0x100, 9, 0, true).unwrap().contains("at most 8 data bytes"));
+        assert!(frame_error(0x100, 8, FLAG_REMOTE, false).is_some());
+        assert!(frame_error(0x1FFF_FFFF, 8, FLAG_EXTENDED, false).is_none());
+        assert!(frame_error(0x100, 8, FLAG_FD, false).unwrap().contains("classical CAN bus"));
+        assert!(frame_error(0x100, 8, FLAG_BRS, true).unwrap().contains("without the FD flag"));
+        assert!(frame_error(0x100, 8, FLAG_FD | FLAG_BRS, true).is_none());
+        assert!(frame_error(0x100, 8, 0, true).is_none()); // a classical frame on an FD bus
+        assert_eq!(record_format(FLAG_FD | FLAG_BRS | FLAG_EXTENDED), Format::FdBrs);
+        assert_eq!(format_flags(record_format(FLAG_FD)), FLAG_FD);
     }
 
     #[test]
@@ -846,7 +890,7 @@ mod tests {
         let _ = std::fs::remove_file(&path);
         let listener = UnixListener::bind(&path).unwrap();
         let cfg = ServerConfig {
-            channel: "t/b".into(), bitrate: 500_000, policy: Policy::Priority, depth: 8, extended: false,
+            channel: "t/b".into(), bitrate: 500_000, data_bitrate: 500_000, format: Format::Classical, policy: Policy::Priority, depth: 8, extended: false,
             load_window_ns: 100_000_000, pace: 1.0, spin_ns: 0, max_clients: 8, hello_timeout: Duration::from_secs(5),
             keep_log: true, token: None,
         };

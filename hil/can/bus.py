@@ -18,8 +18,9 @@ from hil.can.frame import bit_time_ns as _bit_ns, fd_frame_bits, fd_pad, frame_b
 from hil.can.stats import BusLog
 
 RxCallback = Callable[[int, bytes, int], None]  # (frame_id, data, t_end_ns)
-# Queue entry: (arbitration key, seq, data, t_enqueue, node, frame_id, extended)
-_Item = tuple[int, int, bytes, int, "CanNode", int, bool]
+# Queue entry: (arbitration key, seq, data, t_enqueue, node, frame_id, extended, format)
+_Item = tuple[int, int, bytes, int, "CanNode", int, bool, int]
+CLASSICAL, FD, FD_BRS = 0, 1, 2  # frame formats
 
 
 def arbitration_key(frame_id: int, extended: bool) -> int:
@@ -42,6 +43,8 @@ class Transmission:
     t_end: int
     extended: bool = False
     error: str | None = None  # set by hil.can.errors when the frame is destroyed: not delivered, retransmitted
+    fd: bool = False  # a CAN FD frame
+    brs: bool = False  # ... with its data phase at the data bitrate
 
 
 class CanNode:
@@ -131,19 +134,24 @@ class CanBusModel:
         return found
 
     # ---- queues and arbitration
-    def enqueue(self, node: CanNode, frame_id: int, data: bytes, t: int, extended: bool | None = None) -> bool:
+    def enqueue(self, node: CanNode, frame_id: int, data: bytes, t: int, extended: bool | None = None,
+                fd: bool | None = None, brs: bool | None = None) -> bool:
         """Queue a frame in a node's TX queue at time t; False (and counted) when the queue is full.
 
-        ``extended`` picks the frame format of this frame (default: the bus's ``extended``)."""
+        ``extended`` picks the ID format of this frame (default: the bus's ``extended``), ``fd`` whether it is a CAN
+        FD frame and ``brs`` whether it switches to the data bitrate (defaults: the bus's format; a classical bus sends
+        classical frames only)."""
         if node.queued >= node.depth or (node.bus_off and not self.errors.admits(node, t)):
             node.dropped += 1
             return False
         node.queued += 1
         self._seq += 1
         ext = self.extended if extended is None else extended
-        if self.fd:
+        fmt = CLASSICAL
+        if self.fd if fd is None else fd and self.fd:
             data = fd_pad(data)
-        item = (arbitration_key(frame_id, ext), self._seq, data, t, node, frame_id, ext)
+            fmt = FD_BRS if (self.brs if brs is None else brs) else FD
+        item = (arbitration_key(frame_id, ext), self._seq, data, t, node, frame_id, ext, fmt)
         if self._priority:
             heapq.heappush(self._heap, item)
         else:
@@ -170,20 +178,23 @@ class CanBusModel:
             won = errors.filter_winner(won, t)
         if won is None:
             return None
-        _, _, data, t_enq, node, frame_id, ext = won
+        _, _, data, t_enq, node, frame_id, ext, fmt = won
         node.queued -= 1
-        t_end = t + self.duration_ns(frame_id, data, ext)
-        self.current = Transmission(node, frame_id, data, t_enq, t, t_end, ext)
+        t_end = t + self.duration_ns(frame_id, data, ext, fmt)
+        self.current = Transmission(node, frame_id, data, t_enq, t, t_end, ext, fd=fmt != CLASSICAL, brs=fmt == FD_BRS)
         self.busy_until = t_end
         if errors is not None:
             errors.on_start(self.current, won)  # may destroy the frame: it then ends with its error frame
         return self.current
 
-    def duration_ns(self, frame_id: int, data: bytes, extended: bool) -> int:
-        """A data frame's time on this bus, SOF through the intermission (CAN FD: both phases)."""
-        if not self.fd:
+    def duration_ns(self, frame_id: int, data: bytes, extended: bool, fmt: int | None = None) -> int:
+        """A data frame's time on this bus, SOF through the intermission (CAN FD: both phases). ``fmt``: CLASSICAL,
+        FD or FD_BRS (default: the bus's own)."""
+        if fmt is None:
+            fmt = (FD_BRS if self.brs else FD) if self.fd else CLASSICAL
+        if fmt == CLASSICAL:
             return frame_bits(frame_id, data, extended) * self.bit_ns
-        nominal, data_phase = fd_frame_bits(frame_id, data, extended, self.brs)
+        nominal, data_phase = fd_frame_bits(frame_id, data, extended, fmt == FD_BRS)
         return nominal * self.bit_ns + data_phase * self.data_bit_ns
 
     def complete(self) -> Transmission:

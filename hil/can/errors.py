@@ -350,10 +350,10 @@ class BusErrors:
             if tx.node is b.node:
                 b.sent += 1
                 self.stats["babbled"] += 1
-                self.bus.enqueue(b.node, b.frame_id, b.data, tx.t_start, b.extended)  # keep it babbling
+                self.bus.enqueue(b.node, b.frame_id, b.data, tx.t_start, b.extended, tx.fd, tx.brs)  # keep it babbling
         for sel in self.error_flags:
             if sel.hit(tx.frame_id):
-                n_bits = len(wire_bits(tx.frame_id, tx.data, tx.extended)) if not self.bus.fd else sum(self._fd_phases(tx)) - 3
+                n_bits = len(wire_bits(tx.frame_id, tx.data, tx.extended)) if not tx.fd else sum(self._fd_phases(tx)) - 3
                 at = int(self.rng.integers(1, n_bits - 7))  # after SOF .. the ACK delimiter
                 self.stats["injected_error_flags"] += 1
                 self._fail(tx, "error flag", at)
@@ -365,10 +365,10 @@ class BusErrors:
 
     def _fd_phases(self, tx: Transmission) -> tuple[int, int]:
         """A CAN FD frame's bits at the nominal and at the data rate, SOF through the intermission."""
-        return fd_frame_bits(tx.frame_id, tx.data, tx.extended, self.bus.brs)
+        return fd_frame_bits(tx.frame_id, tx.data, tx.extended, tx.brs)
 
     def _corrupt(self, tx: Transmission, bits: int) -> None:
-        if self.bus.fd:
+        if tx.fd:
             self._corrupt_fd(tx)
             return
         wire = wire_bits(tx.frame_id, tx.data, tx.extended)
@@ -400,7 +400,7 @@ class BusErrors:
 
     def _bits_ns(self, tx: Transmission, k: int) -> int:
         """The time of a frame's first ``k`` bits (CAN FD with BRS: the data phase at the data rate)."""
-        if not self.bus.brs:
+        if not tx.brs:
             return k * self._bit
         nominal, data_phase = self._fd_phases(tx)
         arbitration = nominal - FD_TAIL_BITS

@@ -45,7 +45,7 @@ from pathlib import Path
 from hil.can.bus import CanBusModel, CanNode, Transmission
 from hil.realtime.paths import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
 from hil.realtime.protocol import (
-    AUTH_TIMEOUT_S, FLAG_ECHO, FLAG_EXTENDED, FRAME, KIND_AUTH, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO,
+    AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, KIND_AUTH, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO,
     MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE, REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING,
     TOKEN_BYTES, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_refused, pack_welcome,
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
@@ -257,10 +257,11 @@ class BusServer:
                  path: Path | str | None = None, extended: bool = False, load_window_s: float = 0.1,
                  spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
                  pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
-                 max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S) -> None:
+                 max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S, fd: bool = False,
+                 data_bitrate: int | None = None) -> None:
         check_server_args(run, bus, tcp, tcp_host, spin_us, pace)
         self._pace = float(pace)
-        self.model = CanBusModel(bus, bitrate, policy, depth, extended, log, load_window_s)
+        self.model = CanBusModel(bus, bitrate, policy, depth, extended, log, load_window_s, fd=fd, data_bitrate=data_bitrate)
         self.path = Path(path) if path is not None else socket_path(run, bus, create=True)
         self.channel = f"{run}/{bus}" if path is None else str(self.path)
         self._spin_ns = int(spin_us * 1000)
@@ -488,7 +489,7 @@ class BusServer:
 
     def _deliver(self, tx: Transmission) -> None:
         """Queue the frame record for every node whose filters take it (the sender only if it asked)."""
-        flags = FLAG_EXTENDED if tx.extended else 0
+        flags = (FLAG_EXTENDED if tx.extended else 0) | (FLAG_FD if tx.fd else 0) | (FLAG_BRS if tx.brs else 0)
         stamp = (self._epoch0_ns + tx.t_end / self._pace) / 1e9
         record = FRAME.pack(KIND_FRAME, flags, len(tx.data), tx.frame_id, stamp, tx.data)
         sender = self._by_node.get(tx.node)
@@ -674,9 +675,10 @@ class BusServer:
             return
         if kind == KIND_FRAME and c.node is not None:
             _, flags, dlc, can_id, _, data = FRAME.unpack_from(buf, off)
-            why = frame_error(can_id, dlc, flags)
+            why = frame_error(can_id, dlc, flags, self.model.fd)
             if why is None:
-                self.model.enqueue(c.node, can_id, data[:dlc], now, bool(flags & FLAG_EXTENDED))
+                self.model.enqueue(c.node, can_id, data[:dlc], now, bool(flags & FLAG_EXTENDED), bool(flags & FLAG_FD),
+                                   bool(flags & FLAG_BRS))
                 return
             c.rejected += 1
             self._rejected += 1
@@ -700,7 +702,8 @@ class BusServer:
 
     def _hello(self, c: _Client, buf: bytes, off: int) -> None:
         hello = unpack_hello(buf, off)
-        welcome = pack_welcome(self.model.bitrate, self.epoch0, c.cid)
+        welcome = pack_welcome(self.model.bitrate, self.epoch0, c.cid,
+                               fd_data_bitrate=self.model.data_bitrate if self.model.fd else 0)
         if hello.version != PROTOCOL_VERSION:
             try:
                 c.sock.send(welcome)  # tells the node our version before we hang up

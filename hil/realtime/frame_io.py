@@ -28,8 +28,8 @@ MAX_SLEEP_S = 0.05  # wall seconds between stop checks
 class EngineFrames:
     """The engine's FrameLink on each bus socket."""
 
-    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool) -> None:
-        self.clock, self.extended = clock, extended
+    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True) -> None:
+        self.clock, self.extended, self.fd, self.brs = clock, extended, fd, brs
         self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True) for bus in buses]
         self._fds = [link.fd for link in self.links]
 
@@ -73,14 +73,14 @@ class EngineFrames:
         self.drain(on_frame)
 
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
-        self.links[bus].send(frames, self.extended)
+        self.links[bus].send(frames, self.extended, self.fd, self.brs)
 
 
 class PythonCanFrames:
     """python-can in both directions (SocketCAN); routed mailboxes are filled from Python."""
 
-    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool) -> None:
-        self.clock, self.buses, self.extended = clock, buses, extended
+    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True) -> None:
+        self.clock, self.buses, self.extended, self.fd, self.brs = clock, buses, extended, fd, brs
         self._routes: list[dict[int, list[engine.Mailbox]]] = [{} for _ in buses]
         self._handler: FrameHandler | None = None
 
@@ -110,10 +110,11 @@ class PythonCanFrames:
 
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
         for frame_id, data in frames:
-            self.buses[bus].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended))
+            self.buses[bus].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended,
+                                             is_fd=self.fd, bitrate_switch=self.fd and self.brs))
 
 
 def node_frames(clock: SimClock, buses: list[can.BusABC], can_cfg) -> EngineFrames | PythonCanFrames:
     """The engine on the rig's emulated buses, python-can on SocketCAN."""
     cls = EngineFrames if can_cfg.transport == "emulated" else PythonCanFrames
-    return cls(clock, buses, can_cfg.extended_ids)
+    return cls(clock, buses, can_cfg.extended_ids, can_cfg.fd, can_cfg.brs)

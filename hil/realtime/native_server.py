@@ -34,7 +34,9 @@ class NativeBusServer:
                  path: Path | str | None = None, extended: bool = False, load_window_s: float = 0.1,
                  spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
                  pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
-                 max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S) -> None:
+                 max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S, fd: bool = False,
+                 data_bitrate: int | None = None) -> None:
+        """``fd``: a CAN FD bus (its nodes may send both formats), FD frames with BRS at ``data_bitrate``."""
         check_server_args(run, bus, tcp, tcp_host, spin_us, pace)
         if policy not in ("priority", "fifo"):
             raise ValueError(f"queue policy must be 'priority' or 'fifo', got {policy!r}")
@@ -59,7 +61,7 @@ class NativeBusServer:
         self._core = engine.BusServerCore(
             self.channel, os.dup(self._listener.fileno()), None if tcp_sock is None else os.dup(tcp_sock.fileno()),
             self.token, bitrate, policy, depth, extended, int(load_window_s * 1e9), self._pace, int(spin_us * 1000),
-            max_clients, hello_timeout_s, keep_log)
+            max_clients, hello_timeout_s, keep_log, fd, data_bitrate)
         self._listener.close()  # the engine owns its duplicate
         if tcp_sock is not None:
             tcp_sock.close()
@@ -171,8 +173,8 @@ class NativeBusServer:
                 self._tracing = True
             if not self._tracing:
                 return
-            for frame_id, data, ext, t_enq, t_start, t_end in self._core.take_trace():
-                tx = Transmission(None, frame_id, data, t_enq, t_start, t_end, ext)  # type: ignore[arg-type]
+            for frame_id, data, ext, t_enq, t_start, t_end, fd, brs in self._core.take_trace():
+                tx = Transmission(None, frame_id, data, t_enq, t_start, t_end, ext, fd=fd, brs=brs)  # type: ignore[arg-type]
                 for listener in self.frame_listeners:
                     listener(tx)
 

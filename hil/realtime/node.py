@@ -47,9 +47,9 @@ def open_bus(run: str, train: int, ids: Iterable[int], can_cfg: CanConfig, name:
               [{"can_id": mask, "can_mask": mask, "extended": extended}]
     if can_cfg.transport == "socketcan":
         return can.Bus(interface="socketcan", channel=can_cfg.socketcan_channels[train], can_filters=filters,
-                       receive_own_messages=receive_own)
+                       receive_own_messages=receive_own, fd=can_cfg.fd)
     return can.Bus(interface="trainhil", channel=f"{run}/bus{train + 1}", can_filters=filters, node_name=name,
-                   receive_own_messages=receive_own)
+                   receive_own_messages=receive_own, fd=can_cfg.fd)
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:

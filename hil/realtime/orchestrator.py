@@ -205,7 +205,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             server_cls = _server_class(scenario)
             for i in range(0 if socketcan else layout.n_trains):
                 server = server_cls(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
-                                    extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate))
+                                    extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
+                                    fd=sc_.fd, data_bitrate=sc_.data_rate if sc_.fd else None)
                 if fmt is not None:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
                 servers.append(server.start())

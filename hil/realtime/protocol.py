@@ -8,7 +8,7 @@ kind    name             way       layout (struct, after the common "<")
 ======  ===============  ========  ==================================================================
 1       FRAME            both      ``B B B x I d 8s``: kind, flags, dlc, -, can_id, timestamp, data
 2       HELLO            c -> s    ``B B B x 20s``: kind, version, options, -, node name (UTF-8, NUL-padded)
-3       WELCOME          s -> c    ``B B x x I d I 4x``: kind, version, -, -, bitrate, epoch0, client id, -
+3       WELCOME          s -> c    ``B B x x I d I I``: kind, version, -, -, bitrate, epoch0, client id, FD data bitrate
 4       FILTERS          c -> s    ``B x H I 16x``: kind, -, count, generation; ``count`` FILTER records follow
 5       FILTER           c -> s    ``B B x x I I 12x``: kind, match, -, -, can_id, can_mask
 6       FILTERS_ACK      s -> c    ``B x x x I 16x``: kind, generation
@@ -16,14 +16,17 @@ kind    name             way       layout (struct, after the common "<")
 ======  ===============  ========  ==================================================================
 
 FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
-asked for its own messages; python-can ``is_rx=False``). ``data`` is always 8 bytes, the first ``dlc`` count.
+asked for its own messages; python-can ``is_rx=False``), FD (a CAN FD frame) and BRS (its data phase at the
+data bitrate; only with FD). ``data`` is always 8 bytes, the first ``dlc`` count: a CAN FD frame travels in one
+record when it carries at most 8 bytes (longer FD payloads are not carried yet).
 From a node, ``timestamp`` is ignored (the frame is queued when the server reads it); from the server it is
 the end of the frame's transmission (last bit of the intermission) in epoch seconds. Only classical data
 frames are emulated: a node must not send REMOTE, ERROR or ECHO (the server counts and drops them); ERROR
 frames are reserved for the server's fault hooks.
 
 Session: the node sends HELLO (protocol version, options bit 0 = receive own messages, its name); the server
-answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id).
+answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id,
+and on a CAN FD bus its data bitrate: 0 means a classical bus, where FD frames are refused).
 A node replaces its acceptance filters with FILTERS (``count`` = 0: accept everything, the initial state;
 ``generation`` numbers the change) followed by ``count`` FILTER records; the server applies the set once
 complete and answers FILTERS_ACK with that generation. A FILTER matches a frame when
@@ -74,6 +77,9 @@ FLAG_EXTENDED = 0x01
 FLAG_REMOTE = 0x02
 FLAG_ERROR = 0x04
 FLAG_ECHO = 0x08
+FLAG_FD = 0x10  # a CAN FD frame
+FLAG_BRS = 0x20  # ... whose data phase runs at the data bitrate
+KNOWN_FLAGS = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO | FLAG_FD | FLAG_BRS
 
 OPTION_RECEIVE_OWN = 0x01
 
@@ -86,7 +92,7 @@ EXT_ID_LIMIT = 1 << 29
 
 FRAME = struct.Struct("<BBBxId8s")
 HELLO = struct.Struct("<BBBx20s")
-WELCOME = struct.Struct("<BBxxIdI4x")
+WELCOME = struct.Struct("<BBxxIdII")
 FILTERS = struct.Struct("<BxHI16x")
 FILTER = struct.Struct("<BBxxII12x")
 FILTERS_ACK = struct.Struct("<BxxxI16x")
@@ -116,6 +122,7 @@ class Welcome(NamedTuple):
     epoch0: float
     client_id: int
     version: int = PROTOCOL_VERSION
+    fd_data_bitrate: int = 0  # a CAN FD bus's data bitrate; 0: classical CAN
 
 
 class Filter(NamedTuple):
@@ -124,14 +131,18 @@ class Filter(NamedTuple):
     match: int = MATCH_ANY
 
 
-def frame_error(can_id: int, dlc: int, flags: int) -> str | None:
-    """Why a frame from a node cannot go on the emulated bus (None if it can)."""
-    if flags & ~(FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO):
+def frame_error(can_id: int, dlc: int, flags: int, fd_bus: bool = False) -> str | None:
+    """Why a frame from a node cannot go on the emulated bus (None if it can); a CAN FD bus carries both formats."""
+    if flags & ~KNOWN_FLAGS:
         return f"flags {flags:#04x}: unknown flag bits"
     if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO):
-        return f"flags {flags:#04x}: only classical data frames can be sent (no remote, error or echo frames)"
+        return f"flags {flags:#04x}: only data frames can be sent (no remote, error or echo frames)"
+    if flags & FLAG_BRS and not flags & FLAG_FD:
+        return f"flags {flags:#04x}: a bit-rate switch without the FD flag"
+    if flags & FLAG_FD and not fd_bus:
+        return "a CAN FD frame on a classical CAN bus"
     if dlc > MAX_DLC:
-        return f"dlc {dlc} > {MAX_DLC} (CAN FD is not emulated)"
+        return f"dlc {dlc} > {MAX_DLC}: a record carries at most {MAX_DLC} data bytes (longer CAN FD payloads are not carried yet)"
     limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
     if not 0 <= can_id < limit:
         return f"can_id {can_id:#x} out of range for a {'29' if flags & FLAG_EXTENDED else '11'}-bit identifier"
@@ -141,7 +152,8 @@ def frame_error(can_id: int, dlc: int, flags: int) -> str | None:
 def pack_frame(can_id: int, data: bytes, flags: int = 0, timestamp: float = 0.0) -> bytes:
     """A FRAME record; ValueError naming the id if it or the data do not fit a classical CAN frame."""
     if len(data) > MAX_DLC:
-        raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_DLC} (CAN FD is not emulated)")
+        raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_DLC} (a record carries at most {MAX_DLC}; "
+                         "longer CAN FD payloads are not carried yet)")
     limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
     if not 0 <= can_id < limit:
         raise ValueError(f"frame id {can_id:#x} out of range for a "
@@ -183,15 +195,16 @@ def loggable(name: str) -> str:
     return "".join("?" if unicodedata.category(c) == "Cc" else c for c in name)
 
 
-def pack_welcome(bitrate: int, epoch0: float, client_id: int, version: int = PROTOCOL_VERSION) -> bytes:
-    return WELCOME.pack(KIND_WELCOME, version, bitrate, epoch0, client_id)
+def pack_welcome(bitrate: int, epoch0: float, client_id: int, version: int = PROTOCOL_VERSION,
+                 fd_data_bitrate: int = 0) -> bytes:
+    return WELCOME.pack(KIND_WELCOME, version, bitrate, epoch0, client_id, fd_data_bitrate)
 
 
 def unpack_welcome(record: bytes | memoryview, offset: int = 0) -> Welcome:
-    kind, version, bitrate, epoch0, client_id = WELCOME.unpack_from(record, offset)
+    kind, version, bitrate, epoch0, client_id, fd_data_bitrate = WELCOME.unpack_from(record, offset)
     if kind != KIND_WELCOME:
         raise ProtocolError(f"record kind {kind} is not a WELCOME ({KIND_WELCOME})")
-    return Welcome(bitrate, epoch0, client_id, version)
+    return Welcome(bitrate, epoch0, client_id, version, fd_data_bitrate)
 
 
 def filter_from_python_can(f: dict, index: int = 0) -> Filter:

@@ -26,14 +26,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from can import BusABC, CanInitializationError, CanInterfaceNotImplementedError, CanOperationError, Message
+from can import BusABC, CanInitializationError, CanOperationError, Message
 
 from hil.realtime.paths import (
     bus_sockets, check_private_dir, check_private_socket, parse_channel, parse_tcp_channel, read_token_file,
     socket_is_live,
 )
 from hil.realtime.protocol import (
-    FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME, PROTOCOL_VERSION,
+    FLAG_BRS, FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME, PROTOCOL_VERSION,
     RECORD_SIZE, TOKEN_BYTES, ProtocolError, filter_from_python_can, pack_auth, pack_filters, pack_frame, pack_hello,
     refused_reason, unpack_filters_ack, unpack_welcome,
 )
@@ -57,8 +57,7 @@ class TrainhilBus(BusABC):
     def __init__(self, channel: Any, can_filters=None, receive_own_messages: bool = False,
                  node_name: str | None = None, connect_timeout: float = 2.0, token: str | bytes | None = None,
                  **kwargs: Any) -> None:
-        if kwargs.get("fd"):
-            raise CanInterfaceNotImplementedError("trainhil: CAN FD is not emulated (classical CAN only)")
+        self.fd = bool(kwargs.get("fd", False))
         self._tcp: tuple[str, int, bytes] | None = None
         try:
             if str(channel).startswith("tcp:"):
@@ -80,14 +79,20 @@ class TrainhilBus(BusABC):
         except BaseException:
             self._sock.close()
             raise
+        if self.fd and not welcome.fd_data_bitrate:
+            self._sock.close()
+            raise CanInitializationError(f"trainhil: fd=True, but the bus {self.channel_name!r} is classical CAN "
+                                         "(its scenario sets can.fd = false)")
         self.node_name = name
         self.bitrate = welcome.bitrate
+        self.data_bitrate = welcome.fd_data_bitrate or None  # a CAN FD bus's data bitrate
         self.client_id = welcome.client_id
         wanted = kwargs.get("bitrate")
         if wanted is not None and int(wanted) != welcome.bitrate:
             LOG.warning("trainhil %s: bitrate %s requested, the emulated bus runs at %d bit/s",
                         self.channel_name, wanted, welcome.bitrate)
-        self.channel_info = f"trainhil {self.channel_name} ({welcome.bitrate} bit/s, node {name})"
+        rates = f"{welcome.bitrate} bit/s" + (f", CAN FD data {welcome.fd_data_bitrate} bit/s" if self.data_bitrate else "")
+        self.channel_info = f"trainhil {self.channel_name} ({rates}, node {name})"
         self.channel_index = bus_index(self.channel_name)
         self._sock.setblocking(False)
         self._rbuf = bytearray(RECORD_SIZE)
@@ -208,11 +213,15 @@ class TrainhilBus(BusABC):
     # ---- transmit
     def send(self, msg: Message, timeout: float | None = None) -> None:
         """Queue ``msg`` in this node's TX queue on the emulated bus (a full queue drops it; the server counts)."""
-        if msg.is_fd or msg.is_remote_frame or msg.is_error_frame:
-            kind = "CAN FD" if msg.is_fd else "remote" if msg.is_remote_frame else "error"
+        if msg.is_remote_frame or msg.is_error_frame:
+            kind = "remote" if msg.is_remote_frame else "error"
             raise CanOperationError(f"trainhil: frame {msg.arbitration_id:#x} is a {kind} frame; "
-                                    "only classical data frames are emulated")
-        flags = FLAG_EXTENDED if msg.is_extended_id else 0
+                                    "only data frames are emulated")
+        if msg.is_fd and not self.fd:
+            raise CanOperationError(f"trainhil: frame {msg.arbitration_id:#x} is a CAN FD frame; open the bus "
+                                    "with fd=True to send CAN FD frames (as with SocketCAN)")
+        flags = (FLAG_EXTENDED if msg.is_extended_id else 0) | (
+            (FLAG_FD | (FLAG_BRS if msg.bitrate_switch else 0)) if msg.is_fd else 0)
         record = pack_frame(msg.arbitration_id, bytes(msg.data), flags)  # ValueError names a bad id or length
         with self._send_lock:
             self._write(record, timeout)
@@ -282,7 +291,8 @@ class TrainhilBus(BusABC):
         _, flags, dlc, can_id, timestamp, data = FRAME.unpack(record)
         return Message(timestamp=timestamp, arbitration_id=can_id, is_extended_id=bool(flags & FLAG_EXTENDED),
                        is_remote_frame=bool(flags & FLAG_REMOTE), is_error_frame=bool(flags & FLAG_ERROR),
-                       dlc=dlc, data=data[:dlc], is_rx=not flags & FLAG_ECHO, channel=self.channel_index, check=False)
+                       dlc=dlc, data=data[:dlc], is_rx=not flags & FLAG_ECHO, channel=self.channel_index,
+                       is_fd=bool(flags & FLAG_FD), bitrate_switch=bool(flags & FLAG_BRS), check=False)
 
     # ---- filters, shutdown, discovery
     def _apply_filters(self, filters) -> None:

@@ -62,6 +62,7 @@ def frame_listener(writer: can.Listener, index: int, to_seconds: Callable[[int],
 
     def listener(tx: Transmission) -> None:
         writer.on_message_received(can.Message(timestamp=to_seconds(tx.t_end), arbitration_id=tx.frame_id, data=tx.data,
-                                               is_extended_id=tx.extended, is_rx=True, channel=index))
+                                               is_extended_id=tx.extended, is_rx=True, channel=index, is_fd=tx.fd,
+                                               bitrate_switch=tx.brs))
 
     return listener
