@@ -8,7 +8,6 @@ import random
 import numpy as np
 import pytest
 
-from hil.can.analysis import TrainBusSetup, analyse_train_bus
 from hil.can.bus import CanBusModel
 from hil.can.errors import ERROR_TAIL_BITS, FD_TAIL_BITS, BusErrors
 from hil.can.frame import (
@@ -19,7 +18,6 @@ from hil.can.frame import (
     frame_bits,
     worst_case_fd_frame_bits,
 )
-from hil.can.wcrt import BusRates
 from hil.record.metrics import compute_metrics
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import ScenarioError, load_scenario
@@ -129,16 +127,17 @@ def test_a_classical_bus_is_unchanged():
     assert bus.arbitrate(0).t_end == frame_bits(0x10, bytes(5)) * 2000
 
 
-def test_an_fd_runs_latencies_stay_under_the_fd_bounds(tmp_path):
-    """The analysis of an FD scenario bounds the run (seed000 over 500k/5M CAN FD, bus2: radio both ways)."""
-    sc = load_scenario("seed000", FD_5M)
-    metrics = compute_metrics(VirtualRig(sc).run(3.0), sc.plant.coupler_band_m)
-    from ecu_sim.codec import TrainDb
+def test_can_analysis_of_the_packaged_fd_scenario_bounds_its_run(tmp_path, capsys):
+    """`hil can-analysis --scenario seed001-fd --measured RUN` after a run of it: every frame under its bound."""
+    from hil.can.cli import main as can_analysis
 
-    setup = TrainBusSetup.from_scenario(sc, 1)
-    assert setup.rates == BusRates(500_000, 5_000_000, fd=True)
-    measured = {int(k, 16): v for k, v in metrics["per_bus"]["bus2"]["latency_max_by_id"].items() if v is not None}
-    timings = analyse_train_bus(TrainDb.load(), setup, measured)
-    assert len([t for t in timings if t.measured_s is not None]) >= 20
-    assert not [t.name for t in timings if t.exceeds]
-    json.dumps(metrics)  # still a JSON document
+    sc = load_scenario("seed001-fd")
+    assert sc.can.fd and sc.can.data_rate == 5_000_000
+    metrics = compute_metrics(VirtualRig(sc).run(3.0), sc.plant.coupler_band_m)
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    assert can_analysis(["--scenario", "seed001-fd", "--measured", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "1000 kbit/s CAN FD, data phase 5 Mbit/s" in out and "unschedulable frames: none" in out
+    assert "measured above bound: none" in out
+    measured = [line for line in out.splitlines() if line.startswith(("Sensor_", "AgentState_", "TractionCmd_"))]
+    assert len(measured) == 18 and all(line.split()[11] != "-" for line in measured)  # every frame was measured

@@ -1,4 +1,4 @@
-"""CAN FD in real time: both bus servers carry FD frames (up to 8 data bytes per record) beside classical ones, the
+"""CAN FD in real time: both bus servers carry FD frames of up to 64 bytes beside classical ones, the
 python-can interface opens FD buses with fd=True and marks is_fd and bitrate_switch, a classical-only client gets
 clear errors, and a real-time FD run keeps its FD frames in its CAN logs."""
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import can
 import pytest
 
-from hil.can.frame import fd_frame_bits, frame_bits
+from hil.can.frame import fd_frame_bits, fd_pad, frame_bits
 from hil.realtime.pycan_bus import TrainhilBus
 from tests.polling import wait_for
 
@@ -44,8 +44,27 @@ def test_a_classical_only_client_is_told_what_to_do(rt, server_cls):
                 bus.send(can.Message(arbitration_id=0x10, data=bytes(8), is_fd=True, is_extended_id=False))
     with _fd_server(server_cls):
         with TrainhilBus("r1/bus1", fd=True) as bus:
-            with pytest.raises(ValueError, match=r"a record carries at most 8"):
-                bus.send(can.Message(arbitration_id=0x10, data=bytes(12), is_fd=True, is_extended_id=False))
+            with pytest.raises(ValueError, match=r"12 data bytes > 8 in a classical frame"):
+                bus.send(can.Message(arbitration_id=0x10, data=bytes(12), is_extended_id=False))
+            with pytest.raises(ValueError, match=r"65 data bytes > 64"):
+                bus.send(can.Message(arbitration_id=0x10, data=bytes(65), is_fd=True, is_extended_id=False, check=False))
+
+
+@pytest.mark.parametrize("length", [9, 12, 31, 48, 64])
+def test_fd_payloads_up_to_64_bytes_cross_the_server_whole(rt, server_cls, length):
+    """A long FD payload travels as a FRAME record and FRAME_DATA records; it arrives padded to its FD length, timed
+    by its padded length, and the frames around it are untouched."""
+    payload = bytes((7 * k + 1) % 256 for k in range(length))
+    padded = len(fd_pad(payload))
+    with _fd_server(server_cls) as srv:
+        with TrainhilBus("r1/bus1", fd=True, node_name="tx") as tx, TrainhilBus("r1/bus1", fd=True, node_name="rx") as rx:
+            for can_id, data in ((0x10, b"\x01"), (0x11, payload), (0x12, b"\x02\x03")):
+                tx.send(can.Message(arbitration_id=can_id, data=data, is_fd=True, bitrate_switch=True, is_extended_id=False))
+            got = {m.arbitration_id: m for m in _receive(rx, 3)}
+        assert bytes(got[0x11].data) == fd_pad(payload) and got[0x11].dlc == padded and got[0x11].is_fd
+        assert bytes(got[0x10].data) == b"\x01" and bytes(got[0x12].data) == b"\x02\x03"
+    nominal, fast = fd_frame_bits(0x11, fd_pad(payload))
+    assert round(1e9 * max(lat for _, fid, lat, _ in srv.log.frames.array if fid == 0x11)) >= nominal * 1000 + fast * 200
 
 
 def test_the_servers_time_fd_frames_at_both_rates(rt, server_cls):

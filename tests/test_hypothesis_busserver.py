@@ -22,7 +22,7 @@ from hil.realtime.busserver import BusServer
 from hil.realtime.pycan_bus import TrainhilBus
 
 RECORD = st.binary(min_size=protocol.RECORD_SIZE, max_size=protocol.RECORD_SIZE)
-KINDS = st.sampled_from(range(1, 8))
+KINDS = st.sampled_from(range(1, 10))
 
 
 @st.composite
@@ -40,7 +40,7 @@ def test_decode_record_returns_a_typed_record_or_a_protocol_error(record):
         assert str(exc)
         return
     assert isinstance(rec, (protocol.Frame, protocol.Hello, protocol.Welcome, protocol.FiltersHead, protocol.Filter,
-                            protocol.FiltersAck, protocol.Auth))
+                            protocol.FiltersAck, protocol.Auth, protocol.FrameData))
     if isinstance(rec, protocol.Frame):
         assert len(rec.data) <= protocol.MAX_DLC
         why = protocol.frame_error(rec.can_id, record[2], rec.flags)

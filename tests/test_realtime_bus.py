@@ -65,7 +65,7 @@ def test_frame_record_round_trips_and_is_24_bytes():
                                                                        protocol.FLAG_EXTENDED)]:
         rec = protocol.pack_frame(can_id, data, flags, 1712345678.123456)
         assert len(rec) == protocol.RECORD_SIZE == 24
-        assert protocol.unpack_frame(rec) == (can_id, data, flags, 1712345678.123456)
+        assert protocol.unpack_frame(rec) == (can_id, data, flags, 1712345678.123456, len(data))
     # layout fixed by the docstring: kind, flags, dlc, pad, id (LE u32), timestamp (LE f64), 8 data bytes
     rec = protocol.pack_frame(0x123, b"\xaa\xbb", 0, 0.0)
     assert rec[:8] == bytes([1, 0, 2, 0, 0x23, 0x01, 0, 0]) and rec[16:] == b"\xaa\xbb" + bytes(6)

@@ -811,6 +811,49 @@ pub struct FrameLink {
     kept: Vec<(u32, crate::bus::Payload, f64)>,
 }
 
+impl FrameLink {
+    /// Hand the whole frames in `partial` to their mailboxes (or keep them); returns the bytes used. A CAN FD frame
+    /// above 8 bytes waits until its FRAME_DATA records are in.
+    fn take_records(&mut self) -> usize {
+        const RS: usize = crate::server::RECORD_SIZE;
+        let mut off = 0;
+        let mut data = [0u8; crate::frame::MAX_DATA];
+        while off + RS <= self.partial.len() {
+            let r = &self.partial[off..off + RS];
+            if r[0] != 1 {
+                off += RS; // FILTERS_ACK and the like: nothing for the mailboxes
+                continue;
+            }
+            let dlc = (r[2] as usize).min(crate::frame::MAX_DATA);
+            let extra = crate::server::frame_data_records(dlc);
+            if off + (1 + extra) * RS > self.partial.len() {
+                break; // the rest of a long frame is still on its way
+            }
+            let id = u32::from_le_bytes(r[4..8].try_into().unwrap());
+            let stamp = f64::from_le_bytes(r[8..16].try_into().unwrap());
+            data[..dlc.min(8)].copy_from_slice(&r[16..16 + dlc.min(8)]);
+            for k in 0..extra {
+                let at = 8 + k * (RS - 1);
+                let take = (dlc - at).min(RS - 1);
+                let rec = off + (1 + k) * RS;
+                data[at..at + take].copy_from_slice(&self.partial[rec + 1..rec + 1 + take]);
+            }
+            off += (1 + extra) * RS;
+            let t = (stamp - self.t0) * self.pace;
+            if let Some(boxes) = self.routes.get(&id) {
+                for mb in boxes {
+                    mb.borrow_mut().put(id, &data[..dlc], t);
+                }
+                self.received += 1;
+            } else if self.keep {
+                self.kept.push((id, crate::bus::Payload::new(&data[..dlc]), t));
+                self.received += 1;
+            }
+        }
+        off
+    }
+}
+
 #[pymethods]
 impl FrameLink {
     /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). A frame's
@@ -864,27 +907,8 @@ impl FrameLink {
                 return Err(pyo3::exceptions::PyConnectionError::new_err("bus link: the bus server closed the connection"));
             }
             self.partial.extend_from_slice(&buf[..n as usize]);
-            let end = self.partial.len() - self.partial.len() % crate::server::RECORD_SIZE;
-            for off in (0..end).step_by(crate::server::RECORD_SIZE) {
-                let r = &self.partial[off..off + crate::server::RECORD_SIZE];
-                if r[0] != 1 {
-                    continue; // FILTERS_ACK and the like: nothing for the mailboxes
-                }
-                let dlc = (r[2] as usize).min(8);
-                let id = u32::from_le_bytes(r[4..8].try_into().unwrap());
-                let stamp = f64::from_le_bytes(r[8..16].try_into().unwrap());
-                let t = (stamp - self.t0) * self.pace;
-                if let Some(boxes) = self.routes.get(&id) {
-                    for mb in boxes {
-                        mb.borrow_mut().put(id, &r[16..16 + dlc], t);
-                    }
-                    self.received += 1;
-                } else if self.keep {
-                    self.kept.push((id, crate::bus::Payload::new(&r[16..16 + dlc]), t));
-                    self.received += 1;
-                }
-            }
-            self.partial.drain(..end);
+            let consumed = self.take_records();
+            self.partial.drain(..consumed);
         }
     }
 
@@ -899,11 +923,15 @@ impl FrameLink {
             (true, true) => Format::FdBrs,
         };
         let flags = if extended { 1 } else { 0 } | crate::server::format_flags(format);
+        let limit = if fd { crate::frame::MAX_DATA } else { 8 };
         for (id, data) in &frames {
-            if data.len() > 8 {
-                return Err(PyValueError::new_err(format!("frame {id:#x}: {} data bytes > 8", data.len())));
+            if data.len() > limit {
+                return Err(PyValueError::new_err(format!("frame {id:#x}: {} data bytes > {limit}", data.len())));
             }
-            out.extend_from_slice(&crate::server::pack_frame(*id, data, flags, 0.0));
+            let padded = if fd { crate::frame::fd_padded_len(data.len()).unwrap_or(data.len()) } else { data.len() };
+            let mut payload = data.to_vec();
+            payload.resize(padded, 0);
+            crate::server::pack_frame_records(*id, &payload, flags, 0.0, &mut out);
         }
         let mut sent = 0;
         while sent < out.len() {

@@ -30,6 +30,12 @@ const KIND_FILTER: u8 = 5;
 const KIND_FILTERS_ACK: u8 = 6;
 const KIND_AUTH: u8 = 7;
 const KIND_REFUSED: u8 = 8;
+/// The rest of a CAN FD payload above 8 bytes: byte 0 the kind, then 23 payload bytes (the FRAME record carries the
+/// first 8). A 64-byte payload is a FRAME and 3 FRAME_DATA records.
+const KIND_FRAME_DATA: u8 = 9;
+const FRAME_DATA_BYTES: usize = RECORD_SIZE - 1;
+/// The records of the longest frame: FRAME and 3 FRAME_DATA.
+const MAX_FRAME_RECORDS: usize = 4;
 /// Why a connection was refused (byte 1 of a REFUSED record; the client says it in its error).
 pub const REFUSED_FULL: u8 = 1;
 pub const REFUSED_TOKEN: u8 = 2;
@@ -153,8 +159,11 @@ pub fn frame_error(can_id: u32, dlc: u8, flags: u8, fd_bus: bool) -> Option<Stri
     if flags & FLAG_FD != 0 && !fd_bus {
         return Some("a CAN FD frame on a classical CAN bus".to_string());
     }
-    if dlc > 8 {
-        return Some(format!("dlc {dlc} > 8: a record carries at most 8 data bytes (longer CAN FD payloads are not carried yet)"));
+    if dlc > 8 && flags & FLAG_FD == 0 {
+        return Some(format!("dlc {dlc} > 8 in a classical frame (set the FD flag for CAN FD payloads up to 64 bytes)"));
+    }
+    if dlc as usize > crate::frame::MAX_DATA || (dlc > 8 && crate::frame::fd_dlc(dlc as usize).is_none()) {
+        return Some(format!("length {dlc} is not a CAN FD payload length (0..8, 12, 16, 20, 24, 32, 48, 64)"));
     }
     let extended = flags & FLAG_EXTENDED != 0;
     let limit = if extended { 1u32 << 29 } else { 1u32 << 11 };
@@ -164,7 +173,7 @@ pub fn frame_error(can_id: u32, dlc: u8, flags: u8, fd_bus: bool) -> Option<Stri
     None
 }
 
-/// A FRAME record as the server sends it.
+/// A FRAME record as the server sends it: the first 8 data bytes (`dlc` says how many there are in all).
 pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECORD_SIZE] {
     let mut r = [0u8; RECORD_SIZE];
     r[0] = KIND_FRAME;
@@ -172,8 +181,36 @@ pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECOR
     r[2] = data.len() as u8;
     r[4..8].copy_from_slice(&can_id.to_le_bytes());
     r[8..16].copy_from_slice(&stamp.to_le_bytes());
-    r[16..16 + data.len()].copy_from_slice(data);
+    let head = data.len().min(8);
+    r[16..16 + head].copy_from_slice(&data[..head]);
     r
+}
+
+/// A frame as records: its FRAME record, then FRAME_DATA records for a payload above 8 bytes.
+pub fn pack_frame_records(can_id: u32, data: &[u8], flags: u8, stamp: f64, out: &mut Vec<u8>) {
+    out.extend_from_slice(&pack_frame(can_id, data, flags, stamp));
+    for chunk in data.get(8..).unwrap_or(&[]).chunks(FRAME_DATA_BYTES) {
+        let mut r = [0u8; RECORD_SIZE];
+        r[0] = KIND_FRAME_DATA;
+        r[1..1 + chunk.len()].copy_from_slice(chunk);
+        out.extend_from_slice(&r);
+    }
+}
+
+/// How many FRAME_DATA records follow a FRAME record of `dlc` data bytes.
+pub fn frame_data_records(dlc: usize) -> usize {
+    dlc.saturating_sub(8).div_ceil(FRAME_DATA_BYTES)
+}
+
+/// A CAN FD frame whose FRAME_DATA records are still coming.
+#[derive(Debug, Clone)]
+struct LongFrame {
+    can_id: u32,
+    flags: u8,
+    len: usize,
+    data: Vec<u8>,
+    /// False for a refused frame: its FRAME_DATA records are read and dropped.
+    keep: bool,
 }
 
 /// The WELCOME record: the bitrate, the bus's epoch, the client's ID and, on a CAN FD bus, its data bitrate
@@ -296,6 +333,7 @@ struct Client {
     rejected: u64,
     authed: bool,
     t_open: Instant,
+    long: Option<LongFrame>,
 }
 
 enum Fault {
@@ -505,7 +543,11 @@ impl Server {
     fn deliver(&mut self, shared: &mut Shared, tx: &Transmission) {
         let flags = if tx.extended { FLAG_EXTENDED } else { 0 } | format_flags(tx.format);
         let stamp = (self.epoch0_ns as f64 + tx.t_end as f64 / self.cfg.pace) / 1e9;
-        let record = pack_frame(tx.frame_id, tx.data.as_slice(), flags, stamp);
+        let mut packed = Vec::with_capacity(MAX_FRAME_RECORDS * RECORD_SIZE);
+        pack_frame_records(tx.frame_id, tx.data.as_slice(), flags, stamp, &mut packed);
+        let mut record = [0u8; MAX_FRAME_RECORDS * RECORD_SIZE]; // copied per receiver without allocating
+        let size = packed.len();
+        record[..size].copy_from_slice(&packed);
         let key = (tx.frame_id, tx.extended);
         if !self.rx_cache.contains_key(&key) {
             let found: Vec<usize> = (0..self.clients.len())
@@ -528,7 +570,7 @@ impl Server {
                 shared.overruns += 1;
                 continue;
             }
-            c.out.extend_from_slice(&rec);
+            c.out.extend_from_slice(&rec[..size]);
         }
         self.rx_cache.insert(key, receivers);
         shared.frames += 1;
@@ -636,7 +678,7 @@ impl Server {
             self.clients.push(Client {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
-                authed: !tcp, t_open: Instant::now(),
+                authed: !tcp, t_open: Instant::now(), long: None,
             });
         }
     }
@@ -729,9 +771,30 @@ impl Server {
         }
         let has_node = self.clients[i].node.is_some();
         match kind {
+            KIND_FRAME if has_node && self.clients[i].long.is_some() => {
+                Err(Fault::Protocol(format!("FRAME before the FRAME_DATA records of the last one from node {}", self.clients[i].name)))
+            }
+            KIND_FRAME_DATA if self.clients[i].long.is_some() => {
+                let long = self.clients[i].long.as_mut().unwrap();
+                let take = (long.len - long.data.len()).min(FRAME_DATA_BYTES);
+                long.data.extend_from_slice(&r[1..1 + take]);
+                if long.data.len() == long.len {
+                    let long = self.clients[i].long.take().unwrap();
+                    if !long.keep {
+                        return Ok(());
+                    }
+                    let node = self.clients[i].node.unwrap();
+                    shared.bus.enqueue_as(node, long.can_id, &long.data, now, Some(long.flags & FLAG_EXTENDED != 0),
+                                          record_format(long.flags));
+                }
+                Ok(())
+            }
             KIND_FRAME if has_node => {
                 let (flags, dlc, can_id) = (r[1], r[2], u32_at(r, 4));
                 match frame_error(can_id, dlc, flags, shared.bus.format.is_fd()) {
+                    None if dlc > 8 => {
+                        self.clients[i].long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: true });
+                    }
                     None => {
                         let node = self.clients[i].node.unwrap();
                         shared.bus.enqueue_as(node, can_id, &r[16..16 + dlc as usize], now, Some(flags & FLAG_EXTENDED != 0),
@@ -739,6 +802,9 @@ impl Server {
                     }
                     Some(why) => {
                         let c = &mut self.clients[i];
+                        if dlc > 8 {
+                            c.long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: false });
+                        }
                         c.rejected += 1;
                         shared.rejected += 1;
                         if c.rejected == 1 {
@@ -871,7 +937,9 @@ mod tests {
     #[test]
     fn frames_the_bus_cannot_carry_are_named() {
         assert!(frame_error(0x800, 8, 0, false).unwrap().contains("11-bit"));
-        assert!(frame_error(0x100, 9, 0, true).unwrap().contains("at most 8 data bytes"));
+        assert!(frame_error(0x100, 9, 0, true).unwrap().contains("in a classical frame"));
+        assert!(frame_error(0x100, 9, FLAG_FD, true).unwrap().contains("not a CAN FD payload length"));
+        assert!(frame_error(0x100, 64, FLAG_FD, true).is_none());
         assert!(frame_error(0x100, 8, FLAG_REMOTE, false).is_some());
         assert!(frame_error(0x1FFF_FFFF, 8, FLAG_EXTENDED, false).is_none());
         assert!(frame_error(0x100, 8, FLAG_FD, false).unwrap().contains("classical CAN bus"));
@@ -919,6 +987,64 @@ mod tests {
         std::thread::sleep(Duration::from_millis(50));
         let bad = handle.shared.lock().unwrap().bad;
         assert_eq!(bad.protocol_errors, 1);
+        handle.shutdown();
+        assert_eq!(handle.shared.lock().unwrap().frames, 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_64_byte_fd_payload_is_a_frame_and_three_frame_data_records() {
+        let data: Vec<u8> = (0..64).collect();
+        let mut out = Vec::new();
+        pack_frame_records(0x10, &data, FLAG_FD | FLAG_BRS, 0.0, &mut out);
+        assert_eq!(out.len(), 4 * RECORD_SIZE);
+        assert_eq!((out[0], out[2], &out[16..24]), (KIND_FRAME, 64, &data[..8]));
+        assert_eq!((out[24], &out[25..48]), (KIND_FRAME_DATA, &data[8..31]));
+        assert_eq!((&out[73..83], &out[83..96]), (&data[54..64], &[0u8; 13][..])); // 8 + 23 + 23 + 10, zero-padded
+        assert_eq!((frame_data_records(8), frame_data_records(12), frame_data_records(31), frame_data_records(32)), (0, 1, 1, 2));
+    }
+
+    #[test]
+    fn an_fd_bus_carries_a_long_payload_between_nodes_whole() {
+        let dir = std::env::temp_dir().join(format!("th-srv-fd-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("b.sock");
+        let _ = std::fs::remove_file(&path);
+        let listener = UnixListener::bind(&path).unwrap();
+        let cfg = ServerConfig {
+            channel: "t/b".into(), bitrate: 1_000_000, data_bitrate: 5_000_000, format: Format::FdBrs, policy: Policy::Priority,
+            depth: 8, extended: false, load_window_ns: 100_000_000, pace: 1.0, spin_ns: 0, max_clients: 8,
+            hello_timeout: Duration::from_secs(5), keep_log: true, token: None,
+        };
+        use std::os::fd::IntoRawFd;
+        let mut handle = start(cfg, listener.into_raw_fd(), None).unwrap();
+        let mut streams = Vec::new();
+        for name in ["A", "B"] {
+            let mut s = UnixStream::connect(&path).unwrap();
+            let mut r = [0u8; RECORD_SIZE];
+            r[0] = KIND_HELLO;
+            r[1] = PROTOCOL_VERSION;
+            r[4] = name.as_bytes()[0];
+            s.write_all(&r).unwrap();
+            s.read_exact(&mut r).unwrap();
+            assert_eq!((r[0], u32::from_le_bytes(r[20..24].try_into().unwrap())), (KIND_WELCOME, 5_000_000));
+            streams.push(s);
+        }
+        let data: Vec<u8> = (100..148).collect();
+        let mut out = Vec::new();
+        pack_frame_records(0x20, &data, FLAG_FD | FLAG_BRS, 0.0, &mut out);
+        streams[0].write_all(&out[..30]).unwrap(); // split inside a record: the server waits for the rest
+        std::thread::sleep(Duration::from_millis(20));
+        streams[0].write_all(&out[30..]).unwrap();
+        let mut got = vec![0u8; out.len()];
+        streams[1].set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+        streams[1].read_exact(&mut got).unwrap();
+        assert_eq!((got[1], got[2]), (FLAG_FD | FLAG_BRS, 48));
+        let mut payload = got[16..24].to_vec();
+        for k in 0..frame_data_records(48) {
+            payload.extend_from_slice(&got[(k + 1) * RECORD_SIZE + 1..(k + 2) * RECORD_SIZE]);
+        }
+        assert_eq!(&payload[..48], &data[..]);
         handle.shutdown();
         assert_eq!(handle.shared.lock().unwrap().frames, 1);
         let _ = std::fs::remove_dir_all(&dir);

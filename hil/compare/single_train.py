@@ -28,6 +28,7 @@ import numpy as np
 
 from hil.compare.report import Column, MetricFamily, RunData, register_family
 from hil.scenario.model import Scenario
+from hil.record.metrics import bus_metrics
 
 STARTUP_S = 10.0
 WINDOW_S = 60.0
@@ -128,10 +129,10 @@ class SingleTrain(MetricFamily):
         out["sim_time_s"] = t_end
         out["wall_time_s"] = float(log.wall_time_s)
         out["frames_lost"] = int(log.frames_lost)
-        out["bus_load_max"] = _bus_load_max(log)
+        bus = bus_metrics(log.buses)
+        out.update({key: bus[key] if log.buses else None for key in BUS_KEYS})
         return out
 
 
-def _bus_load_max(log) -> float | None:
-    loads = [b.load.array[:, 1] for b in log.buses if len(b.load.array)]
-    return float(max(np.max(x) for x in loads)) if loads else None
+BUS_KEYS = ("bus_load_max", "frames_dropped", "frame_latency_p99_s", "frame_latency_max_s", "latency_to_period_max",
+            "deadline_misses")  # the network's side of a run (None in the ideal loop)

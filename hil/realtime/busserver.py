@@ -45,9 +45,10 @@ from pathlib import Path
 from hil.can.bus import CanBusModel, CanNode, Transmission
 from hil.realtime.paths import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
 from hil.realtime.protocol import (
-    AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, KIND_AUTH, KIND_FILTER, KIND_FILTERS, KIND_FRAME, KIND_HELLO,
-    MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE, REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING,
-    TOKEN_BYTES, Filter, ProtocolError, filters_accept, frame_error, pack_filters_ack, pack_refused, pack_welcome,
+    AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, FRAME_DATA_BYTES, KIND_AUTH, KIND_FILTER,
+    KIND_FILTERS, KIND_FRAME, KIND_FRAME_DATA, KIND_HELLO, MAX_DLC, MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE,
+    REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING, TOKEN_BYTES, Filter, Frame, ProtocolError,
+    filters_accept, frame_data_records, frame_error, pack_filters_ack, pack_frame, pack_refused, pack_welcome,
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
 from hil.can.stats import BusLog
@@ -174,7 +175,7 @@ class _Client:
 
     __slots__ = ("sock", "cid", "name", "node", "rx", "out", "writing", "closed", "receive_own", "filters",
                  "pending", "pending_left", "pending_gen", "delivered", "overruns", "rejected", "tcp", "authed",
-                 "t_open")
+                 "t_open", "long")
 
     def __init__(self, sock: socket.socket, cid: int, tcp: bool = False) -> None:
         self.sock = sock
@@ -191,6 +192,7 @@ class _Client:
         self.receive_own = False
         self.filters: tuple[Filter, ...] | None = None  # None = accept everything
         self.pending: list[Filter] | None = None  # a FILTERS set being received
+        self.long: tuple[Frame, bytearray, bool] | None = None  # a CAN FD frame waiting for FRAME_DATA (keep it?)
         self.pending_left = 0
         self.pending_gen = 0
         self.delivered = 0
@@ -491,14 +493,14 @@ class BusServer:
         """Queue the frame record for every node whose filters take it (the sender only if it asked)."""
         flags = (FLAG_EXTENDED if tx.extended else 0) | (FLAG_FD if tx.fd else 0) | (FLAG_BRS if tx.brs else 0)
         stamp = (self._epoch0_ns + tx.t_end / self._pace) / 1e9
-        record = FRAME.pack(KIND_FRAME, flags, len(tx.data), tx.frame_id, stamp, tx.data)
+        record = pack_frame(tx.frame_id, tx.data, flags, stamp)
         sender = self._by_node.get(tx.node)
         for c in self._receivers(tx.frame_id, tx.extended):
             rec = record
             if c is sender:
                 if not c.receive_own:
                     continue
-                rec = FRAME.pack(KIND_FRAME, flags | FLAG_ECHO, len(tx.data), tx.frame_id, stamp, tx.data)
+                rec = pack_frame(tx.frame_id, tx.data, flags | FLAG_ECHO, stamp)
             if len(c.out) >= OUT_CAP_BYTES:
                 c.overruns += 1
                 self._overruns += 1
@@ -673,12 +675,18 @@ class BusServer:
         if not c.authed:
             self._auth(c, buf, off)
             return
-        if kind == KIND_FRAME and c.node is not None:
+        if kind == KIND_FRAME_DATA and c.long is not None:
+            self._frame_data(c, buf, off, now)
+        elif kind == KIND_FRAME and c.node is not None and c.long is not None:
+            raise ProtocolError(f"FRAME before the FRAME_DATA records of the last one from node {c.name}")
+        elif kind == KIND_FRAME and c.node is not None:
             _, flags, dlc, can_id, _, data = FRAME.unpack_from(buf, off)
             why = frame_error(can_id, dlc, flags, self.model.fd)
+            if dlc > MAX_DLC:  # its FRAME_DATA records follow (read and dropped if the frame is refused)
+                c.long = (Frame(can_id, data, flags, 0.0, dlc), bytearray(), why is None)
+            elif why is None:
+                self._enqueue(c, can_id, data[:dlc], flags, now)
             if why is None:
-                self.model.enqueue(c.node, can_id, data[:dlc], now, bool(flags & FLAG_EXTENDED), bool(flags & FLAG_FD),
-                                   bool(flags & FLAG_BRS))
                 return
             c.rejected += 1
             self._rejected += 1
@@ -699,6 +707,19 @@ class BusServer:
                 self._apply_filters(c)
         else:
             raise ProtocolError(f"unexpected record kind {kind} from node {c.name}")
+
+    def _enqueue(self, c: _Client, can_id: int, data: bytes, flags: int, now: int) -> None:
+        self.model.enqueue(c.node, can_id, data, now, bool(flags & FLAG_EXTENDED), bool(flags & FLAG_FD),
+                           bool(flags & FLAG_BRS))
+
+    def _frame_data(self, c: _Client, buf: bytes, off: int, now: int) -> None:
+        """One FRAME_DATA record of a CAN FD frame above 8 bytes; the last one queues the frame."""
+        head, rest, keep = c.long
+        rest += buf[off + 1:off + RECORD_SIZE]
+        if len(rest) >= frame_data_records(head.dlc) * FRAME_DATA_BYTES:
+            c.long = None
+            if keep:
+                self._enqueue(c, head.can_id, (head.data + bytes(rest))[:head.dlc], head.flags, now)
 
     def _hello(self, c: _Client, buf: bytes, off: int) -> None:
         hello = unpack_hello(buf, off)

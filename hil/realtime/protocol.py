@@ -17,8 +17,9 @@ kind    name             way       layout (struct, after the common "<")
 
 FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
 asked for its own messages; python-can ``is_rx=False``), FD (a CAN FD frame) and BRS (its data phase at the
-data bitrate; only with FD). ``data`` is always 8 bytes, the first ``dlc`` count: a CAN FD frame travels in one
-record when it carries at most 8 bytes (longer FD payloads are not carried yet).
+data bitrate; only with FD). ``data`` is always 8 bytes, the first ``min(dlc, 8)`` count. A CAN FD frame with
+more than 8 data bytes (``dlc`` = 12, 16, 20, 24, 32, 48 or 64, its payload length) is followed at once by
+FRAME_DATA records (kind 9, ``B 23s``: kind, the next 23 payload bytes, zero-padded): 64 bytes take 4 records.
 From a node, ``timestamp`` is ignored (the frame is queued when the server reads it); from the server it is
 the end of the frame's transmission (last bit of the intermission) in epoch seconds. Only classical data
 frames are emulated: a node must not send REMOTE, ERROR or ECHO (the server counts and drops them); ERROR
@@ -46,10 +47,12 @@ import struct
 import unicodedata
 from typing import NamedTuple
 
+from hil.can.frame import FD_LENGTHS
+
 PROTOCOL_VERSION = 1
 RECORD_SIZE = 24
 NAME_BYTES = 20
-MAX_DLC = 8
+MAX_DLC = 8  # data bytes in a FRAME record (and in a classical frame)
 MAX_FILTERS = 1024
 
 KIND_FRAME = 1
@@ -60,6 +63,9 @@ KIND_FILTER = 5
 KIND_FILTERS_ACK = 6
 KIND_AUTH = 7
 KIND_REFUSED = 8  # server -> client, then it closes: byte 1 says why (REFUSED_REASONS)
+KIND_FRAME_DATA = 9  # both ways: 23 more payload bytes of the CAN FD frame before it
+FRAME_DATA_BYTES = RECORD_SIZE - 1
+MAX_FD_DLC = 64
 TOKEN_BYTES = 16
 REFUSED_FULL, REFUSED_TOKEN, REFUSED_WAITING, REFUSED_TIMEOUT = 1, 2, 3, 4
 REFUSED_REASONS = {
@@ -97,7 +103,8 @@ FILTERS = struct.Struct("<BxHI16x")
 FILTER = struct.Struct("<BBxxII12x")
 FILTERS_ACK = struct.Struct("<BxxxI16x")
 AUTH = struct.Struct("<Bxxx16s4x")
-assert all(s.size == RECORD_SIZE for s in (FRAME, HELLO, WELCOME, FILTERS, FILTER, FILTERS_ACK, AUTH))
+FRAME_DATA = struct.Struct("<B23s")
+assert all(s.size == RECORD_SIZE for s in (FRAME, HELLO, WELCOME, FILTERS, FILTER, FILTERS_ACK, AUTH, FRAME_DATA))
 
 
 class ProtocolError(ValueError):
@@ -106,9 +113,10 @@ class ProtocolError(ValueError):
 
 class Frame(NamedTuple):
     can_id: int
-    data: bytes
+    data: bytes  # the record's bytes: the first min(dlc, 8); join_frame adds the rest of a longer CAN FD payload
     flags: int = 0
     timestamp: float = 0.0
+    dlc: int | None = None  # the payload length the FRAME record announced (None: len(data))
 
 
 class Hello(NamedTuple):
@@ -141,24 +149,48 @@ def frame_error(can_id: int, dlc: int, flags: int, fd_bus: bool = False) -> str 
         return f"flags {flags:#04x}: a bit-rate switch without the FD flag"
     if flags & FLAG_FD and not fd_bus:
         return "a CAN FD frame on a classical CAN bus"
-    if dlc > MAX_DLC:
-        return f"dlc {dlc} > {MAX_DLC}: a record carries at most {MAX_DLC} data bytes (longer CAN FD payloads are not carried yet)"
+    if dlc > MAX_DLC and not flags & FLAG_FD:
+        return f"dlc {dlc} > {MAX_DLC} in a classical frame (set the FD flag for CAN FD payloads up to 64 bytes)"
+    if dlc > MAX_FD_DLC or (dlc > MAX_DLC and dlc not in FD_LENGTHS):
+        return f"length {dlc} is not a CAN FD payload length (0..8, 12, 16, 20, 24, 32, 48, 64)"
     limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
     if not 0 <= can_id < limit:
         return f"can_id {can_id:#x} out of range for a {'29' if flags & FLAG_EXTENDED else '11'}-bit identifier"
     return None
 
 
+def frame_data_records(dlc: int) -> int:
+    """How many FRAME_DATA records follow a FRAME record of ``dlc`` data bytes."""
+    return max(0, -(-(dlc - MAX_DLC) // FRAME_DATA_BYTES))
+
+
 def pack_frame(can_id: int, data: bytes, flags: int = 0, timestamp: float = 0.0) -> bytes:
-    """A FRAME record; ValueError naming the id if it or the data do not fit a classical CAN frame."""
+    """A FRAME record, and for a CAN FD payload above 8 bytes its FRAME_DATA records (padded to an FD length);
+    ValueError naming the id if it or the data do not fit."""
     if len(data) > MAX_DLC:
-        raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_DLC} (a record carries at most {MAX_DLC}; "
-                         "longer CAN FD payloads are not carried yet)")
+        if not flags & FLAG_FD:
+            raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_DLC} in a classical frame")
+        if len(data) > MAX_FD_DLC:
+            raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_FD_DLC} (CAN FD)")
+        data = bytes(data) + bytes(next(n for n in FD_LENGTHS if n >= len(data)) - len(data))
     limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
     if not 0 <= can_id < limit:
         raise ValueError(f"frame id {can_id:#x} out of range for a "
                          f"{'29' if flags & FLAG_EXTENDED else '11'}-bit identifier (0..{limit - 1:#x})")
-    return FRAME.pack(KIND_FRAME, flags, len(data), can_id, timestamp, data)
+    head = FRAME.pack(KIND_FRAME, flags, len(data), can_id, timestamp, data[:MAX_DLC])
+    rest = data[MAX_DLC:]
+    return head + b"".join(FRAME_DATA.pack(KIND_FRAME_DATA, rest[k:k + FRAME_DATA_BYTES])
+                           for k in range(0, len(rest), FRAME_DATA_BYTES))
+
+
+def join_frame(head: Frame, continuation: bytes | memoryview) -> Frame:
+    """A frame whose FRAME record said ``dlc`` > 8, completed with its FRAME_DATA records; ProtocolError if one is not."""
+    out = bytearray(head.data)
+    for off in range(0, len(continuation), RECORD_SIZE):
+        if continuation[off] != KIND_FRAME_DATA:
+            raise ProtocolError(f"frame {head.can_id:#x}: record kind {continuation[off]} where its FRAME_DATA was due")
+        out += continuation[off + 1:off + RECORD_SIZE]
+    return head._replace(data=bytes(out[:head.dlc]))
 
 
 def unpack_frame(record: bytes | memoryview, offset: int = 0) -> Frame:
@@ -166,9 +198,9 @@ def unpack_frame(record: bytes | memoryview, offset: int = 0) -> Frame:
     kind, flags, dlc, can_id, timestamp, data = FRAME.unpack_from(record, offset)
     if kind != KIND_FRAME:
         raise ProtocolError(f"record kind {kind} is not a FRAME ({KIND_FRAME})")
-    if dlc > MAX_DLC:
-        raise ProtocolError(f"frame {can_id:#x}: dlc {dlc} > {MAX_DLC}")
-    return Frame(can_id, data[:dlc], flags, timestamp)
+    if dlc > MAX_FD_DLC:
+        raise ProtocolError(f"frame {can_id:#x}: dlc {dlc} > {MAX_FD_DLC}")
+    return Frame(can_id, data[:min(dlc, MAX_DLC)], flags, timestamp, dlc)
 
 
 def pack_hello(name: str, receive_own: bool = False, version: int = PROTOCOL_VERSION) -> bytes:
@@ -309,7 +341,13 @@ class Auth(NamedTuple):
     token: bytes
 
 
-Record = Frame | Hello | Welcome | FiltersHead | Filter | FiltersAck | Auth
+class FrameData(NamedTuple):
+    """23 more payload bytes of the CAN FD frame before it."""
+
+    data: bytes
+
+
+Record = Frame | Hello | Welcome | FiltersHead | Filter | FiltersAck | Auth | FrameData
 
 
 def decode_record(record: bytes | memoryview) -> Record:
@@ -322,7 +360,9 @@ def decode_record(record: bytes | memoryview) -> Record:
     kind = record[0]
     if kind == KIND_FRAME:
         _, flags, dlc, can_id, timestamp, data = FRAME.unpack_from(record)
-        return Frame(can_id, data[:min(dlc, MAX_DLC)], flags, timestamp)
+        return Frame(can_id, data[:min(dlc, MAX_DLC)], flags, timestamp, dlc)
+    if kind == KIND_FRAME_DATA:
+        return FrameData(bytes(record[1:]))
     if kind == KIND_HELLO:
         return unpack_hello(record)
     if kind == KIND_WELCOME:

@@ -33,9 +33,10 @@ from hil.realtime.paths import (
     socket_is_live,
 )
 from hil.realtime.protocol import (
-    FLAG_BRS, FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME, PROTOCOL_VERSION,
-    RECORD_SIZE, TOKEN_BYTES, ProtocolError, filter_from_python_can, pack_auth, pack_filters, pack_frame, pack_hello,
-    refused_reason, unpack_filters_ack, unpack_welcome,
+    FLAG_BRS, FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME,
+    KIND_FRAME_DATA, MAX_DLC, PROTOCOL_VERSION, RECORD_SIZE, TOKEN_BYTES, Frame, ProtocolError, filter_from_python_can,
+    frame_data_records, join_frame, pack_auth, pack_filters, pack_frame, pack_hello, refused_reason,
+    unpack_filters_ack, unpack_welcome,
 )
 
 LOG = logging.getLogger(__name__)
@@ -98,6 +99,8 @@ class TrainhilBus(BusABC):
         self._rbuf = bytearray(RECORD_SIZE)
         self._rview = memoryview(self._rbuf)
         self._rlen = 0
+        self._long: bytes | None = None  # the FRAME record of a CAN FD frame whose FRAME_DATA records are due
+        self._long_rest = bytearray()
         self._send_lock = threading.Lock()
         self._filter_gen = 0  # last filter set sent; the server acknowledges each
         self._acked_gen = 0
@@ -256,6 +259,15 @@ class TrainhilBus(BusABC):
             record = self._read_record()
             if record is not None:
                 kind = record[0]
+                if kind == KIND_FRAME and record[2] > MAX_DLC:  # a CAN FD frame: its FRAME_DATA records follow
+                    self._long, self._long_rest = record, bytearray()
+                    continue
+                if kind == KIND_FRAME_DATA and self._long is not None:
+                    self._long_rest += record
+                    if len(self._long_rest) < frame_data_records(self._long[2]) * RECORD_SIZE:
+                        continue
+                    head, rest, self._long = self._long, bytes(self._long_rest), None
+                    return self._message(head, rest), self._acked_gen == self._filter_gen
                 if kind == KIND_FRAME:
                     return self._message(record), self._acked_gen == self._filter_gen
                 if kind == KIND_FILTERS_ACK:
@@ -287,8 +299,11 @@ class TrainhilBus(BusABC):
         self._rlen = 0
         return bytes(self._rbuf)
 
-    def _message(self, record: bytes) -> Message:
+    def _message(self, record: bytes, continuation: bytes = b"") -> Message:
+        """The python-can message of a FRAME record (and the FRAME_DATA records of a CAN FD payload above 8 bytes)."""
         _, flags, dlc, can_id, timestamp, data = FRAME.unpack(record)
+        if continuation:
+            data = join_frame(Frame(can_id, data, flags, timestamp, dlc), continuation).data
         return Message(timestamp=timestamp, arbitration_id=can_id, is_extended_id=bool(flags & FLAG_EXTENDED),
                        is_remote_frame=bool(flags & FLAG_REMOTE), is_error_frame=bool(flags & FLAG_ERROR),
                        dlc=dlc, data=data[:dlc], is_rx=not flags & FLAG_ECHO, channel=self.channel_index,

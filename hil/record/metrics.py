@@ -42,7 +42,7 @@ def compute_metrics(log: RunLog, coupler_band: tuple[float, float], settle_band_
     out.update(_gap_metrics(log))
     out.update(_safety_metrics(log, lo, hi))
     out.update(_effort_metrics(log))
-    out.update(_bus_metrics(log.buses))
+    out.update(bus_metrics(log.buses))
     out["frames_lost"] = int(log.frames_lost)
     out["events_by_level"] = _events_by_level(log)
     out["codec_saturations"] = {str(k): int(v) for k, v in log.codec_saturations.items()}
@@ -243,7 +243,8 @@ def _one_bus(bus: BusLog) -> dict[str, Any]:
     }
 
 
-def _bus_metrics(buses: list[BusLog]) -> dict[str, Any]:
+def bus_metrics(buses: list[BusLog]) -> dict[str, Any]:
+    """Frames, drops, load, latency and deadline figures of the buses, together and per bus."""
     loads = np.concatenate([b.load.array[:, 1] for b in buses]) if buses else np.zeros(0)
     per_bus = {b.name: _one_bus(b) for b in buses}
     latency = LatencyCounts.merged(b.frames.summary()[0] for b in buses)
