@@ -141,3 +141,26 @@ def test_can_analysis_of_the_packaged_fd_scenario_bounds_its_run(tmp_path, capsy
     assert "measured above bound: none" in out
     measured = [line for line in out.splitlines() if line.startswith(("Sensor_", "AgentState_", "TractionCmd_"))]
     assert len(measured) == 18 and all(line.split()[11] != "-" for line in measured)  # every frame was measured
+
+
+@pytest.mark.parametrize("fmt", ["asc", "blf"])
+def test_fd_frames_go_into_the_can_logs_in_their_fd_form(tmp_path, fmt):
+    """`hil run seed001-fd --can-log FMT`: python-can reads back FD frames with BRS, cantools decodes them."""
+    import subprocess
+    import sys
+
+    import can
+    import cantools
+
+    from ecu_sim.codec import default_dbc_path
+
+    out = tmp_path / "r"
+    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed001-fd", "--duration", "0.5", "--out", str(out),
+                           "--no-record", "--quiet", "--can-log", fmt], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    reader = can.ASCReader if fmt == "asc" else can.BLFReader
+    msgs = list(reader(out / f"bus1.{fmt}"))
+    assert len(msgs) > 1000 and all(m.is_fd and m.bitrate_switch for m in msgs)
+    db = cantools.database.load_file(default_dbc_path())
+    sensor = next(m for m in msgs if m.arbitration_id == 0x0C0)
+    assert db.decode_message(0x0C0, bytes(sensor.data))["Position"] > 400  # car 1 starts at 486.6 m

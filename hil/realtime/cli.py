@@ -29,6 +29,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run", required=True, help="run name: the socket is <runtime root>/<run>/<bus>.sock")
     p.add_argument("--bus", required=True, help="bus name, e.g. bus1 (python-can channel \"<run>/<bus>\")")
     p.add_argument("--bitrate", type=positive_int, default=500_000, help="bit/s (default 500000)")
+    p.add_argument("--fd", action="store_true", help="a CAN FD bus: nodes send classical and CAN FD frames (python-can fd=True)")
+    p.add_argument("--data-bitrate", type=positive_int, metavar="BIT/S",
+                   help="with --fd: the data phase's bitrate of frames with BRS (default: --bitrate)")
     p.add_argument("--policy", choices=("priority", "fifo"), default="priority", help="TX queue policy per node")
     p.add_argument("--depth", type=positive_int, default=64, help="TX queue depth per node (default 64)")
     p.add_argument("--spin-us", type=float, default=DEFAULT_SPIN_US,
@@ -72,9 +75,13 @@ def cmd_bus_server(args: argparse.Namespace) -> int:
         print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here; running as a normal "
               "process", file=sys.stderr)
     server_cls = BusServer if args.python_server else NativeBusServer
+    if args.data_bitrate is not None and not args.fd:
+        print("hil bus-server: error: --data-bitrate is for CAN FD buses: add --fd", file=sys.stderr)
+        return 2
     try:
         server = server_cls(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=args.spin_us,
-                            keep_log=False, pace=args.pace, tcp=args.tcp, tcp_host=args.tcp_host)
+                            keep_log=False, pace=args.pace, tcp=args.tcp, tcp_host=args.tcp_host, fd=args.fd,
+                            data_bitrate=args.data_bitrate)
     except (ValueError, OSError, BusServerError) as exc:
         print(f"hil bus-server: error: {exc}", file=sys.stderr)
         return 2
