@@ -164,3 +164,20 @@ def test_fd_frames_go_into_the_can_logs_in_their_fd_form(tmp_path, fmt):
     db = cantools.database.load_file(default_dbc_path())
     sensor = next(m for m in msgs if m.arbitration_id == 0x0C0)
     assert db.decode_message(0x0C0, bytes(sensor.data))["Position"] > 400  # car 1 starts at 486.6 m
+
+
+def test_the_faults_scenario_on_fd_buses_confines_errors_as_on_classical_ones(tmp_path):
+    """The faults scenario's first 16 s (a crash, a babbling node, corruption) over CAN FD 500k/5M: every fault injected
+    and detected, corrupted FD frames rejected (none undetected), senders driven bus-off and back, as over classical
+    CAN."""
+    from hil.session import run_scenario
+
+    res = run_scenario(load_scenario("faults", FD_5M), tmp_path, duration_s=16.0, record=False)
+    f = res.metrics["faults"]
+    assert f["injected"] == f["detected"] == 3
+    errors = f["can_errors"]
+    assert errors["corrupted"] == errors["rejected"] > 0 and errors["undetected"] == 0
+    bus1 = errors["buses"]["bus1"]
+    assert errors["error_frames"] == errors["corrupted"] and bus1["retransmissions"] > 0 and bus1["by_error"] == {
+        "crc": errors["corrupted"]}  # an FD frame's corruption is found by its CRC
+    assert any(node["bus_off"] > 0 and node["state"] == "error_active" for node in bus1["nodes"].values())  # recovered
