@@ -7,8 +7,11 @@ import struct
 import numpy as np
 import pytest
 
-from hil.radio import RadioGateway, RadioLink, Route, build_links, standard_routes
-from hil.radio.gateway import RADIO_AHEAD_AUX, RADIO_AHEAD_STATE, RADIO_BEHIND_AUX, RADIO_BEHIND_STATE, reverse_link_name
+from ecu_sim.codec import TrainDb
+from hil.radio import RadioGateway, RadioIds, RadioLink, Route, build_links, standard_routes
+from hil.radio.gateway import reverse_link_name
+
+IDS = RadioIds.from_db(TrainDb.load())
 from hil.radio.link import STAT_KEYS, loss_rate_expected
 from hil.scenario.model import Blackout, LossModel, RadioConfig
 
@@ -252,7 +255,7 @@ def state(x: float) -> bytes:
 
 
 def test_standard_routes_table() -> None:
-    routes = standard_routes(3, 4, forward_aux=True)
+    routes = standard_routes(3, 4, forward_aux=True, ids=IDS)
     assert set(routes) == {
         Route(0, 0x103, 1, 0x180, "1>2"),
         Route(0, 0x123, 1, 0x181, "1>2"),
@@ -264,16 +267,16 @@ def test_standard_routes_table() -> None:
         Route(2, 0x120, 1, 0x189, "3>2"),
     }
     assert len(routes) == 8
-    assert (RADIO_AHEAD_STATE, RADIO_AHEAD_AUX, RADIO_BEHIND_STATE, RADIO_BEHIND_AUX) == (0x180, 0x181, 0x188, 0x189)
-    assert set(standard_routes(3, 4, forward_aux=False)) == {r for r in routes if r.dst_id in (0x180, 0x188)}
-    assert standard_routes(1, 4, True) == []
+    assert (IDS.ahead_state, IDS.ahead_aux, IDS.behind_state, IDS.behind_aux) == (0x180, 0x181, 0x188, 0x189)
+    assert set(standard_routes(3, 4, forward_aux=False, ids=IDS)) == {r for r in routes if r.dst_id in (0x180, 0x188)}
+    assert standard_routes(1, 4, True, IDS) == []
     with pytest.raises(ValueError, match="units_per_train"):
-        standard_routes(2, 0, True)
+        standard_routes(2, 0, True, IDS)
 
 
 def test_gateway_routes_and_remaps_with_payload_unchanged() -> None:
     links = build_links(RadioConfig(latency_s=0.003), 3, np.random.default_rng(0))
-    gw = RadioGateway(standard_routes(3, 4, True), links, pos_of)
+    gw = RadioGateway(standard_routes(3, 4, True, IDS), links, pos_of)
     assert gw.ids_for_bus(0) == {0x103, 0x123}
     assert gw.ids_for_bus(1) == {0x100, 0x120, 0x103, 0x123}
     assert gw.ids_for_bus(2) == {0x100, 0x120}
@@ -291,7 +294,7 @@ def test_gateway_routes_and_remaps_with_payload_unchanged() -> None:
 
 def test_gateway_ignores_ids_not_in_table() -> None:
     links = build_links(RadioConfig(), 2, np.random.default_rng(0))
-    gw = RadioGateway(standard_routes(2, 4, True), links, pos_of)
+    gw = RadioGateway(standard_routes(2, 4, True, IDS), links, pos_of)
     assert gw.on_frame(0, 0x100, state(0.0), 0) == []  # head of the first train: nobody ahead
     assert gw.on_frame(0, 0x180, state(0.0), 0) == []  # a radio frame is never re-forwarded
     assert gw.on_frame(5, 0x103, state(0.0), 0) == []  # unknown bus
@@ -301,7 +304,7 @@ def test_gateway_ignores_ids_not_in_table() -> None:
 
 def test_single_unit_trains_fan_out_both_ways() -> None:
     links = build_links(RadioConfig(), 3, np.random.default_rng(0))
-    gw = RadioGateway(standard_routes(3, 1, False), links, pos_of)
+    gw = RadioGateway(standard_routes(3, 1, False, IDS), links, pos_of)
     out = gw.on_frame(1, 0x100, state(0.0), 5)
     assert sorted(out) == [(0, 0x188, state(0.0), 5), (2, 0x180, state(0.0), 5)]
 
@@ -309,7 +312,7 @@ def test_single_unit_trains_fan_out_both_ways() -> None:
 def test_gateway_judges_range_from_positions_in_frames() -> None:
     cfg = RadioConfig(range_m=1000.0, blackouts=[Blackout(start_m=10_000.0, end_m=10_500.0)])
     links = build_links(cfg, 2, np.random.default_rng(0))
-    gw = RadioGateway(standard_routes(2, 4, True), links, pos_of)
+    gw = RadioGateway(standard_routes(2, 4, True, IDS), links, pos_of)
     tail, head = 0x103, 0x100
     # train 2's head never heard yet: in range whatever the tail's position
     assert gw.on_frame(0, tail, state(5000.0), 0) != []
@@ -345,19 +348,19 @@ def test_gateway_errors_name_the_route() -> None:
     assert reverse_link_name("1>2") == "2>1"
 
 
-def test_frame_ids_match_the_dbc() -> None:
-    from pathlib import Path
-
+def test_the_routed_ids_are_the_dbcs(tmp_path) -> None:
+    """The gateway takes its IDs from the compiled DBC: a DBC with other radio IDs gives other routes."""
     import cantools
 
-    from hil.radio import gateway as g
+    from ecu_sim.codec import default_dbc_path
 
-    path = Path(__file__).resolve().parents[1] / "dbc" / "train.dbc"
-    if not path.exists():
-        pytest.skip("dbc/train.dbc not written yet")
-    db = cantools.database.load_file(str(path))
-    ids = {m.name: m.frame_id for m in db.messages}
-    assert ids["AgentState_U01"] == g.AGENT_STATE_BASE and ids["AgentState_U16"] == g.AGENT_STATE_BASE + 15
-    assert ids["AgentAux_U01"] == g.AGENT_AUX_BASE and ids["AgentAux_U16"] == g.AGENT_AUX_BASE + 15
-    assert ids["RadioAheadState"] == RADIO_AHEAD_STATE and ids["RadioAheadAux"] == RADIO_AHEAD_AUX
-    assert ids["RadioBehindState"] == RADIO_BEHIND_STATE and ids["RadioBehindAux"] == RADIO_BEHIND_AUX
+    names = {m.name: m.frame_id for m in cantools.database.load_file(str(default_dbc_path())).messages}
+    assert IDS.state[0] == names["AgentState_U01"] and IDS.aux[15] == names["AgentAux_U16"]
+    assert (IDS.ahead_state, IDS.behind_aux) == (names["RadioAheadState"], names["RadioBehindAux"])
+    text = default_dbc_path().read_text().replace("BO_ 384 RadioAheadState", "BO_ 400 RadioAheadState")
+    text = text.replace(" BO_ 384 ", " BO_ 400 ")  # its comments and attributes
+    other = tmp_path / "other.dbc"
+    other.write_text(text)
+    moved = RadioIds.from_db(TrainDb.load(other))
+    assert moved.ahead_state == 400
+    assert {r.dst_id for r in standard_routes(2, 4, False, moved)} == {400, IDS.behind_state}

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hil.layout import TrainLayout
-from hil.radio.gateway import AGENT_STATE_BASE, RADIO_AHEAD_STATE, RADIO_BEHIND_STATE, standard_routes
+from hil.radio.gateway import RadioIds, standard_routes
 from hil.runtime.ideal import IdealLoop
 from hil.runtime.firmware import neighbour_links
 from hil.runtime.virtual import VirtualRig
@@ -22,11 +22,12 @@ def test_a_single_unit_is_head_and_tail_with_radio_neighbours_both_ways():
     assert L.neighbours(2) == [(1, "inter", "ahead"), (3, "inter", "behind")]
     assert L.coupler_pairs().shape == (0, 2)
     rig = VirtualRig(sc)
+    ids = RadioIds.from_db(rig.db)
     links = neighbour_links(rig.db, L, True, 2)
-    assert [(nl.state_id, nl.side) for nl in links] == [(RADIO_AHEAD_STATE, "ahead"), (RADIO_BEHIND_STATE, "behind")]
+    assert [(nl.state_id, nl.side) for nl in links] == [(ids.ahead_state, "ahead"), (ids.behind_state, "behind")]
     # a middle train's one AgentState goes both ways: ahead to the train behind, behind to the train ahead
-    routes = [r for r in standard_routes(5, 1, True) if r.src_bus == 2 and r.src_id == AGENT_STATE_BASE]
-    assert {(r.dst_bus, r.dst_id) for r in routes} == {(3, RADIO_AHEAD_STATE), (1, RADIO_BEHIND_STATE)}
+    routes = [r for r in standard_routes(5, 1, True, ids) if r.src_bus == 2 and r.src_id == ids.state[0]]
+    assert {(r.dst_bus, r.dst_id) for r in routes} == {(3, ids.ahead_state), (1, ids.behind_state)}
 
 
 def test_single_unit_trains_run_end_to_end_over_can_and_radio():

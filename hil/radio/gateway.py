@@ -19,19 +19,31 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ecu_sim.codec import TrainDb
 from hil.radio.link import RadioLink
 from hil.scenario.model import RadioConfig
 
-# Frame IDs: these must match dbc/train.dbc (cross-checked against the DBC by a test).
-AGENT_STATE_BASE = 0x100  # AgentState of slot j is AGENT_STATE_BASE + j (0 = head)
-AGENT_AUX_BASE = 0x120  # AgentAux of slot j is AGENT_AUX_BASE + j
-RADIO_AHEAD_STATE = 0x180  # the train ahead's tail AgentState, as received by this train
-RADIO_AHEAD_AUX = 0x181
-RADIO_BEHIND_STATE = 0x188  # the train behind's head AgentState, as received by this train
-RADIO_BEHIND_AUX = 0x189
-MAX_SLOTS = AGENT_AUX_BASE - AGENT_STATE_BASE  # more units per train would collide with AgentAux IDs
 
 _RADIO_SEED_TAG = 0x5241_4449  # "RADI": keeps link seeds apart from other spawn() children of the same rng
+
+
+@dataclass(frozen=True)
+class RadioIds:
+    """The frame IDs the gateway routes, taken from the compiled DBC (its single source of truth)."""
+
+    state: tuple[int, ...]  # AgentState of unit slot j (0 = head)
+    aux: tuple[int, ...]  # AgentAux of unit slot j
+    ahead_state: int  # the train ahead's tail AgentState, as received by this train
+    ahead_aux: int
+    behind_state: int  # the train behind's head AgentState, as received by this train
+    behind_aux: int
+
+    @classmethod
+    def from_db(cls, db: TrainDb) -> "RadioIds":
+        slots = range(db.max_units)
+        return cls(tuple(db.agent_state(u).frame_id for u in slots), tuple(db.agent_aux(u).frame_id for u in slots),
+                   db.radio_ahead_state.frame_id, db.radio_ahead_aux.frame_id, db.radio_behind_state.frame_id,
+                   db.radio_behind_aux.frame_id)
 
 
 @dataclass(frozen=True)
@@ -121,22 +133,22 @@ class RadioGateway:
         return out
 
 
-def standard_routes(n_trains: int, units_per_train: int, forward_aux: bool) -> list[Route]:
+def standard_routes(n_trains: int, units_per_train: int, forward_aux: bool, ids: RadioIds) -> list[Route]:
     """The rig's routing table: tail <-> head of each adjacent pair, AgentState (and AgentAux) both ways."""
     if n_trains < 1:
         raise ValueError(f"n_trains must be >= 1, got {n_trains}")
-    if not 1 <= units_per_train <= MAX_SLOTS:
-        raise ValueError(f"units_per_train must be in 1..{MAX_SLOTS} (frame ID slots), got {units_per_train}")
+    if not 1 <= units_per_train <= len(ids.state):
+        raise ValueError(f"units_per_train must be in 1..{len(ids.state)} (the DBC's unit slots), got {units_per_train}")
     tail = units_per_train - 1
     routes: list[Route] = []
     for i in range(n_trains - 1):
         ahead, behind = link_name(i, i + 1), link_name(i + 1, i)
-        routes.append(Route(i, AGENT_STATE_BASE + tail, i + 1, RADIO_AHEAD_STATE, ahead))
+        routes.append(Route(i, ids.state[tail], i + 1, ids.ahead_state, ahead))
         if forward_aux:
-            routes.append(Route(i, AGENT_AUX_BASE + tail, i + 1, RADIO_AHEAD_AUX, ahead))
-        routes.append(Route(i + 1, AGENT_STATE_BASE, i, RADIO_BEHIND_STATE, behind))
+            routes.append(Route(i, ids.aux[tail], i + 1, ids.ahead_aux, ahead))
+        routes.append(Route(i + 1, ids.state[0], i, ids.behind_state, behind))
         if forward_aux:
-            routes.append(Route(i + 1, AGENT_AUX_BASE, i, RADIO_BEHIND_AUX, behind))
+            routes.append(Route(i + 1, ids.aux[0], i, ids.behind_aux, behind))
     return routes
 
 

@@ -18,7 +18,7 @@ import trainhil_engine as engine
 
 from ecu_sim.runtime import Ecu
 from hil.can.bus import Transmission
-from hil.radio.gateway import link_name, standard_routes
+from hil.radio.gateway import RadioIds, link_name, standard_routes
 from hil.radio.link import RadioLink
 from hil.record.runlog import BusLog
 from hil.scenario.model import CanConfig
@@ -111,7 +111,7 @@ class EngineBus:
 
 
 def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, RadioLink], units_per_train: int,
-                 forward_aux: bool, position_codecs) -> None:
+                 forward_aux: bool, position_codecs, ids: RadioIds) -> None:
     """The radio gateway in the engine: the links (their random numbers drawn by the Python ``RadioLink`` objects,
     so both models see the same losses and jitter), the routing table, and one gateway node per bus."""
     index: dict[str, int] = {}
@@ -122,7 +122,7 @@ def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, R
             name, cfg.range_m, [(b.start_m, b.end_m) for b in cfg.blackouts], link._latency_ns, link._period_ns,
             loss.model, loss.p, loss.p_good_to_bad, loss.p_bad_to_good, loss.loss_good, loss.loss_bad, link._bad,
             _refill(link))
-    for route in standard_routes(len(buses), units_per_train, forward_aux):
+    for route in standard_routes(len(buses), units_per_train, forward_aux, ids):
         src, dst = (int(t) - 1 for t in route.link.split(">"))
         net.add_route(route.src_bus, route.src_id, route.dst_bus, route.dst_id, index[route.link],
                       index.get(link_name(dst, src)))

@@ -22,7 +22,7 @@ from ecu_sim.runtime import Ecu
 from hil.can.bus import CanNode
 from hil.runtime.python_bus import VirtualCanBus
 from hil.layout import TrainLayout
-from hil.radio.gateway import RadioGateway, build_links, standard_routes
+from hil.radio.gateway import RadioGateway, RadioIds, build_links, standard_routes
 from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.record.safety import record_violations
@@ -132,7 +132,7 @@ class VirtualRig:
             links = build_links(self.sc.radio, n, self.parts.streams["radio"])
             position_codecs = [self.db.agent_state(k) for k in range(self.layout.units_per_train)]
             attach_radio(self.net, self.buses, links, self.layout.units_per_train, self.sc.radio.forward_aux,  # type: ignore[arg-type]
-                         position_codecs)
+                         position_codecs, RadioIds.from_db(self.db))
             return RadioGateway([], links, lambda fid, data: None), []  # its links carry the statistics
         gateway = build_gateway(self.sc, self.db, self.parts.streams["radio"])
         nodes = []
@@ -281,7 +281,7 @@ def build_gateway(sc: Scenario, db: TrainDb, radio_rng) -> RadioGateway:
     """The radio gateway of the scenario's trains (links, routing table, position decoder)."""
     layout = TrainLayout.from_config(sc.trains)
     links = build_links(sc.radio, layout.n_trains, radio_rng)
-    routes = standard_routes(layout.n_trains, layout.units_per_train, sc.radio.forward_aux)
+    routes = standard_routes(layout.n_trains, layout.units_per_train, sc.radio.forward_aux, RadioIds.from_db(db))
     position_ids = {db.agent_state(k).frame_id for k in range(layout.units_per_train)}
 
     def position_of(frame_id: int, data: bytes) -> float | None:
