@@ -30,9 +30,8 @@ from hil.faults.actuator import ActuatorFaults
 from hil.faults.bus import BusFaults, e2e_checker
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
-from hil.faults.schedule import SOURCE, FaultSchedule, fault_rng
+from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, fault_rng
 from hil.faults.sensor import SensorFaults
-from hil.faults.virtual import BUS_KINDS, RADIO_KINDS
 from hil.record.runlog import Event, RunLog
 
 ECU_KINDS = ("ecu_crash", "ecu_hang")

@@ -32,7 +32,7 @@ from typing import Any
 
 from hil.layout import TrainLayout
 from hil.record.runlog import Event, RunLog
-from hil.faults.schedule import SOURCE, label
+from hil.faults.schedule import BUS_KINDS, SOURCE, label
 
 GRACE_S = 3.0  # after a fault's end (radio contact is judged lost after 2 s)
 _ECU = r"^train\d+/unit\d+/ecu$"
@@ -48,7 +48,7 @@ def detectors(spec, layout: TrainLayout) -> list[tuple[str, str]]:
         return [(rf"^train{spec.train}/unit{spec.unit}/ecu$", r"^own sensor implausible")]
     if kind in ("actuator_degradation", "traction_loss"):
         return [(rf"^train{spec.train}/unit{spec.unit}/ecu$", r"^traction implausible")]
-    if kind in ("babbling_node", "bus_corruption", "bus_error_frames", "frame_drop"):
+    if kind in BUS_KINDS:
         T = spec.train
         ecus = rf"^train{T}/unit\d+/ecu$"
         failsafe = ("^plant$", rf"^train {T} unit \d+ \(#\d+\): no command")

@@ -25,6 +25,8 @@ def needs_fault_machinery(scenario: Scenario) -> bool:
     return bool(scenario.faults) or scenario.ecu.restart_after_s is not None
 
 SOURCE = "faults"
+BUS_KINDS = ("babbling_node", "bus_corruption", "bus_error_frames", "frame_drop")  # faults on a train's CAN bus
+RADIO_KINDS = ("radio_blackout", "radio_burst_loss", "radio_latency")  # faults on the train-to-train radio
 _SEED_TAG = 0x4641554C  # "FAUL": keeps fault draws apart from every other stream of the run seed
 
 

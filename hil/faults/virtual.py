@@ -14,13 +14,11 @@ from hil.faults.bus import BusFaults, e2e_checker
 from hil.faults.ecu import EcuFaults
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
-from hil.faults.schedule import SOURCE, FaultSchedule, ScheduledFault, fault_rng
+from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, ScheduledFault, fault_rng
 from hil.faults.sensor import SensorFaults
 from hil.record.runlog import RunLog
 from hil.runtime.kernel import to_ns
 
-BUS_KINDS = ("babbling_node", "bus_corruption", "bus_error_frames", "frame_drop")
-RADIO_KINDS = ("radio_blackout", "radio_burst_loss", "radio_latency")
 
 
 class VirtualFaults:

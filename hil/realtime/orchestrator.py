@@ -342,11 +342,11 @@ def _server_class(scenario: Scenario):
 def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int):
     """The run's fault machinery (hil/faults/realtime.py), or None without faults and restart policy."""
     from hil.faults.realtime import RealtimeFaults
+    from hil.faults.schedule import BUS_KINDS
 
     if not needs_fault_machinery(scenario):
         return None
-    if not servers and any(f.train for f in scenario.faults if f.kind in ("babbling_node", "bus_corruption",
-                                                                         "bus_error_frames", "frame_drop")):
+    if not servers and any(f.train for f in scenario.faults if f.kind in BUS_KINDS):
         raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
     from ecu_sim.codec import TrainDb
 
