@@ -35,6 +35,15 @@ pub enum Format {
 }
 
 impl Format {
+    /// Classical, or CAN FD with (`brs`) or without the bit-rate switch.
+    pub fn of(fd: bool, brs: bool) -> Format {
+        match (fd, brs) {
+            (false, _) => Format::Classical,
+            (true, false) => Format::Fd,
+            (true, true) => Format::FdBrs,
+        }
+    }
+
     pub fn is_fd(self) -> bool {
         self != Format::Classical
     }

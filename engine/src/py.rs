@@ -377,11 +377,7 @@ impl Network {
         if data_rate < bitrate {
             return Err(PyValueError::new_err(format!("data_bitrate {data_rate} is below the nominal bitrate {bitrate}")));
         }
-        let format = match (fd, brs) {
-            (false, _) => Format::Classical,
-            (true, false) => Format::Fd,
-            (true, true) => Format::FdBrs,
-        };
+        let format = Format::of(fd, brs);
         let bus = Bus::new(name, timing(bitrate, data_rate)?, policy(policy_name)?, depth, extended, load_window_ns).with_format(format);
         Ok(self.core.add_bus(bus))
     }
@@ -917,11 +913,7 @@ impl FrameLink {
     #[pyo3(signature = (frames, extended = false, fd = false, brs = true))]
     fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
         let mut out = Vec::with_capacity(frames.len() * crate::server::RECORD_SIZE);
-        let format = match (fd, brs) {
-            (false, _) => Format::Classical,
-            (true, false) => Format::Fd,
-            (true, true) => Format::FdBrs,
-        };
+        let format = Format::of(fd, brs);
         let flags = if extended { 1 } else { 0 } | crate::server::format_flags(format);
         let limit = if fd { crate::frame::MAX_DATA } else { 8 };
         for (id, data) in &frames {

@@ -129,11 +129,7 @@ pub fn filters_accept(filters: &Option<Vec<Filter>>, can_id: u32, extended: bool
 
 /// The format a FRAME record's flags give.
 pub fn record_format(flags: u8) -> Format {
-    match (flags & FLAG_FD != 0, flags & FLAG_BRS != 0) {
-        (false, _) => Format::Classical,
-        (true, false) => Format::Fd,
-        (true, true) => Format::FdBrs,
-    }
+    Format::of(flags & FLAG_FD != 0, flags & FLAG_BRS != 0)
 }
 
 /// The FRAME record flags of a transmission.
