@@ -1,16 +1,15 @@
 """The firmware's line database: grade and curve resistance per kg at a position, for feed-forward.
 
 A real onboard unit knows the line's gradient and curve profile from its track database; here it is
-configured from a scenario-style ``TrackConfig`` (usually the scenario's own ``[track]``, copied into
-the law's parameters). The tables are built by the plant's ``TrackProfile`` (one format, one set of
-segment checks); the lookup is a scalar ``bisect`` because a law asks for one position per cycle.
+configured from a ``TrackConfig`` (usually the scenario's own ``[track]``, copied into the law's parameters).
+The tables are ``ecu_sim.track.TrackProfile``'s, as the plant's (one format, one set of segment checks); the
+lookup is a scalar ``bisect`` because a law asks for one position per cycle.
 """
 from __future__ import annotations
 
 import bisect
 
-from hil.plant.track import TrackProfile
-from hil.scenario.model import TrackConfig
+from ecu_sim.track import TrackConfig, TrackProfile
 
 
 class LineMap:

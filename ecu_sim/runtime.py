@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 from trainhil_engine import Mailbox
 
@@ -35,11 +35,19 @@ from ecu_sim.codec import MessageCodec, TrainDb
 from ecu_sim.controllers.base import Controller
 from ecu_sim.e2e import E2EStatus
 from ecu_sim.view import AgentInfo, BrakeMode, Command, LocalView, NeighbourView, ReferenceView
-from hil.scenario.model import EcuConfig
 
 INF = float("inf")
 _EMERGENCY = BrakeMode.EMERGENCY
 _SERVICE = BrakeMode.SERVICE
+
+
+class EcuSettings(Protocol):
+    """What the firmware reads of its configuration (the rig passes its scenario's ``[ecu]`` section)."""
+
+    cycle_s: float  # control period
+    neighbour_timeout_s: float  # older neighbour data is dropped
+    reference_timeout_s: float  # older reference: service brake
+    radio_contact_timeout_s: float  # no train ahead for this long: emergency brake
 
 
 class SlotChecker:
@@ -132,7 +140,7 @@ class Ecu:
     """One power unit's onboard controller."""
 
     def __init__(self, name: str, agent: AgentInfo, controller: Controller, db: TrainDb,
-                 neighbours: list[NeighbourLink], cfg: EcuConfig, sample_period_s: float = 0.01) -> None:
+                 neighbours: list[NeighbourLink], cfg: EcuSettings, sample_period_s: float = 0.01) -> None:
         self.name = name
         self.agent = agent
         self.controller = controller

@@ -12,7 +12,7 @@ from ecu_sim.view import BrakeMode
 from hil.layout import TrainLayout
 from hil.plant import Plant, PlantDiverged
 from hil.plant import dynamics
-from hil.plant.track import G
+from ecu_sim.track import G
 from hil.scenario.model import PlantConfig, TrackConfig, TrainsConfig
 
 M = 80e3

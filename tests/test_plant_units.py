@@ -8,7 +8,7 @@ from pydantic import ValidationError
 
 from hil.layout import TrainLayout
 from hil.plant import Plant
-from hil.plant.track import G
+from ecu_sim.track import G
 from hil.plant.units import specific_to_per_kg, unit_params
 from hil.scenario.model import PlantConfig, Scenario, TrackConfig, TrainsConfig
 

@@ -17,7 +17,7 @@ from ecu_sim.controllers.base import Controller, ControllerParams, PlantInfo
 from ecu_sim.controllers.common import usable_neighbours
 from ecu_sim.line_map import LineMap
 from ecu_sim.view import AgentInfo, LocalView, NeighbourView
-from hil.scenario.model import TrackConfig
+from ecu_sim.track import TrackConfig
 
 
 class MultiTrainParams(ControllerParams):

@@ -54,7 +54,7 @@ from scipy.linalg import expm
 from hil.layout import TrainLayout
 from hil.plant.actuators import Actuators
 from hil.plant.disturbances import Disturbances
-from hil.plant.track import TrackProfile
+from ecu_sim.track import TrackProfile
 from hil.plant.units import unit_params
 from hil.scenario.model import PlantConfig, TrackConfig
 

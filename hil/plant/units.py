@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hil.layout import TrainLayout
-from hil.plant.track import G
+from ecu_sim.track import G
 from hil.scenario.model import PlantConfig, UnitValues
 
 KMH_PER_MPS = 3.6

@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
 
 from hil.scenario.checks import scenario_inconsistency, wrong_kind
+from ecu_sim.track import MAX_SEGMENTS, CurveSegment, GradeSegment, TrackConfig  # noqa: F401 (the [track] schema)
 
 KMH = 1.0 / 3.6
 
@@ -21,7 +22,6 @@ KMH = 1.0 / 3.6
 MAX_DURATION_S = 1e7  # 116 days of simulated time
 MAX_PERIOD_S = 10.0  # ECU phases and staggers
 MAX_RADIO_DELAY_S = 60.0  # a train radio that delays a frame longer than a minute is down, not slow
-MAX_SEGMENTS = 10_000  # track, reference and blackout segments per list
 MIN_BITRATE = 125_000  # the slowest CAN bitrate the rig offers
 MAX_DATA_BITRATE = 10_000_000  # CAN FD data phase: 8 Mbit/s is common with SIC transceivers, 10 the upper end
 
@@ -342,24 +342,6 @@ class PlantConfig(Section):
 
 
 # --------------------------------------------------------------------------- track & reference
-
-
-class GradeSegment(Section):
-    start_m: float
-    end_m: float
-    grade_permille: float = Field(description="+ = uphill")
-
-
-class CurveSegment(Section):
-    start_m: float
-    end_m: float
-    radius_m: float = Field(gt=0)
-
-
-class TrackConfig(Section):
-    grades: list[GradeSegment] = Field(default=[], max_length=MAX_SEGMENTS)
-    curves: list[CurveSegment] = Field(default=[], max_length=MAX_SEGMENTS)
-    curve_coefficient: float = Field(default=600.0, description="curve resistance per kg = g * coefficient / R / 1000")
 
 
 class SpeedSegment(Section):

@@ -1,15 +1,41 @@
-"""Track profile: grade and curve resistance per kg as piecewise-constant functions of position.
+"""The line's description: grade and curve segments, and their resistance per kg as piecewise-constant tables.
 
-Segments are looked up for all units at once with one ``np.searchsorted`` on the sorted
-breakpoints of all grade and curve segments; outside every segment grade and curvature are 0.
+One description serves both sides: the firmware's line database (``ecu_sim.line_map``) and the plant's physics
+(``hil.plant.dynamics``); the scenario's ``[track]`` section is a ``TrackConfig``. Segments are looked up for all
+units at once with one ``np.searchsorted`` on the sorted breakpoints of all segments; outside every segment
+grade and curvature are 0.
 """
 from __future__ import annotations
 
 import numpy as np
-
-from hil.scenario.model import TrackConfig
+from pydantic import BaseModel, ConfigDict, Field
 
 G = 9.81  # m/s^2
+MAX_SEGMENTS = 10_000  # segments per list (a bound, so that a hostile file cannot exhaust memory)
+
+
+class _Strict(BaseModel):
+    """Unknown keys and values of the wrong kind are errors; immutable; no NaN or infinity."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+
+class GradeSegment(_Strict):
+    start_m: float
+    end_m: float
+    grade_permille: float = Field(description="+ = uphill")
+
+
+class CurveSegment(_Strict):
+    start_m: float
+    end_m: float
+    radius_m: float = Field(gt=0)
+
+
+class TrackConfig(_Strict):
+    grades: list[GradeSegment] = Field(default=[], max_length=MAX_SEGMENTS)
+    curves: list[CurveSegment] = Field(default=[], max_length=MAX_SEGMENTS)
+    curve_coefficient: float = Field(default=600.0, description="curve resistance per kg = g * coefficient / R / 1000")
 
 
 def _check_segments(name: str, segments: list) -> None:
