@@ -41,10 +41,7 @@ class EcuFaults:
         u = self.unit(spec)
         rig = self.rig
         rig.ecus[u].alive = False
-        node = rig._ecu_nodes[u]
-        bus = rig.buses[rig.layout.train_unit(u)[0]]
-        if node in bus.nodes:
-            bus.detach(node)
+        rig.disconnect_ecu(u)
         self.down[u] = "crash"
         if spec.duration_s is None and self.restart_after_s is not None:
             self._later(t + self.restart_after_s, self._restart_event, (u, "crash", "watchdog"))
@@ -85,10 +82,7 @@ class EcuFaults:
         why = self.down.pop(u, "?")
         ecu.restart()
         if why == "crash":
-            train, unit = rig.layout.train_unit(u)
-            on_frame = ecu.on_frame
-            rig._ecu_nodes[u] = rig.buses[train].attach(f"ECU_U{unit + 1:02d}",
-                                                        lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
+            rig.reconnect_ecu(u)
         self.restarts += 1
         self.event(t, "INFO", ecu.name, f"restarted with a reset controller ({by}, after {'a' if why != 'error' else 'a controller'} "
                                         f"{'crash' if why == 'crash' else 'hang' if why == 'hang' else 'error'})")

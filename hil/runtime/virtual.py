@@ -113,16 +113,28 @@ class VirtualRig:
         return self.buses[i].attach("Plant", on_rx, set(self.plant_io.cmd_unit[i]))
 
     def _attach_ecu(self, u: int, ecu_factory: EcuFactory) -> None:
-        train, unit = self.layout.train_unit(u)
         ecu = ecu_factory(self.parts, self.db, u)
+        self.ecus.append(ecu)
+        self._ecu_nodes.append(self._ecu_node(u, ecu))
+
+    def _ecu_node(self, u: int, ecu: Ecu) -> CanNode | int:
+        """Unit u's ECU node on its train's bus, delivering into the ECU (mailboxes, or on_frame per frame)."""
+        train, unit = self.layout.train_unit(u)
         name, bus = f"ECU_U{unit + 1:02d}", self.buses[train]
         if isinstance(bus, EngineBus):
-            node = bus.attach_ecu(name, ecu)
-        else:
-            on_frame = ecu.on_frame
-            node = bus.attach(name, lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
-        self.ecus.append(ecu)
-        self._ecu_nodes.append(node)
+            return bus.attach_ecu(name, ecu)
+        on_frame = ecu.on_frame
+        return bus.attach(name, lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
+
+    def disconnect_ecu(self, u: int) -> None:
+        """Unit u's ECU leaves its bus (a crash): its queued frames are dropped and counted."""
+        node, bus = self._ecu_nodes[u], self.buses[self._train_of[u]]
+        if node in bus.nodes:
+            bus.detach(node)
+
+    def reconnect_ecu(self, u: int) -> None:
+        """Unit u's ECU joins its bus again (a restart after a crash), as a new node."""
+        self._ecu_nodes[u] = self._ecu_node(u, self.ecus[u])
 
     def _attach_radio(self) -> tuple[RadioGateway | None, list[CanNode]]:
         n = self.layout.n_trains
