@@ -18,8 +18,7 @@ from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.plant.dynamics import PlantDiverged
 from hil.record.integrity import StopSignals, mark_running, write_json_atomic
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
-from hil.record.metrics import compute_metrics
-from hil.record.provenance import provenance
+from hil.record.metrics import run_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog
 from hil.runtime.ideal import IdealLoop
@@ -148,12 +147,8 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
         if writer:
             writer.close()
     try:
-        metrics = compute_metrics(log, scenario.plant.coupler_band_m)
-        metrics["scenario"] = scenario.name
-        metrics["runtime"] = runtime
-        metrics["provenance"] = provenance(scenario, runtime, scenario.seed if seed is None else seed,
-                                           overrides=overrides, source=source)
-        metrics["interrupted"] = log.interrupted
+        metrics = run_metrics(log, scenario, runtime, scenario.seed if seed is None else seed, overrides=overrides,
+                              source=source)
         if failure is not None:
             metrics["error"] = f"{type(failure).__name__}: {failure}"
         write_json_atomic(out_dir / "metrics.json", metrics)

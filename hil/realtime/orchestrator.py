@@ -56,8 +56,7 @@ from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget
 from hil.record import paths
 from hil.record.integrity import mark_running, write_json_atomic
-from hil.record.metrics import compute_metrics
-from hil.record.provenance import provenance
+from hil.record.metrics import run_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.safety import record_violations
@@ -267,13 +266,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     if tail is not None:  # the rest of the run to the viewer: the signals it has not seen, buses, events, timing
         _write_log(tail.writer, log, nodes_dir, signals_from=tail.sent)
         tail.close()
-    metrics = compute_metrics(log, scenario.plant.coupler_band_m)
+    metrics = run_metrics(log, scenario, "realtime", seed, pace=float(pace), overrides=overrides, source=source)
     metrics.update(extra)
-    metrics["scenario"] = scenario.name
-    metrics["runtime"] = "realtime"
-    metrics["pace"] = float(pace)
-    metrics["provenance"] = provenance(scenario, "realtime", seed, pace=float(pace), overrides=overrides, source=source)
-    metrics["interrupted"] = log.interrupted
     if stop_reason and stop_reason not in SIGNAL_NAMES:
         metrics["stopped_early"] = stop_reason  # a node died or hung: the run could not go on (hil run: exit 1)
     missing = join.missing() if join is not None and join.waiting and not stop.requested else None

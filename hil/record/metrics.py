@@ -268,3 +268,19 @@ def _events_by_level(log: RunLog) -> dict[str, int]:
     for ev in log.events:
         counts[ev.level] = counts.get(ev.level, 0) + 1
     return counts
+
+
+def run_metrics(log: RunLog, scenario, runtime: str, seed: int, *, pace: float | None = None,
+                overrides: dict | None = None, source: str | None = None) -> dict[str, Any]:
+    """The metrics.json document of a run in either runtime: the metrics, what ran (scenario, runtime, pace) and
+    its provenance, and whether it was interrupted."""
+    from hil.record.provenance import provenance
+
+    metrics = compute_metrics(log, scenario.plant.coupler_band_m)
+    metrics["scenario"] = scenario.name
+    metrics["runtime"] = runtime
+    if pace is not None:
+        metrics["pace"] = float(pace)
+    metrics["provenance"] = provenance(scenario, runtime, seed, pace=pace, overrides=overrides, source=source)
+    metrics["interrupted"] = log.interrupted
+    return metrics
