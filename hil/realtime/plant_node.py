@@ -45,6 +45,7 @@ from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, li
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
+from hil.runtime.plant_step import plant_step
 
 SAVE_EVERY_WALL_S = 5.0  # the plant's data so far is saved this often (a plant killed mid-run leaves it)
 STREAM_EVERY_WALL_S = 0.25  # new signal rows are appended to DIR/signals.bin this often (the live view reads it)
@@ -190,15 +191,7 @@ class PlantNode:
         timestamp) at t acts from the first step starting at or after t, as in the virtual rig."""
         plant, log, every_record, step = self.plant, self.log, self.every["record"], self.sc.plant.step_s
         while self.tick < k:
-            if self.tick % every_record == 0:
-                t = self.tick * step
-                x_r, v_r = self.parts.reference.at(t)
-                log.add_sample(t, x_r, v_r, plant.x, plant.v, plant.a, plant.force_cmd, plant.force_applied)
-            plant.step()
-            if plant.events:
-                for te, level, text in plant.events:
-                    log.event(te, level, "plant", text)
-                plant.events.clear()
+            plant_step(plant, self.parts.reference, log, self.tick * step, self.tick % every_record == 0)
             self.tick += 1
 
     def results(self, stats: LatenessStats) -> dict:

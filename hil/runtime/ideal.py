@@ -17,6 +17,7 @@ from hil.record.safety import record_violations
 from hil.runtime.firmware import refuse_external_units
 from hil.runtime.assembly import Assembly, assemble
 from hil.runtime.kernel import to_ns
+from hil.runtime.plant_step import plant_step
 from hil.scenario.model import Scenario
 
 
@@ -74,13 +75,7 @@ class IdealLoop:
             t = k * step_s
             if k % self._control_every == 0:
                 self._control(t)
-            if k % self._record_every == 0:
-                x_r, v_r = ref.at(t)
-                log.add_sample(t, x_r, v_r, plant.x, plant.v, plant.a, plant.force_cmd, plant.force_applied)
-            plant.step()
-            for te, level, text in plant.events:
-                log.event(te, level, "plant", text)
-            plant.events.clear()
+            plant_step(plant, ref, log, t, k % self._record_every == 0)
         log.sim_time_s = plant.t
         log.wall_time_s = time.perf_counter() - wall0
         record_violations(log, self.sc.plant.coupler_band_m)  # every safety violation on the timeline

@@ -20,6 +20,7 @@ import trainhil_engine as engine
 from ecu_sim.codec import TrainDb
 from ecu_sim.runtime import Ecu
 from hil.can.bus import CanNode
+from hil.runtime.plant_step import plant_step
 from hil.runtime.python_bus import VirtualCanBus
 from hil.layout import TrainLayout
 from hil.radio.gateway import RadioGateway, RadioIds, build_links, standard_routes
@@ -184,14 +185,7 @@ class VirtualRig:
         self._tick += 1
         if tick % self._sensor_every == 0:
             self._publish_sensors()
-        if tick % self._record_every == 0:
-            x_r, v_r = self.parts.reference.at(t_ns * 1e-9)
-            self.log.add_sample(t_ns * 1e-9, x_r, v_r, plant.x, plant.v, plant.a, plant.force_cmd, plant.force_applied)
-        plant.step()
-        if plant.events:
-            for t, level, text in plant.events:
-                self.log.event(t, level, "plant", text)
-            plant.events.clear()
+        plant_step(plant, self.parts.reference, self.log, t_ns * 1e-9, tick % self._record_every == 0)
 
     def _apply_commands(self) -> None:
         """The TractionCmd frames the engine delivered to the plant since the last step, in arrival order: checked
