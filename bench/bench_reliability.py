@@ -32,8 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hil.can.errors import corrupt, receive, wire_bits  # noqa: E402
-from hil.scenario import ScenarioError, load_scenario  # noqa: E402
-from hil.scenario.loader import read_toml, resolve, scenario_from_dict  # noqa: E402
+from hil.scenario import load_scenario  # noqa: E402
+from hil.scenario.loader import read_scenario_data, resolve, scenario_from_dict  # noqa: E402
 from hil.scenario.model import FAULT_KINDS  # noqa: E402
 
 SLOT_S = 12.0  # one fault per slot in a campaign run
@@ -72,7 +72,7 @@ def packaged(duration: float, out: Path, realtime: bool) -> dict:
 
 
 def small_scenario(faults: list[dict], duration: float, seed: int):
-    data = read_toml(resolve("seed000-consensus"), ScenarioError)
+    data = read_scenario_data(resolve("seed000-consensus"))
     data.update(name="campaign", duration_s=duration, seed=seed, faults=faults)
     data["trains"].update(count=2, units=2, head_positions_m=[109000.0, 105840.0], speeds_kmh=[316.0, 316.0])
     return scenario_from_dict(data, "campaign")

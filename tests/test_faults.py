@@ -12,14 +12,14 @@ import pytest
 from ecu_sim.diagnostics import SensorPlausibility
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import ScenarioError, load_scenario
-from hil.scenario.loader import read_toml, resolve, scenario_from_dict
+from hil.scenario.loader import read_scenario_data, resolve, scenario_from_dict
 
 FAULTS = "faults"
 
 
 def small(faults: list[dict], duration: float = 6.0, **ecu) -> "Scenario":  # noqa: F821
     """2 trains x 2 units of seed000-consensus, started near their slots, with ``faults``."""
-    data = read_toml(resolve("seed000-consensus"), ScenarioError)
+    data = read_scenario_data(resolve("seed000-consensus"))
     data.update(name="small-faults", duration_s=duration, faults=faults)
     data["trains"].update(count=2, units=2, head_positions_m=[109000.0, 105840.0], speeds_kmh=[316.0, 316.0])
     data.setdefault("ecu", {}).update(ecu)

@@ -7,6 +7,7 @@ same scenario whatever files and ``--set`` options produced it.
 from __future__ import annotations
 
 import hashlib
+import json
 import platform
 from typing import Any
 
@@ -14,8 +15,9 @@ from hil.scenario.model import Scenario
 
 
 def scenario_hash(sc: Scenario) -> str:
-    """sha256 of the resolved scenario (hex)."""
-    return hashlib.sha256(sc.model_dump_json().encode()).hexdigest()
+    """sha256 (hex) of the resolved scenario as canonical JSON: keys sorted, so the order in which a file lists a
+    table's keys (or the one an ``extends`` merge leaves) does not change it."""
+    return hashlib.sha256(json.dumps(sc.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
 
 
 def provenance(sc: Scenario, runtime: str, seed: int, *, pace: float | None = None,

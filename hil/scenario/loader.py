@@ -102,10 +102,69 @@ def read_toml(path: Path, error: type[ValueError]) -> dict[str, Any]:
         raise error(f"{path}: cannot read: {exc.strerror}") from None
 
 
+MAX_EXTENDS = 8  # a chain of scenario files extending each other longer than this is a mistake
+
+
+def read_scenario_data(path: Path, error: type[ValueError] = ScenarioError, _chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A scenario file's table with its ``extends`` resolved: the base scenario (a packaged name, or a path
+    relative to this file) deep-merged under this file's own keys. Tables merge key by key; a value or an array
+    replaces the base's; a ``controller.law`` other than the base's brings only its own ``controller.params``
+    (another law's parameters would not fit it)."""
+    data = read_toml(path, error)
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base.strip():
+        raise error(f"{path}: extends: expected a packaged scenario name or a path to a .toml file, got {base!r}")
+    chain = (*_chain, path.resolve())
+    if len(chain) > MAX_EXTENDS:
+        raise error(f"{path}: extends: more than {MAX_EXTENDS} files extend each other")
+    base_path = _extends_path(base, path, error)
+    if base_path.resolve() in chain:
+        names = " -> ".join(p.name for p in (*chain, base_path))
+        raise error(f"{path}: extends: a cycle ({names})")
+    base_data = read_scenario_data(base_path, error, chain)
+    merged = deep_merge(base_data, data)
+    own = data.get("controller")
+    if isinstance(own, dict) and "law" in own and own["law"] != _table(base_data, "controller").get("law"):
+        merged["controller"]["params"] = dict(_table(own, "params"))  # a new law: its own parameters only
+    return merged
+
+
+def _table(data: dict[str, Any], key: str) -> dict[str, Any]:
+    value = data.get(key)
+    return value if isinstance(value, dict) else {}
+
+
+def _extends_path(base: str, path: Path, error: type[ValueError]) -> Path:
+    """The file ``extends = base`` names: a path relative to ``path``'s folder, else a packaged scenario."""
+    local = path.parent / base
+    if base.endswith(".toml") or local.exists():
+        if not local.is_file():
+            raise error(f"{path}: extends: no such scenario file {local}")
+        return local
+    known = packaged_scenarios()
+    if base not in known:
+        raise error(f"{path}: extends: unknown scenario {base!r}: not a file next to it, and not a packaged scenario "
+                    f"({', '.join(known)})")
+    return known[base]
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` on top: tables merge key by key, anything else in ``over`` replaces."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
 def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
     """Read, parse and validate a scenario; every failure is a ScenarioError naming the file."""
     path = resolve(name_or_path)
-    return scenario_from_dict(read_toml(path, ScenarioError), str(path), overrides)
+    return scenario_from_dict(read_scenario_data(path), str(path), overrides)
 
 
 def parse_assignment(text: str) -> tuple[str, object]:

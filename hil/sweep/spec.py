@@ -34,7 +34,6 @@ import hashlib
 import itertools
 import json
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,6 +44,7 @@ from hil.scenario.loader import (
     ScenarioError,
     format_validation_errors,
     packaged_files,
+    read_scenario_data,
     read_toml,
     resolve,
     resolve_packaged,
@@ -273,8 +273,8 @@ def _resolve_base(base: str, source: str, base_dir: Path) -> Path:
 
 def _read_base(path: Path, source: str) -> dict[str, Any]:
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError) as exc:
+        return read_scenario_data(path)
+    except ScenarioError as exc:
         raise SweepError(f"{source}: base {path}: cannot read: {exc}") from None
 
 

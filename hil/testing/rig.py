@@ -86,7 +86,7 @@ def build_scenario(scenario: str | Path | Scenario, overrides: dict[str, Any] | 
     ScenarioError names the file and the field on bad input, like ``hil run``. As in sweeps, a law different from
     the scenario's gets its own default parameters unless parameters are given (``params`` or
     ``controller.params...`` keys)."""
-    from hil.scenario.loader import read_toml, resolve, ScenarioError
+    from hil.scenario.loader import read_scenario_data, resolve
 
     sets = dict(overrides or {})
     if controller is not None:
@@ -99,7 +99,7 @@ def build_scenario(scenario: str | Path | Scenario, overrides: dict[str, Any] | 
         data, source = scenario.model_dump(), f"<scenario {scenario.name}>"
     else:
         path = resolve(scenario)
-        data, source = read_toml(path, ScenarioError), str(path)
+        data, source = read_scenario_data(path), str(path)
     base_law = (data.get("controller") or {}).get("law")
     if "controller.law" in sets and sets["controller.law"] != base_law \
             and not any(k == "controller" or k.startswith("controller.params") for k in sets):
