@@ -1,4 +1,4 @@
-"""Reliability benchmark (issue 7): faults injected vs detected, frames corrupted vs rejected, recordings intact
+"""Reliability benchmark: faults injected vs detected, frames corrupted vs rejected, recordings intact
 after N random kills.
 
     python bench/bench_reliability.py                                   # every part with the defaults

@@ -3,7 +3,7 @@
 Every run is a distinct grid point (a seed), timed end to end through ``run_sweep`` (pool start-up, runs,
 files, results.csv). With ``--sim`` below 600 the figure "per 600 s run" is scaled by sim/600, which assumes
 the cost grows linearly with simulated time (it does, up to a constant start-up per run of about 0.1 s), and
-says so. Target (issue 6): speed-up >= 1.7 with 2 workers on 2 cores.
+says so. Target: speed-up >= 1.7 with 2 workers on 2 cores.
     python bench/bench_sweep.py [--sim 600] [--runs 4] [--workers 1,2]
 """
 from __future__ import annotations

@@ -39,10 +39,12 @@ class AgentInfo:
 
     @property
     def is_head(self) -> bool:
+        """The first unit of its train (for user laws; the packaged ones read the layout themselves)."""
         return self.unit == 0
 
     @property
     def is_tail(self) -> bool:
+        """The last unit of its train."""
         return self.unit == self.n_units - 1
 
 

@@ -1,4 +1,4 @@
-"""Bus load never exceeds 1 (issue 14: a sweep showed bus_load_max = 1.0086). The cause was that a frame counted
+"""Bus load never exceeds 1 (a sweep once showed bus_load_max = 1.0086). The cause was that a frame counted
 wholly in the load window its transmission ends in: one that straddles a boundary put more than a window's time
 into the later one. Each window now gets its own part of the frame, in both bus models."""
 from __future__ import annotations

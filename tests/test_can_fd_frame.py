@@ -1,4 +1,4 @@
-"""CAN FD frame timing in the engine (ISO 11898-1:2015), issue 15 item 1: against frames worked out by hand and
+"""CAN FD frame timing in the engine (ISO 11898-1:2015): against frames worked out by hand and
 against an independent bit-by-bit count written here in Python (dynamic stuffing through the data field, the
 stuff count and CRC-17/21 with their fixed stuff bits, the arbitration phase and the tail at the nominal rate)."""
 from __future__ import annotations

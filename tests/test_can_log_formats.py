@@ -1,4 +1,4 @@
-"""CAN logs in ASC, BLF and MF4 (issue 14), in both runtimes: python-can reads each back with the same frames,
+"""CAN logs in ASC, BLF and MF4, in both runtimes: python-can reads each back with the same frames,
 cantools decodes the BLF with the DBC, and bus N is channel N in the ASC/BLF files (channel N-1 read back by
 python-can) in the rig's logs and in python -m can.logger's."""
 from __future__ import annotations

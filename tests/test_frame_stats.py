@@ -1,5 +1,5 @@
 """The bus statistics kept as frames come (hil/can/frame_stats.py): the same figures as computed from every row,
-while the rows themselves can be let go once recorded (issue 16: memory that does not grow with the frames)."""
+while the rows themselves can be let go once recorded (memory that does not grow with the frames)."""
 from __future__ import annotations
 
 import numpy as np

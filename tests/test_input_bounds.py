@@ -1,4 +1,4 @@
-"""Validation gaps of issue 16 (item 5) and its smaller items (6): physical bounds instead of tracebacks, hangs
+"""Validation gaps: physical bounds instead of tracebacks, hangs
 or overflows; output directories that cannot be made; names that cannot name a directory; faults that will never
 fire; node names that could forge log lines; unknown flag bits; empty run directories; a squatted runtime root."""
 from __future__ import annotations

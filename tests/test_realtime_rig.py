@@ -26,7 +26,7 @@ from hil.realtime.busserver import BusServer
 from hil.realtime.orchestrator import run_realtime
 from hil.realtime.paths import remove_run_dir
 from hil.realtime.pacing import LatenessStats, SimClock
-from hil.record import blueprint as bp
+from hil.record import paths
 from hil.runtime.virtual import run_virtual
 from hil.scenario import load_scenario
 from tests.rrd_reader import read_component, read_scalars
@@ -182,17 +182,17 @@ def test_realtime_seed000_with_an_ecu_killed(rt, tmp_path):
     assert virt_keys <= set(saved)
     assert {"cycle_lateness_p99_s", "cycle_deadline_misses", "e2e_latency_p99_s"} <= set(saved)
     series = read_scalars(out / "run.rrd")
-    t, v = series[bp.unit_path(0, 0, "speed_kmh")]
+    t, v = series[paths.unit_path(0, 0, "speed_kmh")]
     assert len(t) == len(log.t) and np.allclose(v, log.v[:, 0] * 3.6)
-    assert bp.bus_path("bus1", "load") in series and bp.gap_path(1) in series
+    assert paths.bus_path("bus1", "load") in series and paths.gap_path(1) in series
     # the timing instrumentation is in the recording too (the killed process left no timing of its own)
     for entity in ("/timing/plant/lateness_ms", "/timing/e2e_latency_ms", "/timing/train2/unit1/ecu_lateness_ms"):
         t, ms = series[entity]
         assert len(t) > 100 and np.all(ms >= 0.0), entity
     assert "/timing/train1/unit1/ecu_lateness_ms" not in series
     # a wall-clock timeline beside sim time: wall = T0 + sim / pace
-    t_sim, _ = read_component(out / "run.rrd", bp.unit_path(0, 0, "speed_kmh"), "Scalars:scalars")
-    t_wall, _ = read_component(out / "run.rrd", bp.unit_path(0, 0, "speed_kmh"), "Scalars:scalars", timeline="wall_time")
+    t_sim, _ = read_component(out / "run.rrd", paths.unit_path(0, 0, "speed_kmh"), "Scalars:scalars")
+    t_wall, _ = read_component(out / "run.rrd", paths.unit_path(0, 0, "speed_kmh"), "Scalars:scalars", timeline="wall_time")
     assert len(t_wall) == len(t_sim) > 10
     np.testing.assert_allclose((t_wall - t_wall[0]) * 1e-9, (t_sim - t_sim[0]) / PACE, atol=1e-6)
 
@@ -206,8 +206,8 @@ def _virtual_metric_keys(sc) -> list[str]:
 def test_sigterm_to_the_orchestrator_stops_everything_and_keeps_the_files(rt, tmp_path):
     out = tmp_path / "rt"
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "hil.realtime.orchestrator", "seed000", "--out", str(out),
-                             "--pace", str(PACE), "--duration", "60", "--ecus-per-process", "6"],
+    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", "seed000", "--realtime", "--out", str(out),
+                             "--pace", str(PACE), "--duration", "60", "--ecus-per-process", "6", "--quiet"],
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         orch = psutil.Process(proc.pid)

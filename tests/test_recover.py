@@ -1,4 +1,4 @@
-"""A real-time rig killed with SIGKILL (issue 16, item 3): what the nodes recorded is recoverable with
+"""A real-time rig killed with SIGKILL: what the nodes recorded is recoverable with
 ``hil recover`` into a readable recording and metrics that say what was lost, and the next run removes the dead
 run directory the killed rig left."""
 from __future__ import annotations

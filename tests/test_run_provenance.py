@@ -1,4 +1,4 @@
-"""What a new user trips over (issue 14): a run says what produced it, a second run does not silently replace the
+"""What a new user trips over: a run says what produced it, a second run does not silently replace the
 first, and sweep plots label values that differ by little, and bit rates, readably."""
 from __future__ import annotations
 

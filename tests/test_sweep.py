@@ -275,7 +275,7 @@ def test_metrics_flatten_to_columns_with_per_item_tables_summed():
 
 
 def test_results_keep_one_column_per_verdict_and_the_violations_go_to_a_side_file(pool_sweep):
-    """issue 14: results.csv had 410 columns, mostly safety.*.violations_N.*"""
+    """results.csv once had 410 columns, mostly safety.*.violations_N.*: one per verdict now."""
     import csv
 
     spec, res = pool_sweep

@@ -192,7 +192,7 @@ def test_bus_server_command_with_tcp_publishes_the_endpoint_and_accepts_the_toke
 
 
 def test_connections_without_the_token_cannot_take_the_owners_slots(rt, server_cls):
-    """The attack of issue 16 (item 2): another local user opens TCP connections and never shows the token. They
+    """The slot-exhaustion attack: another local user opens TCP connections and never shows the token. They
     have their own budget (MAX_UNAUTHENTICATED) and deadline (AUTH_TIMEOUT_S): the owner's unix-socket and
     authenticated nodes still join, up to max_clients, and whoever is refused is told why."""
     with server_cls("r1", "bus1", 500_000, tcp=True, max_clients=4) as srv:

@@ -70,10 +70,6 @@ class UnitParams:
     configured: dict[str, list[float]] = field(default_factory=dict)  # per-unit values that were given or drawn
 
     @property
-    def per_unit_davis(self) -> bool:
-        return isinstance(self.c0, np.ndarray)
-
-    @property
     def actuator_shaped(self) -> bool:
         """True when the actuator chain changes the commanded force (lambda or rho not all 1)."""
         return bool(np.any(self.distribution != 1.0) or np.any(self.slope != 1.0))

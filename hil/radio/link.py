@@ -158,11 +158,6 @@ class RadioLink:
         stats["delivered"] += 1
         return deliver
 
-    @property
-    def in_bad_state(self) -> bool:
-        """Current Gilbert-Elliott state (False for the other loss models)."""
-        return self._bad and self._loss_model == "gilbert_elliott"
-
 
 def loss_rate_expected(cfg: RadioConfig) -> float:
     """Long-run loss probability of the configured loss model (pi_good*loss_good + pi_bad*loss_bad for GE)."""

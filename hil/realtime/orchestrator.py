@@ -12,7 +12,7 @@ real-time rig. Steps:
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
-   Restarting it is not done (``ecu.restart_on_crash`` is not in the scenario schema yet). A plant or radio
+   With ``ecu.restart_after_s`` the watchdog starts it again (``hil.faults.realtime``). A plant or radio
    process that dies ends the run early (recorded as an event).
 4. Ctrl-C / SIGTERM: every node is told "stop", finishes its loop and writes its results; stragglers are
    terminated, then killed, after a grace period. What was recorded is written, ``interrupted`` is set.
@@ -613,30 +613,3 @@ def _timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:
         train, unit = f.stem.split("_")[-2:]
         out.append((f"{paths.TIMING}/train{train}/unit{unit}/ecu_lateness_ms", f))
     return [(entity, f) for entity, f in out if f.exists()]
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m hil.realtime.orchestrator SCENARIO --out DIR [--pace F] [--duration S]`` (until the lead wires
-    ``hil run --realtime``)."""
-    import argparse
-
-    from hil.scenario import load_scenario
-
-    p = argparse.ArgumentParser(prog="python -m hil.realtime.orchestrator", description="Run a scenario in real time.")
-    p.add_argument("scenario")
-    p.add_argument("--out", required=True)
-    p.add_argument("--pace", type=float, default=1.0)
-    p.add_argument("--duration", type=float)
-    p.add_argument("--ecus-per-process", type=int, default=1)
-    p.add_argument("--no-record", action="store_true")
-    args = p.parse_args(argv)
-    result = run_realtime(load_scenario(args.scenario), Path(args.out), pace=args.pace, duration_s=args.duration,
-                          ecus_per_process=args.ecus_per_process, record=not args.no_record)
-    m = result.metrics
-    print(f"sim {m['sim_time_s']} s, interrupted={m['interrupted']}, cycle lateness p99 {m['cycle_lateness_p99_s']}, "
-          f"e2e p99 {m['e2e_latency_p99_s']}")
-    return 130 if m["interrupted"] else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -18,9 +18,9 @@ from __future__ import annotations
 import rerun.blueprint as rrb
 
 from hil.layout import TrainLayout
-from hil.record.paths import (  # noqa: F401  (re-exported: the writer and older callers use bp.unit_path etc.)
+from hil.record.paths import (
     EVENTS, LIMIT_COUPLER_MAX, LIMIT_COUPLER_MIN, LIMIT_EMERGENCY, LIMIT_SPACING, REF_POSITION, REF_SPEED, TIMING,
-    TRACK, TRACK_GAPS, TRACK_SLOTS, TRACK_UNITS, bus_path, coupler_path, frames_path, gap_path, unit_path,
+    TRACK, bus_path, coupler_path, gap_path, unit_path,
 )
 
 

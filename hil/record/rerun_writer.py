@@ -20,7 +20,8 @@ import numpy as np
 import rerun as rr
 
 from hil.layout import TrainLayout
-from hil.record import blueprint as bp
+from hil.record import paths
+from hil.record.blueprint import default_blueprint
 from hil.record.live import LiveTarget
 from hil.record.diskspace import MIN_FREE_BYTES, DiskFullError, check_space, free_bytes
 from hil.record.runlog import BusLog, Event, RunLog
@@ -70,7 +71,7 @@ class RerunWriter:
             self.rec.set_sinks(*([rr.FileSink(self.path)] if self.path is not None else []), live.sink())
         self._flushed_size = 0  # bytes of the file written by the last flush that completed
         self.rec.send_recording_name(scenario_name)
-        blueprint = bp.default_blueprint(layout, bus_names, frames=frames, realtime=realtime or wall_clock is not None)
+        blueprint = default_blueprint(layout, bus_names, frames=frames, realtime=realtime or wall_clock is not None)
         self.rec.send_blueprint(blueprint, make_active=True, make_default=True)
         self._log_series_styles()
         self._log_track_statics()
@@ -88,18 +89,18 @@ class RerunWriter:
         for u in range(L.n_units):
             i, j = L.train_unit(u)
             for signal in ("speed_kmh", "speed_error_kmh", "position_error_m"):
-                self._style(bp.unit_path(i, j, signal), f"T{i + 1} U{j + 1}")
-            self._style(bp.unit_path(i, j, "traction_kn"), f"T{i + 1} U{j + 1} cmd")
-            self._style(bp.unit_path(i, j, "applied_kn"), f"T{i + 1} U{j + 1} applied")
+                self._style(paths.unit_path(i, j, signal), f"T{i + 1} U{j + 1}")
+            self._style(paths.unit_path(i, j, "traction_kn"), f"T{i + 1} U{j + 1} cmd")
+            self._style(paths.unit_path(i, j, "applied_kn"), f"T{i + 1} U{j + 1} applied")
         for front in self._pairs[:, 0]:
             i, j = L.train_unit(int(front))
-            self._style(bp.coupler_path(i, j), f"T{i + 1} C{j + 1}")
+            self._style(paths.coupler_path(i, j), f"T{i + 1} C{j + 1}")
         for i in range(1, L.n_trains):
-            self._style(bp.gap_path(i), f"gap T{i}-T{i + 1}")
-        self._style(bp.REF_SPEED, "reference", (128, 128, 128))
-        self._style(bp.REF_POSITION, "reference", (128, 128, 128))
-        for path, name, color in ((bp.LIMIT_COUPLER_MIN, "band min", (200, 0, 0)), (bp.LIMIT_COUPLER_MAX, "band max", (200, 0, 0)),
-                                  (bp.LIMIT_SPACING, "l_s", (0, 150, 0)), (bp.LIMIT_EMERGENCY, "l_e", (200, 0, 0))):
+            self._style(paths.gap_path(i), f"gap T{i}-T{i + 1}")
+        self._style(paths.REF_SPEED, "reference", (128, 128, 128))
+        self._style(paths.REF_POSITION, "reference", (128, 128, 128))
+        for path, name, color in ((paths.LIMIT_COUPLER_MIN, "band min", (200, 0, 0)), (paths.LIMIT_COUPLER_MAX, "band max", (200, 0, 0)),
+                                  (paths.LIMIT_SPACING, "l_s", (0, 150, 0)), (paths.LIMIT_EMERGENCY, "l_e", (200, 0, 0))):
             self._style(path, name, color)
 
     def _log_track_statics(self) -> None:
@@ -108,13 +109,13 @@ class RerunWriter:
         half = np.column_stack((0.5 * L.length_m, 0.25 * L.length_m))
         colors = [TRAIN_COLORS[L.train_unit(u)[0] % len(TRAIN_COLORS)] for u in range(L.n_units)]
         labels = [f"T{i + 1}U{j + 1}" for i, j in map(L.train_unit, range(L.n_units))]
-        self.rec.log(bp.TRACK_UNITS, rr.Boxes2D.from_fields(half_sizes=half, colors=colors, labels=labels,
+        self.rec.log(paths.TRACK_UNITS, rr.Boxes2D.from_fields(half_sizes=half, colors=colors, labels=labels,
                                                             radii=-1.5, show_labels=False), static=True)
-        self.rec.log(bp.TRACK_SLOTS, rr.Points2D.from_fields(colors=[(128, 128, 128)] * L.n_trains, radii=-4.0,
+        self.rec.log(paths.TRACK_SLOTS, rr.Points2D.from_fields(colors=[(128, 128, 128)] * L.n_trains, radii=-4.0,
                                                              labels=[f"slot T{i + 1}" for i in range(L.n_trains)],
                                                              show_labels=False), static=True)
         if L.n_trains > 1:
-            self.rec.log(bp.TRACK_GAPS, rr.LineStrips2D.from_fields(radii=-3.0), static=True)
+            self.rec.log(paths.TRACK_GAPS, rr.LineStrips2D.from_fields(radii=-3.0), static=True)
 
     # ---------------------------------------------------------------- writing
 
@@ -153,15 +154,15 @@ class RerunWriter:
         L, k = self.layout, len(rows)
         geo = track_geometry(L, rows)
         cols = rr.Boxes2D.columns(centers=geo.unit_centers.reshape(-1, 2)).partition([L.n_units] * k)
-        self.rec.send_columns(bp.TRACK_UNITS, indexes=times, columns=cols)
+        self.rec.send_columns(paths.TRACK_UNITS, indexes=times, columns=cols)
         cols = rr.Points2D.columns(positions=geo.slots.reshape(-1, 2)).partition([L.n_trains] * k)
-        self.rec.send_columns(bp.TRACK_SLOTS, indexes=times, columns=cols)
+        self.rec.send_columns(paths.TRACK_SLOTS, indexes=times, columns=cols)
         g = L.n_trains - 1
         if g:
             labels = [f"{s:.0f} m" for s in geo.gap_m.ravel()]
             cols = rr.LineStrips2D.columns(strips=geo.gap_strips.reshape(-1, 2, 2), labels=labels,
                                            colors=margin_colors(geo.gap_margin).reshape(-1, 4)).partition([g] * k)
-            self.rec.send_columns(bp.TRACK_GAPS, indexes=times, columns=cols)
+            self.rec.send_columns(paths.TRACK_GAPS, indexes=times, columns=cols)
 
     def _write_limits(self, t: np.ndarray) -> None:
         """Constant reference lines: one point at each end of the written range."""
@@ -175,9 +176,9 @@ class RerunWriter:
         self._check_open()
         load, frames = bus.load.array[start_load:], bus.frames.rows_from(start_frames)
         if len(load):
-            self._send(bp.bus_path(bus.name, "load"), self._indexes(load[:, 0]), load[:, 1])
+            self._send(paths.bus_path(bus.name, "load"), self._indexes(load[:, 0]), load[:, 1])
         if len(frames):
-            self._send(bp.bus_path(bus.name, "frame_latency_ms"), self._indexes(frames[:, 0]), frames[:, 2] * 1000.0)
+            self._send(paths.bus_path(bus.name, "frame_latency_ms"), self._indexes(frames[:, 0]), frames[:, 2] * 1000.0)
         return start_load + len(load), start_frames + len(frames)
 
     def write_events(self, events: list[Event]) -> None:

@@ -17,7 +17,7 @@ from ecu_sim.track import MAX_SEGMENTS, CurveSegment, GradeSegment, TrackConfig 
 KMH = 1.0 / 3.6
 
 
-# Bounds a physical train group and its networks justify (issue 16): beyond them a value is a typo, and it would
+# Bounds a physical train group and its networks justify: beyond them a value is a typo, and it would
 # overflow the nanosecond clock or run for ever instead of failing with a message that names it.
 MAX_DURATION_S = 1e7  # 116 days of simulated time
 MAX_PERIOD_S = 10.0  # ECU phases and staggers
