@@ -13,7 +13,7 @@ Parts (each can be skipped with 0):
    at seeded random times, targets and parameters: injected vs detected per kind, detection latency.
 4. ``--frames``: random CAN frames with 1..8 random bit errors through the receiver's bit-level checks
    (hil/can/errors.py): corrupted vs rejected per number of flipped bits (CAN's residual error rate).
-5. ``--kills``: ``hil run faults`` killed at random moments (``hil.record.killtest.random_kills``): recordings intact.
+5. ``--kills``: ``hil run faults`` killed at random moments (``tests/killtest.py``'s ``random_kills``): recordings intact.
 
 Results go to ``--out``/results.json and are printed as tables; docs/faults.md quotes them.
 """
@@ -171,9 +171,9 @@ def bit_errors(frames: int, seed: int, max_bits: int = 8) -> dict:
 
 def kills(n: int, out: Path, seed: int) -> dict:
     try:
-        from hil.record.killtest import random_kills
+        from tests.killtest import random_kills
     except ImportError:  # the robustness half's helper is not there
-        return {"n": n, "skipped": "hil.record.killtest not available"}
+        return {"n": n, "skipped": "tests/killtest.py not available"}
     outcomes = random_kills(n, out, seed=seed, max_delay_s=8.0, scenario="faults", duration_s=300.0)
     return {"n": n, "intact": sum(o.intact for o in outcomes),
             "kills": [{"delay_s": round(o.delay_s, 2), "signal": o.signal, "intact": o.intact,

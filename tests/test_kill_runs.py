@@ -1,10 +1,10 @@
 """Nothing lost: `hil run` killed at seeded random moments leaves a readable run.rrd and a metrics.json that parses
-and says the run is incomplete, with everything up to the stop (``hil.record.killtest``, ``check_run_dir``).
+and says the run is incomplete, with everything up to the stop (``tests/killtest.py``, ``check_run_dir``).
 
 Virtual time: SIGTERM, SIGINT and SIGHUP after random delays from the moment the run starts (its metrics.json
 stub appears), including at once (the rig still being built). Real time: one SIGTERM to `hil run --realtime`,
 and one SIGKILL of a random node process (plant, radio or ECU). The reliability benchmark runs more of the
-same through ``python -m hil.record.killtest``.
+same through ``python -m tests.killtest``.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from hil.record.integrity import check_run_dir, mark_running, write_json_atomic
-from hil.record.killtest import SIGNALS, hil_run_argv, kill_run
+from tests.killtest import SIGNALS, hil_run_argv, kill_run
 
 RNG = random.Random(20240611)
 VIRTUAL_KILLS = [(RNG.choice(SIGNALS), round(RNG.uniform(0.0, 4.0), 2)) for _ in range(3)] + [(signal.SIGTERM, 0.0)]

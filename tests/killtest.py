@@ -6,9 +6,9 @@ appears; in real time the plant's first save, ``nodes/plant.json``, a few second
 ``child``, SIGKILL to one of its node processes), waits for the end and judges the run directory with
 ``check_run_dir``. ``random_kills`` does it ``n`` times with seeded random delays and signals.
 
-    python -m hil.record.killtest --n 10 --seed 1 --out runs/kills            # virtual time, 10 kills
-    python -m hil.record.killtest --n 3 --realtime --out runs/kills-rt        # hil run --realtime
-    python -m hil.record.killtest --n 3 --realtime --child --out runs/kills-c # SIGKILL a random node process
+    python -m tests.killtest --n 10 --seed 1 --out runs/kills            # virtual time, 10 kills
+    python -m tests.killtest --n 3 --realtime --out runs/kills-rt        # hil run --realtime
+    python -m tests.killtest --n 3 --realtime --child --out runs/kills-c # SIGKILL a random node process
 
 A kill counts as intact when metrics.json parses and says incomplete (or complete, if the run finished first),
 run.rrd opens with rerun's Python API, the two agree, and nothing printed a traceback.
@@ -165,7 +165,7 @@ def random_kills(n: int, out_root: Path, seed: int = 0, max_delay_s: float = 5.0
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m hil.record.killtest", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m tests.killtest", description=__doc__.split("\n\n")[0])
     p.add_argument("--n", type=int, default=10, help="number of runs to kill")
     p.add_argument("--seed", type=int, default=0, help="seed of the random delays and signals")
     p.add_argument("--max-delay", type=float, default=5.0, help="kill within this many wall seconds after the start")
