@@ -316,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
     from hil.realtime.recover import add_recover_parser
 
     add_recover_parser(sub)
-    from hil.view import add_view_parser
+    from hil.viewer import add_view_parser
 
     add_view_parser(sub)
     return p

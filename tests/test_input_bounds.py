@@ -15,7 +15,7 @@ import pytest
 
 from hil.cli import main
 from hil.realtime import protocol
-from hil.realtime.paths import InsecureRunDirError, run_dir, runtime_root
+from hil.realtime.sockets import InsecureRunDirError, run_dir, runtime_root
 from hil.scenario import ScenarioError, load_scenario
 from tests.polling import wait_for
 

@@ -26,7 +26,7 @@ import pytest
 from ecu_sim.codec import TrainDb
 from hil.can.bus import CanBusModel, arbitration_key
 from hil.can.frame import frame_bits
-from hil.realtime import paths, protocol
+from hil.realtime import sockets, protocol
 from hil.realtime.busserver import BusServer, BusServerError
 from hil.realtime.pycan_bus import TrainhilBus
 
@@ -118,41 +118,41 @@ def test_filter_semantics_match_python_can():
 # ---------------------------------------------------------------- run directories
 
 def test_runtime_root_and_run_dir_are_private(rt, monkeypatch):
-    assert paths.runtime_root() == rt / "trainhil"
-    d = paths.run_dir("seed000", create=True)
+    assert sockets.runtime_root() == rt / "trainhil"
+    d = sockets.run_dir("seed000", create=True)
     assert d == rt / "trainhil" / "seed000"
     for p in (d, d.parent):
         st = os.lstat(p)
         assert stat.S_IMODE(st.st_mode) == 0o700 and st.st_uid == os.getuid()
-    assert paths.socket_path("seed000", "bus1") == d / "bus1.sock"
+    assert sockets.socket_path("seed000", "bus1") == d / "bus1.sock"
     monkeypatch.delenv("XDG_RUNTIME_DIR")
-    assert paths.runtime_root() == Path(tempfile.gettempdir()) / f"trainhil-{os.getuid()}"
+    assert sockets.runtime_root() == Path(tempfile.gettempdir()) / f"trainhil-{os.getuid()}"
 
 
 def test_insecure_run_dirs_are_refused(rt):
     root = rt / "trainhil"
     root.mkdir()
     os.chmod(root, 0o777)
-    with pytest.raises(paths.InsecureRunDirError, match="group/others"):
-        paths.run_dir("seed000", create=True)
+    with pytest.raises(sockets.InsecureRunDirError, match="group/others"):
+        sockets.run_dir("seed000", create=True)
     os.chmod(root, 0o700)
     (root / "seed000").mkdir()
     os.chmod(root / "seed000", 0o755)
-    with pytest.raises(paths.InsecureRunDirError, match="0o755"):
-        paths.socket_path("seed000", "bus1")
+    with pytest.raises(sockets.InsecureRunDirError, match="0o755"):
+        sockets.socket_path("seed000", "bus1")
     (root / "link").symlink_to(root / "seed000")
-    with pytest.raises(paths.InsecureRunDirError, match="symlink"):
-        paths.run_dir("link")
+    with pytest.raises(sockets.InsecureRunDirError, match="symlink"):
+        sockets.run_dir("link")
 
 
 def test_names_and_channels_are_validated(rt):
-    assert paths.parse_channel("seed000/bus1") == ("seed000/bus1", rt / "trainhil" / "seed000" / "bus1.sock")
-    assert paths.parse_channel("/x/y/bus2.sock") == ("/x/y/bus2.sock", Path("/x/y/bus2.sock"))
+    assert sockets.parse_channel("seed000/bus1") == ("seed000/bus1", rt / "trainhil" / "seed000" / "bus1.sock")
+    assert sockets.parse_channel("/x/y/bus2.sock") == ("/x/y/bus2.sock", Path("/x/y/bus2.sock"))
     for bad in ("bus1", "a/b/c", "../bus1", "a/..", "a/b c", "/x/bus1", "a/", "/" + "x" * 120 + ".sock"):
         with pytest.raises(ValueError):
-            paths.parse_channel(bad)
+            sockets.parse_channel(bad)
     with pytest.raises(ValueError, match="run name"):
-        paths.run_dir("a..b")
+        sockets.run_dir("a..b")
 
 
 # ---------------------------------------------------------------- model additions (hil/can/bus.py)
@@ -315,7 +315,7 @@ def test_shutdown_stops_the_thread_and_then_clients_get_a_clear_error(rt, server
 def test_connecting_without_a_server_names_the_socket(rt):
     with pytest.raises(can.CanInitializationError, match=r"no bus server is running at .*/r1/bus1\.sock"):
         TrainhilBus("r1/bus1")
-    paths.run_dir("r1", create=True)
+    sockets.run_dir("r1", create=True)
     (rt / "trainhil" / "r1" / "bus1.sock").touch()
     with pytest.raises(can.CanInitializationError, match="no bus server"):
         TrainhilBus("r1/bus1")
@@ -326,7 +326,7 @@ def test_one_server_per_socket_and_stale_sockets_are_replaced(rt, server_cls):
         with pytest.raises(BusServerError, match="already running"):
             server_cls("r1", "bus1", 500_000)
     stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    stale.bind(str(paths.socket_path("r1", "bus1")))
+    stale.bind(str(sockets.socket_path("r1", "bus1")))
     stale.close()  # the file stays, nobody listens
     with server_cls("r1", "bus1", 500_000) as srv, node("a") as a:
         assert srv.stats.clients == 1 and a.bitrate == 500_000

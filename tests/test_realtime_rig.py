@@ -24,7 +24,7 @@ import pytest
 
 from hil.realtime.busserver import BusServer
 from hil.realtime.orchestrator import run_realtime
-from hil.realtime.paths import remove_run_dir
+from hil.realtime.sockets import remove_run_dir
 from hil.realtime.pacing import LatenessStats, SimClock
 from hil.record import paths
 from hil.runtime.virtual import run_virtual

@@ -17,7 +17,7 @@ from hil.record.series import margin_colors
 from hil.scenario import load_scenario
 from hil.scenario.model import TrainsConfig
 from hil.session import run_scenario
-from hil.view import find_recordings, viewer_command, viewer_env, why_no_viewer
+from hil.viewer import find_recordings, viewer_command, viewer_env, why_no_viewer
 from tests.rrd_reader import entity_columns, read_blueprint, read_component, read_scalars, read_text_rows
 
 CRUISE = Path(__file__).resolve().parents[1] / "examples" / "cruise.toml"

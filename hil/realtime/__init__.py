@@ -1,7 +1,7 @@
 """The real-time (HIL) runtime: emulated CAN bus servers in wall-clock time and the python-can ``trainhil`` plugin.
 
 ``BusServer`` (``hil.realtime.busserver``) serves one bus; ``TrainhilBus`` (``hil.realtime.pycan_bus``) is the
-python-can interface nodes use to join it; ``hil.realtime.paths`` says where the sockets live.
+python-can interface nodes use to join it; ``hil.realtime.sockets`` says where the sockets live.
 """
 from __future__ import annotations
 

@@ -43,7 +43,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from hil.can.bus import CanBusModel, CanNode, Transmission
-from hil.realtime.paths import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
+from hil.realtime.sockets import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
 from hil.realtime.protocol import (
     AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, FRAME_DATA_BYTES, KIND_AUTH, KIND_FILTER,
     KIND_FILTERS, KIND_FRAME, KIND_FRAME_DATA, KIND_HELLO, MAX_DLC, MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE,

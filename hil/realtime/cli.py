@@ -19,7 +19,7 @@ from hil.can.cli import positive_int, positive_number, positive_seconds
 from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError
 from hil.realtime.pacing import set_fifo_priority
 from hil.realtime.native_server import NativeBusServer
-from hil.realtime.paths import remove_run_dir
+from hil.realtime.sockets import remove_run_dir
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
                "can.Bus(interface='trainhil', channel='<run>/<bus>').")
@@ -147,7 +147,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
         except SocketCanUnavailable as exc:
             raise ScenarioError(str(exc)) from None
     if args.run_name is not None:
-        from hil.realtime.paths import validate_name
+        from hil.realtime.sockets import validate_name
 
         try:
             validate_name(args.run_name, "--run")

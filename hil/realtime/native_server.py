@@ -19,7 +19,7 @@ import trainhil_engine as engine
 from hil.can.bus import Transmission
 from hil.realtime.busserver import (DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServer, BusServerStats,
                                     check_server_args, listen_tcp, remove_endpoints)
-from hil.realtime.paths import socket_path
+from hil.realtime.sockets import socket_path
 from hil.record.runlog import BusLog
 
 LOG = logging.getLogger("hil.realtime.busserver")

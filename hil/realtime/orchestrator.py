@@ -50,7 +50,7 @@ from hil.realtime.busserver import BusServer
 from hil.realtime.native_server import NativeBusServer
 from hil.realtime.external import ExternalUnitMissing, JoinWait
 from hil.realtime.live_tail import SIGNAL_STREAM, LiveTail
-from hil.realtime.paths import remove_run_dir, remove_stale_run_dirs, validate_name
+from hil.realtime.sockets import remove_run_dir, remove_stale_run_dirs, validate_name
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget

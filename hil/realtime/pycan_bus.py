@@ -6,7 +6,7 @@
     bus = can.Bus(interface="trainhil", channel="tcp://127.0.0.1:40123", token="<32 hex digits>")
 
 Channel: ``"<run>/<bus>"`` names the socket ``<runtime_root>/<run>/<bus>.sock`` (runtime root:
-``$XDG_RUNTIME_DIR/trainhil`` or ``<tempdir>/trainhil-<uid>``, see ``hil.realtime.paths``), or an absolute
+``$XDG_RUNTIME_DIR/trainhil`` or ``<tempdir>/trainhil-<uid>``, see ``hil.realtime.sockets``), or an absolute
 path to a ``.sock`` file. Frames received carry the time their transmission ended on the emulated bus
 (epoch seconds), and ``channel`` = the bus's 0-based index (bus1 -> 0; see ``bus_index``). Acceptance filters are applied by the server; until it confirms a new set, python-can
 filters in software as well. Only classical data frames are emulated (no CAN FD, remote or error frames
@@ -28,7 +28,7 @@ from typing import Any
 
 from can import BusABC, CanInitializationError, CanOperationError, Message
 
-from hil.realtime.paths import (
+from hil.realtime.sockets import (
     bus_sockets, check_private_dir, check_private_socket, parse_channel, parse_tcp_channel, read_token_file,
     socket_is_live,
 )

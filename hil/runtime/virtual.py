@@ -83,7 +83,7 @@ class VirtualRig:
         self._schedule()
         self.faults = None  # the fault schedule, its injectors and monitors (hil/faults), if the scenario has one
         if needs_fault_machinery(scenario):
-            from hil.faults.virtual import VirtualFaults
+            from hil.faults.virtual_faults import VirtualFaults
 
             self.faults = VirtualFaults(self)
 
