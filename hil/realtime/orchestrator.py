@@ -26,7 +26,6 @@ real-time rig. Steps:
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import queue
@@ -42,25 +41,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 
 from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.realtime.busserver import BusServer
+from hil.realtime.merge import merge_nodes, write_log, write_recording
 from hil.realtime.native_server import NativeBusServer
 from hil.realtime.external import ExternalUnitMissing, JoinWait
-from hil.realtime.live_tail import SIGNAL_STREAM, LiveTail
+from hil.realtime.live_tail import LiveTail
 from hil.realtime.sockets import remove_run_dir, remove_stale_run_dirs, validate_name
 from hil.realtime.socketcan import check_channels
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget
-from hil.record import paths
 from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.metrics import run_metrics
-from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.safety import record_violations
-from hil.reference import ReferenceProfile
 from hil.runtime.firmware import import_roots
 from hil.scenario.model import Scenario
 
@@ -264,7 +260,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         write_recording(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
         files.append(out_dir / "run.rrd")
     if tail is not None:  # the rest of the run to the viewer: the signals it has not seen, buses, events, timing
-        _write_log(tail.writer, log, nodes_dir, signals_from=tail.sent)
+        write_log(tail.writer, log, nodes_dir, signals_from=tail.sent)
         tail.close()
     metrics = run_metrics(log, scenario, "realtime", seed, pace=float(pace), overrides=overrides, source=source)
     metrics.update(extra)
@@ -487,129 +483,3 @@ def _progress_bar(total: float):
 
 
 # --------------------------------------------------------------------------- merging
-
-
-def _read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[BusServer], events: list[Event],
-           t0: float | None, pace: float, duration: float, wall: float, stop_reason: str | None):
-    log = RunLog(layout)
-    log.reference_change_times = ReferenceProfile.from_config(sc.reference).change_times
-    plant = _read_json(nodes_dir / "plant.json") or {}
-    log.signals.extend_bytes(_signal_rows(nodes_dir, log.signals.width))
-    log.events.extend(Event(*e) for e in plant.get("events", []))
-    ecus = [d for p in sorted(nodes_dir.glob("ecu_*.json")) if (d := _read_json(p))]
-    for d in ecus:
-        log.events.extend(Event(t, level, d["name"], text) for t, level, text in d["events"])
-        log.e2e[d["name"]] = d["e2e"]
-    log.events.extend(events)
-    if stop_reason:
-        log.events.append(Event(float(plant.get("sim_time_s", 0.0)), "WARN", "rig", f"run stopped early: {stop_reason}"))
-    log.events.sort(key=lambda e: e.t)
-    radio = (_read_json(nodes_dir / "radio.json") or {}).get("links", {})
-    log.radio_stats = radio
-    for s in servers:
-        log.buses.append(s.log if t0 is None else _sim_bus_log(s, t0, pace, duration))
-    log.tally_frames_lost()
-    sat: dict[str, int] = {}
-    for d in [plant, *ecus]:
-        for k, v in d.get("codec_saturations", {}).items():
-            sat[k] = sat.get(k, 0) + v
-    log.codec_saturations = sat
-    log.sim_time_s = float(plant.get("sim_time_s", 0.0))
-    if len(log.signals):  # a plant killed between saves streamed further than its plant.json says
-        log.sim_time_s = max(log.sim_time_s, float(log.signals.last(0)))
-    log.wall_time_s = float(plant.get("wall_time_s") or wall)  # the plant's: sim t = 0 to its last step
-    log.interrupted = bool(stop_reason) or bool(plant.get("interrupted", True))
-    return log, _timing_metrics(plant, ecus, servers)
-
-
-def _signal_rows(nodes_dir: Path, width: int) -> bytes:
-    """The plant's signal rows: its last save (signals.npy), or its stream (signals.bin) if that has more rows,
-    as it does when the plant was killed between saves."""
-    saved = np.load(nodes_dir / "signals.npy") if (nodes_dir / "signals.npy").exists() else np.zeros((0, width))
-    try:
-        streamed = (nodes_dir / SIGNAL_STREAM).read_bytes()
-    except OSError:
-        streamed = b""
-    streamed = streamed[:len(streamed) - len(streamed) % (8 * width)]
-    if len(streamed) > saved.size * 8:
-        return streamed
-    return np.ascontiguousarray(saved, dtype=float).tobytes()
-
-
-def _sim_bus_log(server: BusServer, t0: float, pace: float, duration: float) -> BusLog:
-    """The server's BusLog with its times moved to simulated time (model t -> t - (T0 - epoch0) * pace)."""
-    src, shift = server.log, (t0 - server.epoch0) * pace
-    out = BusLog(src.name, src.bitrate, frames_sent=src.frames_sent, frames_dropped=src.frames_dropped)
-    for table, dst in ((src.load.array, out.load), (src.frames.array, out.frames)):
-        if len(table):
-            rows = table.copy()
-            rows[:, 0] -= shift
-            rows = rows[(rows[:, 0] >= 0) & (rows[:, 0] <= duration + 1e-9)]
-            dst.extend_bytes(np.ascontiguousarray(rows, dtype=float).tobytes())
-    return out
-
-
-def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> dict[str, Any]:
-    def worst(key: str, rows: list[dict]) -> float | None:
-        vals = [r[key] for r in rows if r.get(key) is not None]
-        return max(vals) if vals else None
-
-    return {
-        "cycle_lateness_p50_s": worst("lateness_p50_s", ecus),
-        "cycle_lateness_p99_s": worst("lateness_p99_s", ecus),
-        "cycle_lateness_max_s": worst("lateness_max_s", ecus),
-        "cycle_deadline_misses": sum(r.get("deadline_misses", 0) for r in ecus),
-        "plant_lateness_p99_s": plant.get("lateness_p99_s"),
-        "plant_lateness_max_s": plant.get("lateness_max_s"),
-        "plant_deadline_misses": plant.get("deadline_misses"),
-        "e2e_latency_p50_s": plant.get("e2e_latency_p50_s"),
-        "e2e_latency_p99_s": plant.get("e2e_latency_p99_s"),
-        "e2e_latency_max_s": plant.get("e2e_latency_max_s"),
-        **({"external_units": plant["external_units"]} if "external_units" in plant else {}),
-        "realtime": {
-            "ecus": {r["name"]: {k: v for k, v in r.items() if k not in ("events", "e2e", "codec_saturations", "name")}
-                     for r in ecus},
-            "plant": {k: v for k, v in plant.items() if k not in ("events", "codec_saturations", "external_units")},
-        },
-    }
-
-
-def write_recording(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path,
-               wall_clock: tuple[float, float] | None) -> None:
-    """The recording of a real-time run: signals, buses, events and timing on sim time, plus the wall-clock
-    timeline (``wall_clock`` = (T0 epoch s, pace)) when the run got as far as its start."""
-    with RerunWriter(path, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m,
-                     sc.trains.emergency_gap_m, realtime=True, wall_clock=wall_clock) as w:
-        _write_log(w, log, nodes_dir)
-
-
-def _write_log(w: RerunWriter, log: RunLog, nodes_dir: Path, signals_from: int = 0) -> None:
-    """Signals (from row ``signals_from``), buses, events and the nodes' timing series into a writer, flushed."""
-    if len(log.signals) > signals_from:
-        w.write_signals(log, signals_from, len(log.signals))
-    for bus in log.buses:
-        w.write_bus(bus, 0, 0)
-    if log.events:
-        w.write_events(log.events)
-    for entity, f in _timing_series(nodes_dir):  # cycle lateness per node, sensor-to-actuator latency, in ms
-        data = np.load(f)
-        if len(data):
-            w.write_scalars(entity, data[:, 0], data[:, 1] * 1e3)
-    w.flush()
-
-
-def _timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:
-    """(entity path, .npy of (sim time, value s)) of every timing series the nodes left."""
-    out = [(paths.TIMING + "/plant/lateness_ms", nodes_dir / "timing_plant.npy"),
-           (paths.TIMING + "/e2e_latency_ms", nodes_dir / "timing_e2e.npy")]
-    for f in sorted(nodes_dir.glob("timing_ecu_*_*.npy")):
-        train, unit = f.stem.split("_")[-2:]
-        out.append((f"{paths.TIMING}/train{train}/unit{unit}/ecu_lateness_ms", f))
-    return [(entity, f) for entity, f in out if f.exists()]

@@ -15,7 +15,8 @@ from pathlib import Path
 
 from hil.layout import TrainLayout
 from hil.realtime.node import load_scenario_json
-from hil.realtime.orchestrator import RUN_FILE, merge_nodes, write_recording
+from hil.realtime.merge import merge_nodes, write_recording
+from hil.realtime.orchestrator import RUN_FILE
 from hil.record.integrity import RUNNING, write_json_atomic
 from hil.record.metrics import compute_metrics
 from hil.record.provenance import provenance

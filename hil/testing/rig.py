@@ -198,7 +198,7 @@ class Rig:
 
 def _timing_series(nodes_dir: Path) -> dict[str, Series]:
     """The real-time timing series the nodes left (ms), on the entity paths the orchestrator records them under."""
-    from hil.realtime.orchestrator import _timing_series as timing_files  # one definition of those paths
+    from hil.realtime.merge import timing_series as timing_files  # one definition of those paths
 
     out = {}
     for entity, f in timing_files(nodes_dir):
