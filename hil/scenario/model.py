@@ -645,7 +645,7 @@ class BabblingNodeFault(BusFault):
     dlc: int = Field(default=8, ge=0, le=8)
 
 
-class FrameSelection(BusFault):
+class SelectiveBusFault(BusFault):
     """Which frames of the bus a fault hits: each with ``probability``, only ``frame_ids`` if given, at most ``count``."""
 
     probability: float = Field(default=1.0, gt=0, le=1)
@@ -653,7 +653,7 @@ class FrameSelection(BusFault):
     count: int | None = Field(default=None, ge=1, description="stop after this many frames hit")
 
 
-class BusCorruptionFault(FrameSelection):
+class BusCorruptionFault(SelectiveBusFault):
     """Bits flipped on the wire as the receivers sample them: they reject the frame (stuff, CRC or form error),
     send an error frame, count it (REC), and the sender counts it (TEC) and retransmits (hil/can/errors.py)."""
 
@@ -661,13 +661,13 @@ class BusCorruptionFault(FrameSelection):
     bits: int = Field(default=1, ge=1, le=16, description="bits flipped per corrupted frame")
 
 
-class BusErrorFramesFault(FrameSelection):
+class BusErrorFramesFault(SelectiveBusFault):
     """A faulty transceiver destroys frames with an error flag at a random bit: every node sees the error."""
 
     kind: Literal["bus_error_frames"]
 
 
-class FrameDropFault(FrameSelection):
+class FrameDropFault(SelectiveBusFault):
     """Frames vanish from their sender's TX queue before transmission (receivers see a counter gap)."""
 
     kind: Literal["frame_drop"]
