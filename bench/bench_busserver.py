@@ -1,6 +1,6 @@
 """Benchmark: one emulated bus at 1 Mbit/s held at ~100 % load in real time by a few python-can sender processes.
 
-Processes: the bus server (``python -m hil.realtime.busserver``: the engine's native server, or the Python one
+Processes: the bus server (``python -m hil.runtime.realtime.busserver``: the engine's native server, or the Python one
 with --python-server), one receiver node that records every frame,
 and N senders. Each sender keeps ``--window`` frames in flight (it queues the next one when the server echoes
 one of its own back: receive_own_messages, with a server-side filter so it only hears its own frames) and
@@ -45,7 +45,7 @@ def run_sender(index: int, n_senders: int, window: int, start: float, duration: 
     """Keep ``window`` frames queued; ids random with low bits = index (the filter picks our echoes out)."""
     import can
 
-    from hil.realtime.pycan_bus import TrainhilBus
+    from hil.runtime.realtime.pycan_bus import TrainhilBus
 
     mask = (1 << max(1, (n_senders - 1).bit_length())) - 1
     bus = TrainhilBus(CHANNEL, receive_own_messages=True, node_name=f"sender{index}",
@@ -69,7 +69,7 @@ def run_sender(index: int, n_senders: int, window: int, start: float, duration: 
 
 def run_receiver(out: str, stop: float) -> None:
     """Record (received at, stamp, id, data) of every frame until ``stop`` (epoch)."""
-    from hil.realtime.pycan_bus import TrainhilBus
+    from hil.runtime.realtime.pycan_bus import TrainhilBus
 
     bus = TrainhilBus(CHANNEL, node_name="receiver")
     t_rx, stamps, ids, datas = [], [], [], []
@@ -126,7 +126,7 @@ def main() -> None:
     fifo = ["--fifo", str(a.fifo)] if a.fifo else []
     fifo += ["--python-server"] if a.python_server else []
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if a.busy_core else None
-    server = subprocess.Popen([sys.executable, "-m", "hil.realtime.busserver", "--run", "bench", "--bus", "bus1",
+    server = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "bench", "--bus", "bus1",
                                "--bitrate", str(a.bitrate), "--spin-us", str(a.spin_us), *fifo,
                                "--stats-json", str(stats_file)],
                               stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)

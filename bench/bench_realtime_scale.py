@@ -22,7 +22,7 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.realtime.orchestrator import run_realtime  # noqa: E402
+from hil.runtime.realtime.orchestrator import run_realtime  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 
 CYCLE_S = 0.01

@@ -48,7 +48,7 @@ def packaged(duration: float, out: Path, realtime: bool) -> dict:
     sc = load_scenario("faults")
     t = time.perf_counter()
     if realtime:
-        from hil.realtime.orchestrator import run_realtime
+        from hil.runtime.realtime.orchestrator import run_realtime
 
         res = run_realtime(sc, out, pace=1.0, duration_s=duration)
     else:

@@ -133,7 +133,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if live is not None and not args.quiet:
         print(f"hil: {live.describe()}", file=sys.stderr)
     if args.realtime:
-        from hil.realtime.cli import run_realtime_from_args
+        from hil.runtime.realtime.cli import run_realtime_from_args
 
         result = run_realtime_from_args(args, scenario, out, live, _given(args, overrides))
     else:
@@ -294,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "`rerun --connect rerun+http://127.0.0.1:PORT/proxy`; keeps serving after the run until Ctrl-C")
     run.add_argument("--check", action="store_true",
                      help=f"exit {EXIT_UNSAFE} if the run's safety verdict is unsafe, naming the violated verdicts (for CI)")
-    from hil.realtime.cli import add_realtime_arguments
+    from hil.runtime.realtime.cli import add_realtime_arguments
 
     add_realtime_arguments(run)
     run.set_defaults(func=_cmd_run)
@@ -303,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.set_defaults(func=_cmd_scenarios)
 
     from hil.can.cli import add_can_analysis_parser
-    from hil.realtime.cli import add_bus_server_parser
+    from hil.runtime.realtime.cli import add_bus_server_parser
     from hil.sweep.cli import add_sweep_parser, add_sweeps_list_parser
 
     add_sweep_parser(sub)
@@ -313,7 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_compare_parser(sub)
     add_can_analysis_parser(sub)
     add_bus_server_parser(sub)
-    from hil.realtime.recover import add_recover_parser
+    from hil.runtime.realtime.recover import add_recover_parser
 
     add_recover_parser(sub)
     from hil.viewer import add_view_parser

@@ -30,7 +30,7 @@ from hil.record.integrity import IntegrityReport, check_run_dir
 
 SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 REALTIME_SIGNALS = (signal.SIGTERM, signal.SIGINT)  # the orchestrator handles these two (SIGHUP: not yet)
-NODE_MODULES = ("hil.realtime.plant_node", "hil.realtime.radio_node", "hil.realtime.ecu_node")
+NODE_MODULES = ("hil.runtime.realtime.plant_node", "hil.runtime.realtime.radio_node", "hil.runtime.realtime.ecu_node")
 
 
 @dataclass

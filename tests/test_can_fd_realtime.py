@@ -7,7 +7,7 @@ import can
 import pytest
 
 from hil.can.frame import fd_frame_bits, fd_pad, frame_bits
-from hil.realtime.pycan_bus import TrainhilBus
+from hil.runtime.realtime.pycan_bus import TrainhilBus
 from tests.polling import wait_for
 
 
@@ -83,7 +83,7 @@ def test_the_servers_time_fd_frames_at_both_rates(rt, server_cls):
 
 
 def test_a_real_time_fd_run_logs_fd_frames(rt, tmp_path):
-    from hil.realtime.orchestrator import run_realtime
+    from hil.runtime.realtime.orchestrator import run_realtime
     from hil.scenario import load_scenario
 
     sc = load_scenario("seed000", {"can.fd": True, "can.data_bitrate": 2_000_000})

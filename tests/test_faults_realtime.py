@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from hil.realtime.orchestrator import run_realtime
+from hil.runtime.realtime.orchestrator import run_realtime
 from hil.scenario import load_scenario
 from tests.test_realtime_rig import rt  # noqa: F401  (fixture)
 

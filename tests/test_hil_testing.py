@@ -233,7 +233,7 @@ def test_unknown_paths_say_what_exists():
 
 def test_real_time_nodes_import_the_users_law_and_ecu_program(tmp_path):
     """The node processes resolve the scenario's references themselves, from the PYTHONPATH the rig gives them."""
-    from hil.realtime.orchestrator import node_environment
+    from hil.runtime.realtime.orchestrator import node_environment
     from hil.runtime.assembly import assemble
     from hil.runtime.firmware import build_ecu
 
@@ -244,7 +244,7 @@ def test_real_time_nodes_import_the_users_law_and_ecu_program(tmp_path):
     ecu = build_ecu(parts, __import__("ecu_sim.codec").codec.TrainDb.load(), 4)
     assert type(ecu) is SilentAfterOneSecond and type(ecu.controller) is ConstantForce
     (tmp_path / "scenario.json").write_text(sc.model_dump_json())
-    probe = ("import sys; from hil.realtime.node import load_scenario_json; from hil.runtime.assembly import assemble; "
+    probe = ("import sys; from hil.runtime.realtime.node import load_scenario_json; from hil.runtime.assembly import assemble; "
              "from hil.runtime.firmware import build_ecu; from ecu_sim.codec import TrainDb; "
              "e = build_ecu(assemble(load_scenario_json(sys.argv[1])), TrainDb.load(), 4); "
              "print(type(e).__qualname__, type(e.controller).__qualname__)")

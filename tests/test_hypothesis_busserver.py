@@ -17,9 +17,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hil.realtime import protocol
-from hil.realtime.busserver import BusServer
-from hil.realtime.pycan_bus import TrainhilBus
+from hil.runtime.realtime import protocol
+from hil.runtime.realtime.busserver import BusServer
+from hil.runtime.realtime.pycan_bus import TrainhilBus
 
 RECORD = st.binary(min_size=protocol.RECORD_SIZE, max_size=protocol.RECORD_SIZE)
 KINDS = st.sampled_from(range(1, 10))

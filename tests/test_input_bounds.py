@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 from hil.cli import main
-from hil.realtime import protocol
-from hil.realtime.sockets import InsecureRunDirError, run_dir, runtime_root
+from hil.runtime.realtime import protocol
+from hil.runtime.realtime.sockets import InsecureRunDirError, run_dir, runtime_root
 from hil.scenario import ScenarioError, load_scenario
 from tests.polling import wait_for
 

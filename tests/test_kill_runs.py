@@ -64,7 +64,7 @@ def test_realtime_run_survives_the_death_of_a_random_node_process(rt, tmp_path: 
     outcome = kill_run(hil_run_argv(out, duration_s=4.0, realtime=True, extra=("--pace", "0.5")), out,
                        round(rng.uniform(0.0, 2.0), 2), signal.SIGKILL, child=True, rng=rng, started_file="nodes/plant.json")
     assert outcome.intact, outcome.as_dict()
-    assert outcome.target.startswith("hil.realtime.") and outcome.signal == "SIGKILL"
+    assert outcome.target.startswith("hil.runtime.realtime.") and outcome.signal == "SIGKILL"
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["events_by_level"]["ERROR"] >= 1  # the death is an event ("... process ... exited with code -9")
 

@@ -26,9 +26,9 @@ import pytest
 from ecu_sim.codec import TrainDb
 from hil.can.bus import CanBusModel, arbitration_key
 from hil.can.frame import frame_bits
-from hil.realtime import sockets, protocol
-from hil.realtime.busserver import BusServer, BusServerError
-from hil.realtime.pycan_bus import TrainhilBus
+from hil.runtime.realtime import sockets, protocol
+from hil.runtime.realtime.busserver import BusServer, BusServerError
+from hil.runtime.realtime.pycan_bus import TrainhilBus
 
 REPO = Path(__file__).resolve().parents[1]
 SLOW = 5000  # bit/s: bit time 200 us
@@ -334,7 +334,7 @@ def test_one_server_per_socket_and_stale_sockets_are_replaced(rt, server_cls):
 
 
 def test_python_can_factory_and_detection_find_running_buses(server, monkeypatch):
-    monkeypatch.setitem(can.interfaces.BACKENDS, "trainhil", ("hil.realtime.pycan_bus", "TrainhilBus"))
+    monkeypatch.setitem(can.interfaces.BACKENDS, "trainhil", ("hil.runtime.realtime.pycan_bus", "TrainhilBus"))
     monkeypatch.setattr(can.util, "VALID_INTERFACES", can.util.VALID_INTERFACES | {"trainhil"})
     assert can.detect_available_configs("trainhil") == [{"interface": "trainhil", "channel": "r1/bus1"}]
     with can.Bus(interface="trainhil", channel="r1/bus1") as a, node("b") as b:
@@ -381,7 +381,7 @@ def test_can_logger_records_an_asc_log_that_cantools_decodes(server, tmp_path):
 
 def test_bus_server_command_serves_until_duration_and_writes_stats(rt, tmp_path):
     stats_file = tmp_path / "stats.json"
-    proc = subprocess.Popen([sys.executable, "-m", "hil.realtime.busserver", "--run", "cli", "--bus", "bus1",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "cli", "--bus", "bus1",
                              "--bitrate", "250000", "--duration", "60", "--stats-json", str(stats_file)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=os.environ.copy())
     try:
@@ -399,13 +399,13 @@ def test_bus_server_command_serves_until_duration_and_writes_stats(rt, tmp_path)
     stats = json.loads(stats_file.read_text())
     assert stats["frames"] == 1 and stats["bitrate"] == 250_000
     assert not Path(line.split()[1]).exists()  # the socket is removed on exit
-    bad = subprocess.run([sys.executable, "-m", "hil.realtime.busserver", "--run", "../x", "--bus", "bus1"],
+    bad = subprocess.run([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "../x", "--bus", "bus1"],
                          capture_output=True, text=True, cwd=REPO, env=os.environ.copy())
     assert bad.returncode == 2 and "run name '../x' is invalid" in bad.stderr
 
 
 def test_latency_histogram_quantiles_are_upper_bounds_within_a_bin():
-    from hil.realtime.busserver import _Histogram
+    from hil.runtime.realtime.busserver import _Histogram
 
     h = _Histogram()
     for ns in [1_500] * 50 + [2_047_000] * 49 + [300_000_000]:  # 1.5 us, 2.047 ms, one 300 ms outlier
@@ -419,7 +419,7 @@ def test_latency_histogram_quantiles_are_upper_bounds_within_a_bin():
 def test_bus_server_parser_registers_on_the_hil_parser():
     import argparse
 
-    from hil.realtime.cli import add_bus_server_parser, cmd_bus_server
+    from hil.runtime.realtime.cli import add_bus_server_parser, cmd_bus_server
 
     p = argparse.ArgumentParser(prog="hil")
     add_bus_server_parser(p.add_subparsers(dest="command", required=True))
@@ -432,7 +432,7 @@ def test_bus_server_parser_registers_on_the_hil_parser():
                                          (["--depth", "0"], "--depth"), (["--duration", "-1"], "--duration"),
                                          (["--pace", "0"], "--pace"), (["--pace", "nan"], "--pace")])
 def test_bus_server_command_refuses_values_that_cannot_work(rt, capsys, args, named):
-    from hil.realtime.cli import bus_server_main
+    from hil.runtime.realtime.cli import bus_server_main
 
     with pytest.raises(SystemExit) as exc:
         bus_server_main(["--run", "v1", "--bus", "bus1", *args])

@@ -22,10 +22,10 @@ import numpy as np
 import psutil
 import pytest
 
-from hil.realtime.busserver import BusServer
-from hil.realtime.orchestrator import run_realtime
-from hil.realtime.sockets import remove_run_dir
-from hil.realtime.pacing import LatenessStats, SimClock
+from hil.runtime.realtime.busserver import BusServer
+from hil.runtime.realtime.orchestrator import run_realtime
+from hil.runtime.realtime.sockets import remove_run_dir
+from hil.runtime.realtime.pacing import LatenessStats, SimClock
 from hil.record import paths
 from hil.runtime.virtual import run_virtual
 from hil.scenario import load_scenario
@@ -152,7 +152,7 @@ def test_realtime_seed000_with_an_ecu_killed(rt, tmp_path):
     def kill_train1_ecus() -> None:
         for p in psutil.Process().children(recursive=True):
             cmd = p.cmdline()
-            if "hil.realtime.ecu_node" in cmd and cmd[cmd.index("--unit") + 1] == "0":
+            if "hil.runtime.realtime.ecu_node" in cmd and cmd[cmd.index("--unit") + 1] == "0":
                 p.send_signal(signal.SIGKILL)
                 killed.append(p)
 
@@ -237,14 +237,14 @@ def test_a_killed_plant_ends_the_run_early_with_the_data_it_saved(rt, tmp_path):
     """The plant streams its signal rows every STREAM_EVERY_WALL_S (0.25 s) and saves the rest every few wall
     seconds: kill -9 at simulated t = 3.5 s (7 wall s at pace 0.5) leaves the samples up to its last stream write
     (about 3.3 s; asserted >= 1.5 s for a loaded machine), an ERROR event, and an interrupted, readable run."""
-    from hil.realtime.plant_node import SAVE_EVERY_WALL_S
+    from hil.runtime.realtime.plant_node import SAVE_EVERY_WALL_S
 
     assert SAVE_EVERY_WALL_S * PACE <= 2.5
     timers = []
 
     def kill_plant() -> None:
         for p in psutil.Process().children(recursive=True):
-            if "hil.realtime.plant_node" in p.cmdline():
+            if "hil.runtime.realtime.plant_node" in p.cmdline():
                 p.send_signal(signal.SIGKILL)
 
     def on_start(t0: float) -> None:
@@ -267,7 +267,7 @@ def test_a_killed_plant_ends_the_run_early_with_the_data_it_saved(rt, tmp_path):
 
 def test_a_node_that_fails_to_start_is_a_clear_error_and_leaves_nothing(rt, tmp_path, monkeypatch):
     """Every node "crashes" at once (the interpreter is /bin/false): the error names a node and its exit code."""
-    from hil.realtime import orchestrator
+    from hil.runtime.realtime import orchestrator
 
     monkeypatch.setattr(orchestrator.sys, "executable", "/bin/false")
     with pytest.raises(orchestrator.NodeError, match=r"node .* exited with code 1 before it was ready"):

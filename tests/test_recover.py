@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from hil.record import load_run
-from hil.realtime.sockets import STALE_AFTER_S, remove_stale_run_dirs, run_dir
+from hil.runtime.realtime.sockets import STALE_AFTER_S, remove_stale_run_dirs, run_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 CRUISE = ROOT / "examples" / "cruise.toml"

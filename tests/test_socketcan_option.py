@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.realtime.socketcan import SocketCanUnavailable, af_can_available, check_channels
+from hil.runtime.realtime.socketcan import SocketCanUnavailable, af_can_available, check_channels
 from hil.scenario import ScenarioError, load_scenario
 
 VCANS = ["vcan0", "vcan1", "vcan2"]
@@ -48,7 +48,7 @@ def _vcans_up() -> bool:
 @pytest.mark.skipif(not af_can_available(), reason="no SocketCAN on this host (AF_CAN unavailable: no vcan kernel module)")
 @pytest.mark.skipif(af_can_available() and not _vcans_up(), reason="SocketCAN exists but vcan0..vcan2 are not up")
 def test_realtime_rig_runs_on_vcan(tmp_path):
-    from hil.realtime.orchestrator import run_realtime
+    from hil.runtime.realtime.orchestrator import run_realtime
 
     res = run_realtime(_socketcan_scenario(VCANS), Path(tmp_path), pace=0.5, duration_s=2.0, ecus_per_process=4)
     m = res.metrics
@@ -64,7 +64,7 @@ def test_an_external_ecu_on_socketcan_takes_the_place_of_one_unit(tmp_path):
     import subprocess
     import threading
 
-    from hil.realtime.orchestrator import run_realtime
+    from hil.runtime.realtime.orchestrator import run_realtime
 
     root = Path(__file__).resolve().parents[1]
     sc = load_scenario(root / "examples" / "cruise.toml", {"can.transport": "socketcan", "can.socketcan_channels": VCANS[:2],

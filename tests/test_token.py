@@ -15,9 +15,9 @@ from pathlib import Path
 import can
 import pytest
 
-from hil.realtime import protocol
-from hil.realtime.busserver import BusServer
-from hil.realtime.pycan_bus import TrainhilBus
+from hil.runtime.realtime import protocol
+from hil.runtime.realtime.busserver import BusServer
+from hil.runtime.realtime.pycan_bus import TrainhilBus
 from tests.polling import wait_for
 
 DATA = bytes(range(8))
@@ -176,7 +176,7 @@ def test_bus_server_command_with_tcp_publishes_the_endpoint_and_accepts_the_toke
     import subprocess
     import sys
 
-    proc = subprocess.Popen([sys.executable, "-m", "hil.realtime.busserver", "--run", "r1", "--bus", "bus1", "--tcp",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "r1", "--bus", "bus1", "--tcp",
                              "--duration", "20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=os.environ.copy())
     try:

@@ -219,7 +219,7 @@ def test_a_real_time_node_that_cannot_load_the_law_reports_the_whole_error(tmp_p
     """A law registered in this process only is unknown to the node processes: the start-up error comes through
     whole, the node's last line included, not cut mid-word."""
     from ecu_sim.controllers.base import _REGISTRY, register
-    from hil.realtime.orchestrator import NodeError, run_realtime
+    from hil.runtime.realtime.orchestrator import NodeError, run_realtime
 
     class OnlyHere(get_controller("consensus")):  # registered here, not importable by the nodes
         name = "test_only_in_this_process"

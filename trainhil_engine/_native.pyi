@@ -125,7 +125,7 @@ def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
 class BusServerCore:
     """One emulated CAN bus served in wall-clock time by a native thread (engine/src/server.rs).
 
-    Takes over the listening sockets' fds (pass duplicates); hil.realtime.native_server wraps it."""
+    Takes over the listening sockets' fds (pass duplicates); hil.runtime.realtime.native_server wraps it."""
 
     epoch0_ns: int
     bitrate: int

@@ -1,5 +1,5 @@
 //! The real-time bus server: one emulated CAN bus in wall-clock time, served in its own OS thread (no Python
-//! interpreter lock), with the unix-socket protocol of `hil/realtime/protocol.py` (24-byte records).
+//! interpreter lock), with the unix-socket protocol of `hil/runtime/realtime/protocol.py` (24-byte records).
 //!
 //! Each loop turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends or a node
 //! writes; complete every transmission that ended, hand it to every node whose acceptance filters take it

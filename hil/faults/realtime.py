@@ -9,7 +9,7 @@
   (a reset controller); bus faults go to the bus servers' models (``hil.faults.bus.BusFaults``, under each
   server's lock); radio faults go to the radio node's stdin (``RadioNodeFaults``). Units with an ECU fault get
   their own process. The watchdog (``ecu.restart_after_s``) restarts crashed and hung ECU processes;
-  controller errors are restarted inside the ECU process (``hil.realtime.ecu_node``).
+  controller errors are restarted inside the ECU process (``hil.runtime.realtime.ecu_node``).
 * At the end, the bus servers' events are moved to simulated time, detections are matched (``report``), the
   safety violations are added to the timeline and ``log.fault_report`` is left for the metrics, as in virtual
   time.
@@ -249,7 +249,7 @@ class RealtimeFaults:
 def spawn_ecu(node_cls, run: str, nodes_dir: Path, seed: int, duration: float, pace: float, u: int, name: str,
               serial: int):
     """A late-joining ECU process for unit ``u`` (``--join-late``): the orchestrator's node command line."""
-    argv = [sys.executable, "-m", "hil.realtime.ecu_node", "--run", run, "--scenario-json", str(nodes_dir / "scenario.json"),
+    argv = [sys.executable, "-m", "hil.runtime.realtime.ecu_node", "--run", run, "--scenario-json", str(nodes_dir / "scenario.json"),
             "--seed", str(seed), "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir),
             "--unit", str(u), "--join-late"]
     err = nodes_dir / f"ecu_restart_{serial}.stderr"

@@ -3,7 +3,7 @@
 ``--connect`` sends to a rerun viewer (or a ``rerun --save`` proxy) that is already listening, as
 ``rr.connect_grpc`` does; ``--serve`` hosts a gRPC server on loopback that viewers connect to
 (``rerun --connect rerun+http://127.0.0.1:PORT/proxy``). The stream carries the same batches as the file: in
-virtual time they follow the simulation, in real time the wall clock (hil/realtime/live_tail.py).
+virtual time they follow the simulation, in real time the wall clock (hil/runtime/realtime/live_tail.py).
 """
 from __future__ import annotations
 

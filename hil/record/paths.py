@@ -16,7 +16,7 @@ TRACK = "/track"
 TRACK_UNITS = "/track/units"
 TRACK_GAPS = "/track/gaps"
 TRACK_SLOTS = "/track/slots"
-TIMING = "/timing"  # real-time runs: ECU and plant lateness, sensor-to-actuator latency (hil.realtime.orchestrator)
+TIMING = "/timing"  # real-time runs: ECU and plant lateness, sensor-to-actuator latency (hil.runtime.realtime.orchestrator)
 
 
 def unit_path(train: int, unit: int, signal: str) -> str:

@@ -11,7 +11,7 @@ ECU program swapped in, run in virtual time (or real time) for a duration, retur
 
 There is one seam for user code, the same as ``hil run``'s: the rig writes the class or function into the scenario
 as its ``"module:QualName"`` reference (``controller.law``, ``ecu.program``), and every runtime resolves it
-(:mod:`hil.runtime.firmware`). Real time runs the scenario on :func:`hil.realtime.orchestrator.run_realtime`
+(:mod:`hil.runtime.firmware`). Real time runs the scenario on :func:`hil.runtime.realtime.orchestrator.run_realtime`
 (separate processes; by default one ECU process per train, ``ecus_per_process`` = units per train, to keep
 start-up short), whose node processes import the references themselves; so for real time, user code must be
 defined at the top level of an importable module (not inside a test function).
@@ -176,7 +176,7 @@ class Rig:
 
     # ------------------------------------------------------------------ real time
     def _run_realtime(self, duration: float, pace: float = 1.0, ecus_per_process: int | None = None) -> HilRun:
-        from hil.realtime.orchestrator import run_realtime
+        from hil.runtime.realtime.orchestrator import run_realtime
 
         if self._local:
             raise ValueError(f"the {' and the '.join(self._local)} of this rig must be defined at the top level of an "
@@ -198,7 +198,7 @@ class Rig:
 
 def _timing_series(nodes_dir: Path) -> dict[str, Series]:
     """The real-time timing series the nodes left (ms), on the entity paths the orchestrator records them under."""
-    from hil.realtime.merge import timing_series as timing_files  # one definition of those paths
+    from hil.runtime.realtime.merge import timing_series as timing_files  # one definition of those paths
 
     out = {}
     for entity, f in timing_files(nodes_dir):

@@ -1,6 +1,6 @@
 """ECU host process: one or several units' firmware (the same ``ecu_sim.runtime.Ecu`` as the virtual rig) on python-can.
 
-    python -m hil.realtime.ecu_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR --unit U [--unit U2 ...]
+    python -m hil.runtime.realtime.ecu_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR --unit U [--unit U2 ...]
 
 ``--unit`` is a flat unit index (front to back, 0-based). Each unit cycles at ``ecu.cycle_s`` with the phase
 ``ecu.phase_s + unit_in_train * ecu.stagger_s`` as in virtual time. Between deadlines the process sleeps on its
@@ -11,7 +11,7 @@ deadline miss and skips to its next future deadline. At exit it writes ``DIR/ecu
 
 On the emulated buses the frames never pass through Python: python-can opens the connection (handshake,
 filters), then the engine reads the socket straight into the mailboxes and writes the outputs
-(``hil.realtime.frame_io``). On SocketCAN the frames come through python-can.
+(``hil.runtime.realtime.frame_io``). On SocketCAN the frames come through python-can.
 """
 from __future__ import annotations
 
@@ -24,15 +24,15 @@ import numpy as np
 
 from ecu_sim.codec import TrainDb
 from hil.faults.schedule import needs_fault_machinery
-from hil.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
-from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
-from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
+from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
+from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
 from hil.runtime.firmware import build_ecu
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = node_parser("python -m hil.realtime.ecu_node", "Run ECU firmware on the real-time rig's buses.")
+    p = node_parser("python -m hil.runtime.realtime.ecu_node", "Run ECU firmware on the real-time rig's buses.")
     p.add_argument("--unit", type=int, action="append", required=True, help="flat unit index (repeatable)")
     p.add_argument("--join-late", action="store_true", help="a restarted ECU: start at the first cycle after 'go'")
     args = p.parse_args(argv)

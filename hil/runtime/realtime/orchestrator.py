@@ -44,13 +44,13 @@ from typing import Any, Callable
 
 from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
-from hil.realtime.busserver import BusServer
-from hil.realtime.merge import merge_nodes, write_log, write_recording
-from hil.realtime.native_server import NativeBusServer
-from hil.realtime.external import ExternalUnitMissing, JoinWait
-from hil.realtime.live_tail import LiveTail
-from hil.realtime.sockets import remove_run_dir, remove_stale_run_dirs, validate_name
-from hil.realtime.socketcan import check_channels
+from hil.runtime.realtime.busserver import BusServer
+from hil.runtime.realtime.merge import merge_nodes, write_log, write_recording
+from hil.runtime.realtime.native_server import NativeBusServer
+from hil.runtime.realtime.external import ExternalUnitMissing, JoinWait
+from hil.runtime.realtime.live_tail import LiveTail
+from hil.runtime.realtime.sockets import remove_run_dir, remove_stale_run_dirs, validate_name
+from hil.runtime.realtime.socketcan import check_channels
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget
 from hil.record.integrity import mark_running, write_json_atomic
@@ -157,7 +157,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     ``<bus>.<asc|blf|mf4>`` per bus, frames stamped in simulated seconds as in a virtual-time run. ``run``: the run name
     (the python-can channel prefix; default: a fresh one); ``on_channels(channels)`` is called once the buses are
     up, before the nodes start, so that an external device can join (``ecu.external``). ``live``: stream the
-    recording to a viewer as the run goes (hil/realtime/live_tail.py)."""
+    recording to a viewer as the run goes (hil/runtime/realtime/live_tail.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process < 1:
@@ -356,14 +356,14 @@ def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, dura
     """The plant first (``nodes[0]``), the radio, then the ECU processes; none for ``external`` units."""
     common = ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
               "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir)]
-    specs = [("plant", "plant", ["hil.realtime.plant_node", "--spin-us", repr(spin_us)])]
+    specs = [("plant", "plant", ["hil.runtime.realtime.plant_node", "--spin-us", repr(spin_us)])]
     if layout.n_trains > 1:
-        specs.append(("radio", "radio", ["hil.realtime.radio_node"]))
+        specs.append(("radio", "radio", ["hil.runtime.realtime.radio_node"]))
     units = [u for u in range(layout.n_units) if u not in solo and u not in external]  # ECU faults: a process each
     groups = [units[k:k + per_process] for k in range(0, len(units), per_process)] + [[u] for u in sorted(solo)]
     for group in groups:
         names = ",".join(layout.unit_name(u) for u in group)
-        specs.append((names, "ecu", ["hil.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
+        specs.append((names, "ecu", ["hil.runtime.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
     nodes = []
     for name, kind, argv in specs:
         err = nodes_dir / f"{kind}_{len(nodes)}.stderr"

@@ -1,4 +1,4 @@
-"""Command line of the real-time rig's pieces: ``hil bus-server`` (also ``python -m hil.realtime.busserver``).
+"""Command line of the real-time rig's pieces: ``hil bus-server`` (also ``python -m hil.runtime.realtime.busserver``).
 
 ``add_bus_server_parser(subparsers)`` registers the sub-command on the ``hil`` parser; ``bus_server_main`` is the
 standalone entry. The server runs until SIGINT/SIGTERM (or ``--duration``), then prints its statistics and,
@@ -16,10 +16,10 @@ import threading
 from pathlib import Path
 
 from hil.can.cli import positive_int, positive_number, positive_seconds
-from hil.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError
-from hil.realtime.pacing import set_fifo_priority
-from hil.realtime.native_server import NativeBusServer
-from hil.realtime.sockets import remove_run_dir
+from hil.runtime.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError
+from hil.runtime.realtime.pacing import set_fifo_priority
+from hil.runtime.realtime.native_server import NativeBusServer
+from hil.runtime.realtime.sockets import remove_run_dir
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
                "can.Bus(interface='trainhil', channel='<run>/<bus>').")
@@ -127,8 +127,8 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
 def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=None, overrides: dict | None = None):
     """``hil run --realtime``: the RunResult of a real-time run; ScenarioError (``hil`` prints it, exit 2) naming an
     option that does not combine with it."""
-    from hil.realtime.orchestrator import run_realtime
-    from hil.realtime.socketcan import SocketCanUnavailable, check_channels
+    from hil.runtime.realtime.orchestrator import run_realtime
+    from hil.runtime.realtime.socketcan import SocketCanUnavailable, check_channels
     from hil.scenario import ScenarioError
 
     if getattr(args, "ideal", False):
@@ -147,7 +147,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
         except SocketCanUnavailable as exc:
             raise ScenarioError(str(exc)) from None
     if args.run_name is not None:
-        from hil.realtime.sockets import validate_name
+        from hil.runtime.realtime.sockets import validate_name
 
         try:
             validate_name(args.run_name, "--run")
@@ -168,6 +168,6 @@ def print_channels(channels) -> None:
 
 
 def bus_server_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m hil.realtime.busserver", description=DESCRIPTION)
+    p = argparse.ArgumentParser(prog="python -m hil.runtime.realtime.busserver", description=DESCRIPTION)
     _add_arguments(p)
     return cmd_bus_server(p.parse_args(argv))

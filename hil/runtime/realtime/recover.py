@@ -14,9 +14,9 @@ import time
 from pathlib import Path
 
 from hil.layout import TrainLayout
-from hil.realtime.node import load_scenario_json
-from hil.realtime.merge import merge_nodes, write_recording
-from hil.realtime.orchestrator import RUN_FILE
+from hil.runtime.realtime.node import load_scenario_json
+from hil.runtime.realtime.merge import merge_nodes, write_recording
+from hil.runtime.realtime.orchestrator import RUN_FILE
 from hil.record.integrity import RUNNING, write_json_atomic
 from hil.record.metrics import compute_metrics
 from hil.record.provenance import provenance
@@ -83,7 +83,7 @@ def _wait_for_plant(nodes_dir: Path, wait_s: float) -> None:
 
 def _stream_growing(nodes_dir: Path) -> bool:
     """True while the plant still appends to its signal stream (its rig died a moment ago)."""
-    from hil.realtime.live_tail import SIGNAL_STREAM
+    from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 
     path = nodes_dir / SIGNAL_STREAM
     try:

@@ -1,6 +1,6 @@
 """Radio bridge process: the virtual rig's RadioGateway (same links, routes and seeded draws) between train buses.
 
-    python -m hil.realtime.radio_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR
+    python -m hil.runtime.realtime.radio_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR
 
 One process joins every train bus as "RadioGW" (acceptance filters = the gateway's routes from that bus). A
 frame heard at simulated time t is offered to the radio links; each delivery is queued by its delivery time
@@ -16,9 +16,9 @@ import sys
 from pathlib import Path
 
 from ecu_sim.codec import TrainDb
-from hil.realtime.frame_io import node_frames
-from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
-from hil.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
+from hil.runtime.realtime.frame_io import node_frames
+from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.runtime.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import random_streams
 from hil.runtime.virtual import build_gateway
 
@@ -26,7 +26,7 @@ IDLE_WAIT_S = 0.05  # simulated seconds between stop checks when nothing is due
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = node_parser("python -m hil.realtime.radio_node", "Bridge adjacent train buses over the radio model.")
+    p = node_parser("python -m hil.runtime.realtime.radio_node", "Bridge adjacent train buses over the radio model.")
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)

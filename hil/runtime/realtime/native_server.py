@@ -17,12 +17,12 @@ from pathlib import Path
 import trainhil_engine as engine
 
 from hil.can.bus import Transmission
-from hil.realtime.busserver import (DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServer, BusServerStats,
+from hil.runtime.realtime.busserver import (DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServer, BusServerStats,
                                     check_server_args, listen_tcp, remove_endpoints)
-from hil.realtime.sockets import socket_path
+from hil.runtime.realtime.sockets import socket_path
 from hil.record.runlog import BusLog
 
-LOG = logging.getLogger("hil.realtime.busserver")
+LOG = logging.getLogger("hil.runtime.realtime.busserver")
 PUMP_S = 0.2  # how often the Python side collects log lines and traced frames
 
 
@@ -153,7 +153,7 @@ class NativeBusServer:
             tcp_port=self.tcp_address[1] if self._tcp else None)
 
     def apply(self, fn):
-        raise NotImplementedError("fault injection needs the Python bus server (hil.realtime.busserver.BusServer)")
+        raise NotImplementedError("fault injection needs the Python bus server (hil.runtime.realtime.busserver.BusServer)")
 
     # ---- the pump
     def _pump_loop(self) -> None:

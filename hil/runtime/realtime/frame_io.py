@@ -19,7 +19,7 @@ from typing import Callable
 import can
 import trainhil_engine as engine
 
-from hil.realtime.pacing import SimClock, drain, wait_until
+from hil.runtime.realtime.pacing import SimClock, drain, wait_until
 
 FrameHandler = Callable[[int, int, bytes, float], None]  # (bus index, frame id, data, simulated arrival time)
 MAX_SLEEP_S = 0.05  # wall seconds between stop checks

@@ -43,8 +43,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from hil.can.bus import CanBusModel, CanNode, Transmission
-from hil.realtime.sockets import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
-from hil.realtime.protocol import (
+from hil.runtime.realtime.sockets import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
+from hil.runtime.realtime.protocol import (
     AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, FRAME_DATA_BYTES, KIND_AUTH, KIND_FILTER,
     KIND_FILTERS, KIND_FRAME, KIND_FRAME_DATA, KIND_HELLO, MAX_DLC, MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE,
     REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING, TOKEN_BYTES, Filter, Frame, ProtocolError,
@@ -52,7 +52,7 @@ from hil.realtime.protocol import (
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
 from hil.can.stats import BusLog
-from hil.realtime.pacing import set_timer_slack
+from hil.runtime.realtime.pacing import set_timer_slack
 
 LOG = logging.getLogger(__name__)
 DEFAULT_SPIN_US = 200
@@ -796,6 +796,6 @@ class BusServer:
 if __name__ == "__main__":
     import sys
 
-    from hil.realtime.cli import bus_server_main
+    from hil.runtime.realtime.cli import bus_server_main
 
     sys.exit(bus_server_main())

@@ -1,6 +1,6 @@
 """What every real-time node process shares: its command line, the scenario it loads, and its python-can buses.
 
-A node is started by the orchestrator as ``python -m hil.realtime.<kind>_node --run RUN --scenario-json FILE
+A node is started by the orchestrator as ``python -m hil.runtime.realtime.<kind>_node --run RUN --scenario-json FILE
 --seed N --duration S --out DIR [...]``; it prints "ready" once its buses are open, waits for "go <T0>",
 runs until the simulated duration or "stop"/SIGTERM, then writes its results into DIR and exits 0.
 """

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from hil.layout import TrainLayout
-from hil.realtime.busserver import BusServer
-from hil.realtime.live_tail import SIGNAL_STREAM
+from hil.runtime.realtime.busserver import BusServer
+from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.record import paths
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog

@@ -1,4 +1,4 @@
-"""python-can interface ``trainhil``: a node on an emulated CAN bus served by ``hil.realtime.busserver``.
+"""python-can interface ``trainhil``: a node on an emulated CAN bus served by ``hil.runtime.realtime.busserver``.
 
     bus = can.Bus(interface="trainhil", channel="seed000/bus1")   # run "seed000", bus "bus1"
     bus = can.Bus(interface="trainhil", channel="/abs/path/bus1.sock")
@@ -6,7 +6,7 @@
     bus = can.Bus(interface="trainhil", channel="tcp://127.0.0.1:40123", token="<32 hex digits>")
 
 Channel: ``"<run>/<bus>"`` names the socket ``<runtime_root>/<run>/<bus>.sock`` (runtime root:
-``$XDG_RUNTIME_DIR/trainhil`` or ``<tempdir>/trainhil-<uid>``, see ``hil.realtime.sockets``), or an absolute
+``$XDG_RUNTIME_DIR/trainhil`` or ``<tempdir>/trainhil-<uid>``, see ``hil.runtime.realtime.sockets``), or an absolute
 path to a ``.sock`` file. Frames received carry the time their transmission ended on the emulated bus
 (epoch seconds), and ``channel`` = the bus's 0-based index (bus1 -> 0; see ``bus_index``). Acceptance filters are applied by the server; until it confirms a new set, python-can
 filters in software as well. Only classical data frames are emulated (no CAN FD, remote or error frames
@@ -28,11 +28,11 @@ from typing import Any
 
 from can import BusABC, CanInitializationError, CanOperationError, Message
 
-from hil.realtime.sockets import (
+from hil.runtime.realtime.sockets import (
     bus_sockets, check_private_dir, check_private_socket, parse_channel, parse_tcp_channel, read_token_file,
     socket_is_live,
 )
-from hil.realtime.protocol import (
+from hil.runtime.realtime.protocol import (
     FLAG_BRS, FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME,
     KIND_FRAME_DATA, MAX_DLC, PROTOCOL_VERSION, RECORD_SIZE, TOKEN_BYTES, Frame, ProtocolError, filter_from_python_can,
     frame_data_records, join_frame, pack_auth, pack_filters, pack_frame, pack_hello, refused_reason,

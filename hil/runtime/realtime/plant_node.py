@@ -1,6 +1,6 @@
 """Plant host process: the train-group Plant (sensor and actuator nodes) and the wayside, paced to the wall clock.
 
-    python -m hil.realtime.plant_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR [--spin-us US]
+    python -m hil.runtime.realtime.plant_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR [--spin-us US]
 
 Per train bus it joins as "Plant" (receives TractionCmd and AgentState of its units) and as "Wayside" (sends
 Reference/ReferenceAux, receives nothing). Only what other nodes can observe is paced: the plant sleeps on its
@@ -13,7 +13,7 @@ step at pace 10 would need 10,000 wake-ups per second). Recording samples (every
 taken during integration. A command that reaches the plant after it already integrated past the command's
 arrival (the plant was late) is applied at once and counted (``late_commands``). The integration never skips.
 If commands stop, the Plant's own fail-safe acts and logs it. The commands of external units (``ecu.external``)
-are watched (hil/realtime/external.py): the node prints ``joined <unit> <t>`` on stdout at the first valid one.
+are watched (hil/runtime/realtime/external.py): the node prints ``joined <unit> <t>`` on stdout at the first valid one.
 
 Sensor-to-actuator latency (``e2e``): the ECU sends its AgentState numbered with the Sensor sample k it used,
 in the same cycle as its TractionCmd (which has the lower ID, so it is on the bus first). When AgentState k of
@@ -37,11 +37,11 @@ from typing import Callable
 import numpy as np
 
 from ecu_sim.codec import TrainDb
-from hil.realtime.node import load_scenario_json, node_parser, open_bus, write_json
-from hil.realtime.live_tail import SIGNAL_STREAM
-from hil.realtime.external import JOIN_LINE, ExternalWatch, missing_after_s
-from hil.realtime.frame_io import node_frames
-from hil.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
+from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.runtime.realtime.live_tail import SIGNAL_STREAM
+from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_after_s
+from hil.runtime.realtime.frame_io import node_frames
+from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
@@ -70,7 +70,7 @@ class PlantNode:
         self.e2e_t = array("d")  # ... and the command arrival times they end at
         self.extended = sc.can.extended_ids
         self.clock: SimClock | None = None
-        self.frames = None  # the node's frame I/O (hil/realtime/frame_io.py), once the clock runs
+        self.frames = None  # the node's frame I/O (hil/runtime/realtime/frame_io.py), once the clock runs
         self.tick = 0  # the plant's state is at simulated time tick * plant.step_s
         self.target = 0  # tick of the next publication
         self.every = {"record": max(1, round(sc.recording.period_s / sc.plant.step_s))}
@@ -227,7 +227,7 @@ class SignalStream:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = node_parser("python -m hil.realtime.plant_node", "Run the plant and the wayside on the real-time rig's buses.")
+    p = node_parser("python -m hil.runtime.realtime.plant_node", "Run the plant and the wayside on the real-time rig's buses.")
     p.add_argument("--spin-us", type=float, default=200.0, help="poll the last microseconds before a step (0: sleep only)")
     args = p.parse_args(argv)
     stop = StopFlag()
