@@ -18,8 +18,7 @@ from hil.runtime.realtime.node import load_scenario_json
 from hil.runtime.realtime.merge import merge_nodes, write_recording
 from hil.runtime.realtime.orchestrator import RUN_FILE
 from hil.record.integrity import RUNNING, write_json_atomic
-from hil.record.metrics import compute_metrics
-from hil.record.provenance import provenance
+from hil.record.metrics import run_metrics
 from hil.record.runlog import Event
 from hil.record.safety import record_violations
 
@@ -50,11 +49,10 @@ def recover(out_dir: Path, wait_s: float = NODES_GRACE_S) -> dict:
     record_violations(log, sc.plant.coupler_band_m)
     t0 = run.get("t0")
     write_recording(sc, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (float(t0), pace))
-    metrics = compute_metrics(log, sc.plant.coupler_band_m)
+    log.interrupted = True
+    metrics = run_metrics(log, sc, "realtime", int(run.get("seed", sc.seed)), pace=pace)
     metrics.update(extra)
-    metrics["provenance"] = provenance(sc, "realtime", int(run.get("seed", sc.seed)), pace=pace)
-    metrics.update(scenario=sc.name, runtime="realtime", pace=pace, interrupted=True, recovered=True,
-                   recovered_missing=["bus load and latency tables", "orchestrator events"])
+    metrics.update(recovered=True, recovered_missing=["bus load and latency tables", "orchestrator events"])
     write_json_atomic(out_dir / "metrics.json", metrics)
     return metrics
 
