@@ -98,9 +98,8 @@ def shortest_period(fits, lo: float = 1e-5, hi: float = 0.05) -> float | None:
 
 def dbc_frame_set_fits(db: TrainDb, name: str, rates: BusRates, units: int | None = None):
     """fits(period): every frame of the scenario's bus meets its deadline at that ECU, Sensor and Reference period."""
-    base = TrainBusSetup.from_scenario(load_scenario(name))
-    base = TrainBusSetup(units=units or base.units, bitrate=NOMINAL, n_trains=1, fd=rates.fd, data_bitrate=rates.data,
-                         radio_link_jitter_s=0.0)
+    units = load_scenario(name).trains.units if units is None else units  # one train: no radio frames
+    base = TrainBusSetup(units=units, bitrate=NOMINAL, n_trains=1, fd=rates.fd, data_bitrate=rates.data)
 
     def fits(period: float) -> bool:
         setup = dataclasses.replace(base, cycle_s=period, sensor_period_s=period, reference_period_s=period)

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from hil.can.bus import CanBusModel
-from hil.can.errors import ERROR_TAIL_BITS, FD_TAIL_BITS, BusErrors
+from hil.can.errors import ERROR_TAIL_BITS, BusErrors
 from hil.can.frame import (
     FD_LENGTHS,
+    FD_TAIL_BITS,
     best_case_fd_frame_bits,
     fd_frame_bits,
     fd_pad,

@@ -946,27 +946,33 @@ mod tests {
         assert_eq!(format_flags(record_format(FLAG_FD)), FLAG_FD);
     }
 
-    #[test]
-    fn a_node_hears_the_other_nodes_frames_at_their_end_time() {
-        let dir = std::env::temp_dir().join(format!("th-srv-{}", std::process::id()));
+    /// A server on a socket in its own temporary directory: (handle, socket path, directory).
+    fn serve(tag: &str, bitrate: u64, data_bitrate: u64, format: Format) -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
+        let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("b.sock");
         let _ = std::fs::remove_file(&path);
         let listener = UnixListener::bind(&path).unwrap();
         let cfg = ServerConfig {
-            channel: "t/b".into(), bitrate: 500_000, data_bitrate: 500_000, format: Format::Classical, policy: Policy::Priority, depth: 8, extended: false,
+            channel: "t/b".into(), bitrate, data_bitrate, format, policy: Policy::Priority, depth: 8, extended: false,
             load_window_ns: 100_000_000, pace: 1.0, spin_ns: 0, max_clients: 8, hello_timeout: Duration::from_secs(5),
             keep_log: true, token: None,
         };
         use std::os::fd::IntoRawFd;
-        let mut handle = start(cfg, listener.into_raw_fd(), None).unwrap();
-        let hello = |name: &str| {
-            let mut r = [0u8; RECORD_SIZE];
-            r[0] = KIND_HELLO;
-            r[1] = PROTOCOL_VERSION;
-            r[4..4 + name.len()].copy_from_slice(name.as_bytes());
-            r
-        };
+        (start(cfg, listener.into_raw_fd(), None).unwrap(), path, dir)
+    }
+
+    fn hello(name: &str) -> [u8; RECORD_SIZE] {
+        let mut r = [0u8; RECORD_SIZE];
+        r[0] = KIND_HELLO;
+        r[1] = PROTOCOL_VERSION;
+        r[4..4 + name.len()].copy_from_slice(name.as_bytes());
+        r
+    }
+
+    #[test]
+    fn a_node_hears_the_other_nodes_frames_at_their_end_time() {
+        let (mut handle, path, dir) = serve("classic", 500_000, 500_000, Format::Classical);
         let mut a = UnixStream::connect(&path).unwrap();
         let mut b = UnixStream::connect(&path).unwrap();
         a.write_all(&hello("A")).unwrap();
@@ -1002,26 +1008,12 @@ mod tests {
 
     #[test]
     fn an_fd_bus_carries_a_long_payload_between_nodes_whole() {
-        let dir = std::env::temp_dir().join(format!("th-srv-fd-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("b.sock");
-        let _ = std::fs::remove_file(&path);
-        let listener = UnixListener::bind(&path).unwrap();
-        let cfg = ServerConfig {
-            channel: "t/b".into(), bitrate: 1_000_000, data_bitrate: 5_000_000, format: Format::FdBrs, policy: Policy::Priority,
-            depth: 8, extended: false, load_window_ns: 100_000_000, pace: 1.0, spin_ns: 0, max_clients: 8,
-            hello_timeout: Duration::from_secs(5), keep_log: true, token: None,
-        };
-        use std::os::fd::IntoRawFd;
-        let mut handle = start(cfg, listener.into_raw_fd(), None).unwrap();
+        let (mut handle, path, dir) = serve("fd", 1_000_000, 5_000_000, Format::FdBrs);
         let mut streams = Vec::new();
         for name in ["A", "B"] {
             let mut s = UnixStream::connect(&path).unwrap();
+            s.write_all(&hello(name)).unwrap();
             let mut r = [0u8; RECORD_SIZE];
-            r[0] = KIND_HELLO;
-            r[1] = PROTOCOL_VERSION;
-            r[4] = name.as_bytes()[0];
-            s.write_all(&r).unwrap();
             s.read_exact(&mut r).unwrap();
             assert_eq!((r[0], u32::from_le_bytes(r[20..24].try_into().unwrap())), (KIND_WELCOME, 5_000_000));
             streams.push(s);

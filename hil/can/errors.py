@@ -44,7 +44,7 @@ from enum import IntEnum
 import numpy as np
 
 from hil.can.bus import CanBusModel, CanNode, Transmission, _Item
-from hil.can.frame import _crc15_bitwise, fd_frame_bits, stuffed_bits
+from hil.can.frame import FD_TAIL_BITS, _crc15_bitwise, fd_frame_bits, stuffed_bits
 
 ERROR_PASSIVE_AT = 128
 BUS_OFF_ABOVE = 255
@@ -54,8 +54,7 @@ ERROR_FLAG_PHASE_BITS = 12  # 6-bit error flag + up to 6 bits of the other nodes
 ERROR_DELIMITER_BITS = 8
 INTERMISSION_BITS = 3
 ERROR_TAIL_BITS = ERROR_FLAG_PHASE_BITS + ERROR_DELIMITER_BITS + INTERMISSION_BITS
-FD_TAIL_BITS = 1 + 1 + 7 + 3  # CAN FD after the CRC delimiter: ACK slot, ACK delimiter, EOF, IFS (nominal rate)
-FD_EOF_IFS_BITS = 7 + 3
+FD_EOF_IFS_BITS = 7 + 3  # the end of FD_TAIL_BITS: after the ACK delimiter
 EPISODE_GAP_S = 0.1  # error frames less than this apart are one episode (one summary event)
 
 EventSink = Callable[[int, str, str], None]  # (t_ns, level, text)

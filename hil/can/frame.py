@@ -239,7 +239,7 @@ FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)  # payload 
 MAX_FD_DATA_BYTES = 64
 _FD_ARBITRATION_BITS = {False: 1 + 11 + 1 + 1 + 1 + 1 + 1, True: 1 + 11 + 2 + 18 + 1 + 1 + 1 + 1}  # SOF..BRS
 _FD_CONTROL_BITS = 1 + 4  # ESI, DLC: the data phase's dynamically stuffed bits before the data field
-_FD_TAIL_BITS = 1 + 1 + 7 + 3  # ACK slot, ACK delimiter, EOF, IFS: nominal rate
+FD_TAIL_BITS = 1 + 1 + 7 + 3  # after the CRC delimiter: ACK slot, ACK delimiter, EOF, IFS (nominal rate)
 
 
 def fd_padded_len(length: int) -> int:
@@ -271,7 +271,7 @@ def best_case_fd_frame_bits(length: int, extended: bool = False, brs: bool = Tru
         raise ValueError(f"length={length!r} is not a CAN FD payload length {FD_LENGTHS}")
     arbitration = _FD_ARBITRATION_BITS[bool(extended)]
     data_phase = _FD_CONTROL_BITS + 8 * length + _fd_crc_field_bits(length)
-    nominal = arbitration + _FD_TAIL_BITS
+    nominal = arbitration + FD_TAIL_BITS
     return (nominal, data_phase) if brs else (nominal + data_phase, 0)
 
 
@@ -285,6 +285,6 @@ def worst_case_fd_frame_bits(length: int, extended: bool = False, brs: bool = Tr
     dynamic = arbitration + _FD_CONTROL_BITS + 8 * length
     stuff_total = (dynamic - 1) // 4
     stuff_arbitration = min((arbitration - 1) // 4, stuff_total)
-    nominal = arbitration + stuff_arbitration + _FD_TAIL_BITS
+    nominal = arbitration + stuff_arbitration + FD_TAIL_BITS
     data_phase = dynamic - arbitration + stuff_total - stuff_arbitration + _fd_crc_field_bits(length)
     return (nominal, data_phase) if brs else (nominal + data_phase, 0)

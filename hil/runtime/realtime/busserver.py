@@ -45,10 +45,10 @@ from pathlib import Path
 from hil.can.bus import CanBusModel, CanNode, Transmission
 from hil.runtime.realtime.sockets import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
 from hil.runtime.realtime.protocol import (
-    AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, FRAME_DATA_BYTES, KIND_AUTH, KIND_FILTER,
+    AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, KIND_AUTH, KIND_FILTER,
     KIND_FILTERS, KIND_FRAME, KIND_FRAME_DATA, KIND_HELLO, MAX_DLC, MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE,
     REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING, TOKEN_BYTES, Filter, Frame, ProtocolError,
-    filters_accept, frame_data_records, frame_error, pack_filters_ack, pack_frame, pack_refused, pack_welcome,
+    filters_accept, frame_data_records, frame_error, join_frame, pack_filters_ack, pack_frame, pack_refused, pack_welcome,
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
 from hil.can.stats import BusLog
@@ -192,7 +192,7 @@ class _Client:
         self.receive_own = False
         self.filters: tuple[Filter, ...] | None = None  # None = accept everything
         self.pending: list[Filter] | None = None  # a FILTERS set being received
-        self.long: tuple[Frame, bytearray, bool] | None = None  # a CAN FD frame waiting for FRAME_DATA (keep it?)
+        self.long: tuple[Frame, bytearray, bool] | None = None  # a CAN FD frame, its FRAME_DATA so far, keep it?
         self.pending_left = 0
         self.pending_gen = 0
         self.delivered = 0
@@ -714,12 +714,12 @@ class BusServer:
 
     def _frame_data(self, c: _Client, buf: bytes, off: int, now: int) -> None:
         """One FRAME_DATA record of a CAN FD frame above 8 bytes; the last one queues the frame."""
-        head, rest, keep = c.long
-        rest += buf[off + 1:off + RECORD_SIZE]
-        if len(rest) >= frame_data_records(head.dlc) * FRAME_DATA_BYTES:
+        head, records, keep = c.long
+        records += buf[off:off + RECORD_SIZE]
+        if len(records) >= frame_data_records(head.dlc) * RECORD_SIZE:
             c.long = None
             if keep:
-                self._enqueue(c, head.can_id, (head.data + bytes(rest))[:head.dlc], head.flags, now)
+                self._enqueue(c, head.can_id, join_frame(head, records).data, head.flags, now)
 
     def _hello(self, c: _Client, buf: bytes, off: int) -> None:
         hello = unpack_hello(buf, off)

@@ -47,7 +47,7 @@ import struct
 import unicodedata
 from typing import NamedTuple
 
-from hil.can.frame import FD_LENGTHS
+from hil.can.frame import FD_LENGTHS, fd_pad
 
 PROTOCOL_VERSION = 1
 RECORD_SIZE = 24
@@ -172,7 +172,7 @@ def pack_frame(can_id: int, data: bytes, flags: int = 0, timestamp: float = 0.0)
             raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_DLC} in a classical frame")
         if len(data) > MAX_FD_DLC:
             raise ValueError(f"frame {can_id:#x}: {len(data)} data bytes > {MAX_FD_DLC} (CAN FD)")
-        data = bytes(data) + bytes(next(n for n in FD_LENGTHS if n >= len(data)) - len(data))
+        data = fd_pad(bytes(data))
     limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
     if not 0 <= can_id < limit:
         raise ValueError(f"frame id {can_id:#x} out of range for a "
