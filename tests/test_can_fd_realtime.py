@@ -91,3 +91,22 @@ def test_a_real_time_fd_run_logs_fd_frames(rt, tmp_path):
     assert res.metrics["frames_lost"] == 0
     msgs = list(can.ASCReader(tmp_path / "rt" / "bus1.asc"))
     assert len(msgs) > 500 and all(m.is_fd and m.bitrate_switch for m in msgs)
+
+
+def test_hil_bus_server_serves_an_fd_bus_and_names_a_data_bitrate_without_fd(rt):
+    import subprocess
+    import sys
+
+    bad = subprocess.run([sys.executable, "-m", "hil.cli", "bus-server", "--run", "r2", "--bus", "bus1",
+                          "--data-bitrate", "2000000", "--duration", "1"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--data-bitrate is for CAN FD buses: add --fd" in bad.stderr
+    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "bus-server", "--run", "r2", "--bus", "bus1", "--fd",
+                             "--bitrate", "1000000", "--data-bitrate", "8000000", "--duration", "20"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().startswith("ready ")
+        with TrainhilBus("r2/bus1", fd=True) as bus:
+            assert (bus.bitrate, bus.data_bitrate) == (1_000_000, 8_000_000)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
