@@ -40,3 +40,37 @@ def test_faults_in_real_time(rt, tmp_path):  # noqa: F811
     assert log.radio_stats["1>2"].get("fault", 0) > 0
     assert res.metrics["safety"]["collision"]["violated"] is False
     assert not res.metrics["interrupted"] and res.metrics["sim_time_s"] == pytest.approx(4.0)
+
+
+FAILS_ONCE = '''
+from ecu_sim.controllers.consensus import OrdinaryConsensus
+
+FAILED = []
+
+
+class FailsOnce(OrdinaryConsensus):
+    """Consensus that raises once per process, in its first cycle after t = 1 s."""
+
+    def step(self, view):
+        if view.t >= 1.0 and not FAILED:
+            FAILED.append(view.t)
+            raise RuntimeError("lookup table out of range")
+        return super().step(view)
+'''
+
+
+def test_the_watchdog_restarts_a_crashed_process_and_a_controller_error_in_real_time(rt, tmp_path, monkeypatch):  # noqa: F811
+    """One policy (hil.faults.watchdog) in both places: the orchestrator restarts a crash without a duration (a new
+    process), the ECU process restarts the unit its controller stopped (in place)."""
+    (tmp_path / "failsonce.py").write_text(FAILS_ONCE)
+    monkeypatch.chdir(tmp_path)
+    sc = load_scenario("faults", overrides={
+        "faults": [{"kind": "ecu_crash", "train": 2, "unit": 3, "at_s": 0.5}],
+        "ecu": {"restart_after_s": 0.4, "units": [{"unit": "train1/unit2", "law": "failsonce:FailsOnce"}]}})
+    res = run_realtime(sc, tmp_path / "rt", pace=1.0, duration_s=3.0, ecus_per_process=4)
+    rig = [e.text for e in res.log.events if e.source == "rig"]
+    assert any("train2/unit3: restart asked (watchdog, after a crash)" in t for t in rig), rig
+    ecu = [e for e in res.log.events if e.source == "train1/unit2/ecu"]
+    restarted = [e.t for e in ecu if "restarted with a reset controller (watchdog, after a controller error)" in e.text]
+    assert len(restarted) == 1 and 1.4 <= restarted[0] < 1.6, [(e.t, e.text) for e in ecu]
+    assert res.metrics["faults"]["injected"] == 1

@@ -32,6 +32,7 @@ from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
 from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, fault_rng
 from hil.faults.sensor import SensorFaults
+from hil.faults.watchdog import Watchdog
 from hil.record.runlog import Event, RunLog
 
 ECU_KINDS = ("ecu_crash", "ecu_hang")
@@ -97,7 +98,7 @@ class RealtimeFaults:
     def __init__(self, scenario, layout, servers: list, seed: int, db) -> None:
         self.sc, self.layout, self.seed = scenario, layout, seed
         self.specs = list(scenario.faults)
-        self.restart_after_s = scenario.ecu.restart_after_s
+        self.watchdog = Watchdog(scenario.ecu.restart_after_s)
         self.solo_units = {layout.index(s.train - 1, s.unit - 1) for s in self.specs if s.kind in ECU_KINDS}
         self.servers = servers
         periods = {fid: codec.cycle_time_s for fid, codec in db.by_id.items()}
@@ -115,8 +116,6 @@ class RealtimeFaults:
         self.t0 = 0.0
         self.pace = 1.0
         self._hung: dict[int, object] = {}  # unit -> its stopped node
-        self._down: dict[int, str] = {}  # unit -> "crash" | "hang"
-        self._timers: list[tuple[float, int, str]] = []  # (sim time, unit, why): watchdog restarts
         self._pending: list[tuple[object, int, float]] = []  # (new node, unit, sim time asked) not yet ready
         self.restarts = 0
 
@@ -143,12 +142,8 @@ class RealtimeFaults:
                 if line.startswith("fault "):
                     _, k, what, t = line.split()
                     self._dispatch(int(k), what, sim_now)
-        for item in list(self._timers):
-            if item[0] <= sim_now:
-                self._timers.remove(item)
-                _, u, why = item
-                if self._down.get(u) == why:
-                    self._restart(u, sim_now, "watchdog")
+        for u, why in self.watchdog.due(sim_now):
+            self._restart(u, sim_now, "watchdog", why)
         for item in list(self._pending):
             node, u, asked = item
             while not node.lines.empty():
@@ -167,9 +162,9 @@ class RealtimeFaults:
             u = self.layout.index(spec.train - 1, spec.unit - 1)
             if what == "start":
                 (self._crash if kind == "ecu_crash" else self._hang)(u, spec, sim_now)
-            elif self._down.get(u) == ("crash" if kind == "ecu_crash" else "hang"):
+            elif self.watchdog.is_down(u, "crash" if kind == "ecu_crash" else "hang"):
                 if kind == "ecu_crash":
-                    self._restart(u, sim_now, "the crash ended")
+                    self._restart(u, sim_now, "the crash ended", self.watchdog.up(u))
                 else:
                     self._continue(u, sim_now)
         elif kind in BUS_KINDS:
@@ -191,10 +186,8 @@ class RealtimeFaults:
         if u in self._hung:
             del self._hung[u]
         node.proc.kill()
-        self._down[u] = "crash"
         self._event(t, "WARN", f"ECU process {node.name} killed (SIGKILL): crash")
-        if spec.duration_s is None and self.restart_after_s is not None:
-            self._timers.append((t + self.restart_after_s, u, "crash"))
+        self.watchdog.stopped(u, "crash", t, spec.duration_s)
 
     def _hang(self, u: int, spec, t: float) -> None:
         node = self._node("ecu", self._unit_name(u))
@@ -202,21 +195,18 @@ class RealtimeFaults:
             return
         os.kill(node.proc.pid, signal.SIGSTOP)
         self._hung[u] = node
-        self._down[u] = "hang"
         self._event(t, "WARN", f"ECU process {node.name} stopped (SIGSTOP): hang, still connected")
-        w = self.restart_after_s
-        if w is not None and (spec.duration_s is None or w < spec.duration_s):
-            self._timers.append((t + w, u, "hang"))
+        self.watchdog.stopped(u, "hang", t, spec.duration_s)
 
     def _continue(self, u: int, t: float) -> None:
         node = self._hung.pop(u, None)
-        self._down.pop(u, None)
+        self.watchdog.up(u)
         if node is not None and node.proc.poll() is None:
             os.kill(node.proc.pid, signal.SIGCONT)
             self._event(t, "INFO", f"ECU process {node.name} continued (SIGCONT): the hang is over, no reset")
 
-    def _restart(self, u: int, t: float, by: str) -> None:
-        why = self._down.pop(u, None)
+    def _restart(self, u: int, t: float, by: str, why: str | None) -> None:
+        """A new process for unit ``u`` (down for ``why``); a hung one is killed first."""
         old = self._hung.pop(u, None)
         if old is not None and old.proc.poll() is None:  # a hung process is replaced by the watchdog
             old.reported = True

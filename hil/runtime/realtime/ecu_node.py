@@ -24,6 +24,7 @@ import numpy as np
 
 from ecu_sim.codec import TrainDb
 from hil.faults.schedule import needs_fault_machinery
+from hil.faults.watchdog import Watchdog, restart_text
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
@@ -96,9 +97,9 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
         phase = sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s
         queue.append((phase + max(0, math.ceil((start - phase) / cycle)) * cycle, u))
     heapq.heapify(queue)
-    watchdog, stopped_at = sc.ecu.restart_after_s, {}
+    watchdog = Watchdog(sc.ecu.restart_after_s) if sc.ecu.restart_after_s is not None else None
     try:
-        _cycle_loop(clock, sc, ecus, io, bus_of, duration, stop, queue, stats, watchdog, stopped_at)
+        _cycle_loop(clock, sc, ecus, io, bus_of, duration, stop, queue, stats, watchdog)
     except (ConnectionError, OSError) as exc:  # the bus server went away (its rig died): keep what we have
         for ecu in ecus.values():
             ecu.events.append((clock.now(), "ERROR", f"the bus went away, the ECU stopped: {exc}"))
@@ -109,7 +110,7 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
 
 
 def _cycle_loop(clock: SimClock, sc, ecus: dict, io, bus_of: dict, duration: float, stop: StopFlag, queue: list,
-                stats: dict, watchdog, stopped_at: dict) -> None:
+                stats: dict, watchdog: Watchdog | None) -> None:
     """Earliest deadline first: wait, cycle the unit, send its frames, book its lateness, requeue it."""
     cycle = sc.ecu.cycle_s
     while queue and not stop:
@@ -124,14 +125,20 @@ def _cycle_loop(clock: SimClock, sc, ecus: dict, io, bus_of: dict, duration: flo
         frames = ecu.cycle(now)
         if frames:
             io.send(bus_of[u], frames)
-        if watchdog is not None and not ecu.alive:
-            if now - stopped_at.setdefault(u, now) >= watchdog:
-                del stopped_at[u]
-                ecu.restart()
-                ecu.events.append((now, "INFO", "restarted with a reset controller (watchdog, after a controller error)"))
+        if watchdog is not None:
+            _watch(watchdog, ecus, u, now)
         overrun = stats[u].add(now - deadline, deadline)
         stats[u].skipped += overrun
         heapq.heapreplace(queue, (deadline + (1 + overrun) * cycle, u))
+
+
+def _watch(watchdog: Watchdog, ecus: dict, u: int, now: float) -> None:
+    """A unit its controller stopped (exception, NaN) is restarted in place when the watchdog says so."""
+    if not ecus[u].alive and not watchdog.is_down(u):
+        watchdog.stopped(u, "error", now)
+    for v, why in watchdog.due(now):
+        ecus[v].restart()
+        ecus[v].events.append((now, "INFO", restart_text("watchdog", why)))
 
 
 if __name__ == "__main__":
