@@ -58,3 +58,4 @@ def test_packaged_seed000_reference_changes_at_592_s():
     sc = load_scenario("seed000")
     ref = ReferenceProfile.from_config(sc.reference)
     assert ref.change_times[0] == pytest.approx(592.405, abs=1e-3)
+

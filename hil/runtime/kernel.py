@@ -2,6 +2,8 @@
 
 Time is integer nanoseconds so periodic events never drift and CAN bit times are exact.
 Events at equal times run in the order they were scheduled, which makes a run reproducible bit for bit.
+Real time is a subclass that overrides only :meth:`Kernel.step` (``hil.runtime.realtime.paced_kernel``), as
+SimPy's ``RealtimeEnvironment`` does.
 """
 from __future__ import annotations
 
@@ -45,11 +47,15 @@ class Kernel:
         """Time of the next pending event (None when the queue is empty)."""
         return self._queue[0][0] if self._queue else None
 
+    def step(self) -> None:
+        """Run the next event: the clock moves to its time."""
+        t, _, fn, arg = heapq.heappop(self._queue)
+        self.now = t
+        fn(arg)
+
     def run(self, until_ns: int) -> None:
         """Process every event with time < until_ns, then set the clock to until_ns."""
-        queue, pop = self._queue, heapq.heappop
+        queue = self._queue
         while queue and queue[0][0] < until_ns:
-            t, _, fn, arg = pop(queue)
-            self.now = t
-            fn(arg)
+            self.step()
         self.now = until_ns

@@ -15,7 +15,6 @@ filters), then the engine reads the socket straight into the mailboxes and write
 """
 from __future__ import annotations
 
-import heapq
 import math
 import sys
 from pathlib import Path
@@ -27,6 +26,8 @@ from hil.faults.schedule import needs_fault_machinery
 from hil.faults.watchdog import Watchdog, restart_text
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.runtime.kernel import to_ns
+from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
 from hil.runtime.firmware import build_ecu
@@ -85,51 +86,52 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFrames, bus_of: dict, duration: float,
         stop: StopFlag, join_late: bool = False) -> dict[int, LatenessStats]:
-    """The paced loop: earliest deadline first over the hosted units (``join_late``: from the first cycle after now).
+    """Cycle every hosted unit on the paced kernel to ``duration`` (``join_late``: from the first cycle after now).
 
     With ``ecu.restart_after_s``, a unit whose controller stopped it (exception, NaN) is restarted in place after
     that long, as the virtual rig's watchdog does."""
-    cycle = sc.ecu.cycle_s
-    stats = {u: LatenessStats(cycle, clock.pace) for u in ecus}
+    kernel = PacedKernel(clock, io, stop)
+    cycles = UnitCycles(kernel, sc, ecus, io, bus_of)
     start = clock.now() if join_late else 0.0
-    queue = []
     for u in ecus:
         phase = sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s
-        queue.append((phase + max(0, math.ceil((start - phase) / cycle)) * cycle, u))
-    heapq.heapify(queue)
-    watchdog = Watchdog(sc.ecu.restart_after_s) if sc.ecu.restart_after_s is not None else None
+        cycles.schedule(u, phase + max(0, math.ceil((start - phase) / sc.ecu.cycle_s)) * sc.ecu.cycle_s)
     try:
-        _cycle_loop(clock, sc, ecus, io, bus_of, duration, stop, queue, stats, watchdog)
+        kernel.run(to_ns(duration))
     except (ConnectionError, OSError) as exc:  # the bus server went away (its rig died): keep what we have
         for ecu in ecus.values():
             ecu.events.append((clock.now(), "ERROR", f"the bus went away, the ECU stopped: {exc}"))
-        return stats
+        return cycles.stats
     if not stop:
         linger(clock)
-    return stats
+    return cycles.stats
 
 
-def _cycle_loop(clock: SimClock, sc, ecus: dict, io, bus_of: dict, duration: float, stop: StopFlag, queue: list,
-                stats: dict, watchdog: Watchdog | None) -> None:
-    """Earliest deadline first: wait, cycle the unit, send its frames, book its lateness, requeue it."""
-    cycle = sc.ecu.cycle_s
-    while queue and not stop:
-        deadline, u = queue[0]
-        if deadline >= duration:
-            break
-        io.wait(deadline, None, stop)
-        if stop:
-            break
-        now = clock.now()
-        ecu = ecus[u]
+class UnitCycles:
+    """Each hosted unit's cycle as a kernel event: cycle the firmware, send its frames, book its lateness, and
+    schedule the next deadline (a unit more than one cycle late skips to its next future deadline)."""
+
+    def __init__(self, kernel: PacedKernel, sc, ecus: dict, io, bus_of: dict) -> None:
+        self.kernel, self.ecus, self.io, self.bus_of = kernel, ecus, io, bus_of
+        self.cycle_s = sc.ecu.cycle_s
+        self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace) for u in ecus}
+        self.watchdog = Watchdog(sc.ecu.restart_after_s) if sc.ecu.restart_after_s is not None else None
+
+    def schedule(self, u: int, deadline: float) -> None:
+        self.kernel.at(to_ns(deadline), self.run_cycle, (u, deadline))
+
+    def run_cycle(self, item: tuple[int, float]) -> None:
+        u, deadline = item
+        now = self.kernel.clock.now()
+        ecu = self.ecus[u]
         frames = ecu.cycle(now)
         if frames:
-            io.send(bus_of[u], frames)
-        if watchdog is not None:
-            _watch(watchdog, ecus, u, now)
-        overrun = stats[u].add(now - deadline, deadline)
-        stats[u].skipped += overrun
-        heapq.heapreplace(queue, (deadline + (1 + overrun) * cycle, u))
+            self.io.send(self.bus_of[u], frames)
+        if self.watchdog is not None:
+            _watch(self.watchdog, self.ecus, u, now)
+        overrun = self.stats[u].add(now - deadline, deadline)
+        self.stats[u].skipped += overrun
+        self.schedule(u, deadline + (1 + overrun) * self.cycle_s)
 
 
 def _watch(watchdog: Watchdog, ecus: dict, u: int, now: float) -> None:

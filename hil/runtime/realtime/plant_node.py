@@ -41,6 +41,8 @@ from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus,
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_after_s
 from hil.runtime.realtime.frame_io import node_frames
+from hil.runtime.kernel import to_ns
+from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
@@ -71,6 +73,12 @@ class PlantNode:
         self.extended = sc.can.extended_ids
         self.clock: SimClock | None = None
         self.frames = None  # the node's frame I/O (hil/runtime/realtime/frame_io.py), once the clock runs
+        self.kernel: PacedKernel | None = None  # the node's scheduler, once the clock runs (see run)
+        self.stats: LatenessStats | None = None  # publication lateness
+        self.n_steps = self.publish_every = 0  # plant steps in the run; steps between publications
+        self.save: Callable[[LatenessStats], None] | None = None
+        self.stream: Callable[[], None] | None = None
+        self.next_save = self.next_stream = 0.0  # time.monotonic() of the next save and stream
         self.tick = 0  # the plant's state is at simulated time tick * plant.step_s
         self.target = 0  # tick of the next publication
         self.every = {"record": max(1, round(sc.recording.period_s / sc.plant.step_s))}
@@ -137,52 +145,69 @@ class PlantNode:
         """Run to ``duration``; ``save(stats)`` every SAVE_EVERY_WALL_S so a killed plant leaves its data so far, and
         ``stream()`` every STREAM_EVERY_WALL_S (the new signal rows, for the live view).
 
-        Only publications are paced: the loop sleeps to the next Sensor/Reference tick and integrates lazily in
-        between (see :meth:`advance_to`), so the plant costs its steps and no per-step wake-ups."""
-        self.clock = clock
-        self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can)
-        sc = self.sc
-        step = sc.plant.step_s
-        self.every = {name: max(1, round(period / step)) for name, period in
-                      (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
-        publish_every = math.gcd(self.every["sensor"], self.every["ref"])
-        stats = LatenessStats(publish_every * step, clock.pace)
-        n_steps = int(round(duration / step))
-        next_save = time.monotonic() + SAVE_EVERY_WALL_S
-        next_stream = time.monotonic() + STREAM_EVERY_WALL_S
-        target = self.target = 0
-        while target < n_steps and not stop:
-            t = target * step
-            self.frames.wait(t, self.on_frame, stop, spin_s)
-            self.advance_to(target)
-            stats.add(clock.now() - t, t)
-            if self.faults is not None:
-                self.faults.poll(t, self.plant.x)
-            if target % self.every["sensor"] == 0:
-                self.publish_sensors(t)
-            if target % self.every["ref"] == 0:
-                self.publish_reference(t)
-            if stream is not None and time.monotonic() > next_stream:
-                stream()
-                next_stream = time.monotonic() + STREAM_EVERY_WALL_S
-            if save is not None and time.monotonic() > next_save:
-                self.log.sim_time_s, self.log.interrupted = t, True  # as of this save
-                self.log.wall_time_s = time.time() - clock.t0
-                save(stats)
-                next_save = time.monotonic() + SAVE_EVERY_WALL_S
-            target = self.target = target + publish_every
-        self.target = n_steps
-        if not stop:
-            self.frames.wait(n_steps * step, self.on_frame, stop, spin_s)
-            self.advance_to(n_steps)
-        self.log.sim_time_s = self.tick * step
-        self.log.interrupted = self.tick < n_steps
+        Only publications are paced (events of the node's ``PacedKernel``): it sleeps to the next Sensor/Reference
+        tick and integrates lazily in between (see :meth:`advance_to`), so the plant costs its steps and no per-step
+        wake-ups."""
+        self._schedule(clock, duration, stop, spin_s)
+        self.save, self.stream = save, stream
+        self.next_save = time.monotonic() + SAVE_EVERY_WALL_S
+        self.next_stream = time.monotonic() + STREAM_EVERY_WALL_S
+        end_ns = to_ns(self.n_steps * self.sc.plant.step_s)
+        self.kernel.run(end_ns + 1)
+        self.log.sim_time_s = self.tick * self.sc.plant.step_s
+        self.log.interrupted = self.tick < self.n_steps
         if self.external is not None:
             self.log.events.extend(self.external.events(self.log.sim_time_s))
         self.log.wall_time_s = time.time() - clock.t0
         if not stop:
             linger(clock)
-        return stats
+        return self.stats
+
+    def _schedule(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float) -> None:
+        """The node's paced kernel, with the first publication and the end of the run on it."""
+        self.clock = clock
+        self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can)
+        self.kernel = PacedKernel(clock, self.frames, stop, self.on_frame, spin_s)
+        sc, step = self.sc, self.sc.plant.step_s
+        self.every = {name: max(1, round(period / step)) for name, period in
+                      (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
+        self.publish_every = math.gcd(self.every["sensor"], self.every["ref"])
+        self.stats = LatenessStats(self.publish_every * step, clock.pace)
+        self.n_steps = int(round(duration / step))
+        self.target = 0
+        if self.n_steps > 0:
+            self.kernel.at(0, self.publish, 0)
+        self.kernel.at(to_ns(self.n_steps * step), self.finish)
+
+    def publish(self, target: int) -> None:
+        """A publication tick (kernel event): integrate to it, book its lateness, faults, Sensor and Reference
+        frames, the live stream and the periodic save; then schedule the next one."""
+        step, stats = self.sc.plant.step_s, self.stats
+        t = target * step
+        self.advance_to(target)
+        stats.add(self.clock.now() - t, t)
+        if self.faults is not None:
+            self.faults.poll(t, self.plant.x)
+        if target % self.every["sensor"] == 0:
+            self.publish_sensors(t)
+        if target % self.every["ref"] == 0:
+            self.publish_reference(t)
+        if self.stream is not None and time.monotonic() > self.next_stream:
+            self.stream()
+            self.next_stream = time.monotonic() + STREAM_EVERY_WALL_S
+        if self.save is not None and time.monotonic() > self.next_save:
+            self.log.sim_time_s, self.log.interrupted = t, True  # as of this save
+            self.log.wall_time_s = time.time() - self.clock.t0
+            self.save(stats)
+            self.next_save = time.monotonic() + SAVE_EVERY_WALL_S
+        nxt = target + self.publish_every
+        self.target = min(nxt, self.n_steps)  # commands that arrive meanwhile integrate at most up to it
+        if nxt < self.n_steps:
+            self.kernel.at(to_ns(nxt * step), self.publish, nxt)
+
+    def finish(self, _=None) -> None:
+        """The end of the run (kernel event): the commands that arrived until then applied, the last steps done."""
+        self.advance_to(self.n_steps)
 
     def advance_to(self, k: int) -> None:
         """Integrate steps tick..k-1 (a recording sample before each step that falls on the recording period).

@@ -4,20 +4,21 @@
 
 One process joins every train bus as "RadioGW" (acceptance filters = the gateway's routes from that bus). A
 frame heard at simulated time t is offered to the radio links; each delivery is queued by its delivery time
-and sent on the destination bus when the clock reaches it (a time-ordered heap, sleeping in between).
+and sent on the destination bus when the clock reaches it (an event of the node's paced kernel, which sleeps
+in between and wakes at every frame heard).
 At the end it writes ``DIR/radio.json`` (the links' counters). One process for all pairs rather than one per
 pair: the gateway is one routing table, as in the virtual rig.
 """
 from __future__ import annotations
 
-import heapq
-import itertools
 import sys
 from pathlib import Path
 
 from ecu_sim.codec import TrainDb
 from hil.runtime.realtime.frame_io import node_frames
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.runtime.kernel import to_ns
+from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import random_streams
 from hil.runtime.virtual import build_gateway
@@ -43,26 +44,12 @@ def main(argv: list[str] | None = None) -> int:
         for i in range(sc.trains.count):
             buses.append(open_bus(args.run, i, gateway.ids_for_bus(i), sc.can, "RadioGW"))
         clock = SimClock(handshake(stop), args.pace)
-        queue: list[tuple[int, int, int, int, bytes]] = []  # (deliver_ns, seq, bus, id, data)
-        seq = itertools.count()
-
-        frames = node_frames(clock, buses, sc.can)
-
-        def on_frame(i: int, frame_id: int, data: bytes, t: float) -> None:
-            for dst_bus, dst_id, payload, t_deliver in gateway.on_frame(i, frame_id, data, round(t * 1e9)):
-                heapq.heappush(queue, (t_deliver, next(seq), dst_bus, dst_id, payload))
-
-        while not stop and clock.now() < args.duration:
-            wait = IDLE_WAIT_S / clock.pace
-            if queue:
-                wait = min(wait, clock.wall_until(queue[0][0] * 1e-9))
-            frames.wait_any(wait, on_frame)  # returns as soon as a frame arrives: its delivery may be due first
-            if faults is not None:
-                faults.apply_pending()
-            now_ns = clock.now() * 1e9
-            while queue and queue[0][0] <= now_ns:
-                _, _, dst_bus, dst_id, payload = heapq.heappop(queue)
-                frames.send(dst_bus, [(dst_id, payload)])
+        bridge = RadioBridge(gateway, faults)
+        kernel = bridge.kernel = PacedKernel(clock, node_frames(clock, buses, sc.can), stop, bridge.on_frame,
+                                             wake_on_frame=True)
+        kernel.every(0, to_ns(IDLE_WAIT_S), bridge.idle)  # the kernel always has an event: it keeps listening
+        kernel.at(to_ns(args.duration), bridge.idle)  # ... up to the end of the run
+        kernel.run(to_ns(args.duration) + 1)
         linger(clock)
     except (ConnectionError, OSError) as exc:  # the bus server went away (its rig died): write what we have
         print(f"radio node: the bus went away: {exc}", file=sys.stderr)
@@ -71,8 +58,34 @@ def main(argv: list[str] | None = None) -> int:
             b.shutdown()
     write_json(Path(args.out) / "radio.json",
                {"links": {name: dict(link.stats) for name, link in gateway.links.items()},
-                "undelivered_queued": len(queue) if "queue" in locals() else 0})
+                "undelivered_queued": bridge.in_flight if "bridge" in locals() else 0})
     return 0
+
+
+class RadioBridge:
+    """Frames heard on a bus go to the radio links; each delivery is a kernel event at its delivery time."""
+
+    def __init__(self, gateway, faults) -> None:
+        self.gateway, self.faults = gateway, faults
+        self.kernel: PacedKernel | None = None
+        self.in_flight = 0  # deliveries scheduled, not yet sent
+
+    def on_frame(self, i: int, frame_id: int, data: bytes, t: float) -> None:
+        if self.faults is not None:
+            self.faults.apply_pending()
+        for dst_bus, dst_id, payload, t_deliver in self.gateway.on_frame(i, frame_id, data, round(t * 1e9)):
+            self.kernel.at(max(t_deliver, self.kernel.now), self.deliver, (dst_bus, dst_id, payload))
+            self.in_flight += 1
+
+    def deliver(self, item: tuple[int, int, bytes]) -> None:
+        dst_bus, dst_id, payload = item
+        self.in_flight -= 1
+        self.kernel.io.send(dst_bus, [(dst_id, payload)])
+
+    def idle(self, t_ns: int) -> None:
+        """Every IDLE_WAIT_S: a stop request is noticed and pending fault lines are applied on a quiet radio."""
+        if self.faults is not None:
+            self.faults.apply_pending()
 
 
 if __name__ == "__main__":
