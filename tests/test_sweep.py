@@ -122,21 +122,29 @@ def test_grid_is_the_cartesian_product_times_seeds_with_stable_ids(tmp_path):
     assert pts[2].columns == {"radio.latency_s": 0.0, "radio.loss.model": "gilbert_elliott", "radio.loss.p_good_to_bad": 0.01}
 
 
+def law_params(law: str, **given) -> dict:
+    """A law's parameters as a resolved scenario holds them: its defaults, with ``given`` on top."""
+    from ecu_sim.controllers.base import get_controller
+
+    return get_controller(law).Params(**given).model_dump(mode="json")
+
+
 def test_changing_the_law_resets_params_unless_they_are_given(tmp_path):
     spec = load_sweep(write(tmp_path, 'name = "x"\nbase = "seed000"\n[axes]\n"controller.law" = ["finite_time", "consensus"]\n'))
     ft, cons = (p.scenario.controller for p in spec.points)
     assert ft == SEED000.controller  # the base's law keeps the base's params
-    assert (cons.law, cons.params) == ("consensus", {})  # another law: its own defaults
+    assert (cons.law, cons.params) == ("consensus", law_params("consensus"))  # another law: its own defaults
     assert spec.points[1].overrides["controller.params"] == {}
     # single params on top of the new law's defaults
     spec = load_sweep(write(tmp_path, 'name = "x"\nbase = "seed000"\n[overrides]\n"controller.law" = "consensus"\n'
                                       '[axes]\n"controller.params.kx_ref" = [0.05, 0.2]\n', "b.toml"))
-    assert [p.scenario.controller.params for p in spec.points] == [{"kx_ref": 0.05}, {"kx_ref": 0.2}]
+    assert [p.scenario.controller.params for p in spec.points] == [law_params("consensus", kx_ref=0.05),
+                                                                   law_params("consensus", kx_ref=0.2)]
     # a law with its own params as a table axis value; a table without params means defaults
     spec = load_sweep(write(tmp_path, 'name = "x"\nbase = "seed000"\n[axes]\n"controller" = [{ law = "consensus", '
                                       'params = { cancel_coupler = true } }, { law = "finite_time" }]\n', "c.toml"))
     assert [(p.scenario.controller.law, p.scenario.controller.params) for p in spec.points] == [
-        ("consensus", {"cancel_coupler": True}), ("finite_time", {})]
+        ("consensus", law_params("consensus", cancel_coupler=True)), ("finite_time", law_params("finite_time"))]
     assert spec.axis_columns == ["controller.law", "controller.params.cancel_coupler"]
 
 

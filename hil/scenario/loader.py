@@ -85,7 +85,17 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrid
         raise ScenarioError(f"{source}: nested too deeply (arrays or tables inside each other beyond what a "
                             "scenario has)") from None
     _validate_firmware(source, scenario)
-    return scenario
+    return with_full_law_params(scenario)
+
+
+def with_full_law_params(scenario: Scenario) -> Scenario:
+    """The scenario with ``controller.params`` as the law runs them: every parameter, defaults included, so the
+    resolved scenario (and its hash in a run's provenance) says what ran, however the file wrote it."""
+    from ecu_sim.controllers.base import get_controller
+
+    params = get_controller(scenario.controller.law).Params(**scenario.controller.params).model_dump(mode="json")
+    controller = scenario.controller.model_copy(update={"params": params})
+    return scenario.model_copy(update={"controller": controller})
 
 
 def read_toml(path: Path, error: type[ValueError]) -> dict[str, Any]:
