@@ -1,7 +1,7 @@
 """Shared fixtures of the control-law tests: seed-000 plant numbers and small views built by hand."""
 from __future__ import annotations
 
-from ecu_sim.controllers.base import PlantInfo
+from ecu_sim.controllers.base import PlantInfo, get_controller
 from ecu_sim.view import AgentInfo, LocalView, NeighbourView, ReferenceView
 
 M = 80e3  # unit mass, kg
@@ -29,3 +29,9 @@ def nb(link, side, offset, x, v, valid=True, weight=1.0) -> NeighbourView:
 
 def view(x, v, neighbours=(), ref=None) -> LocalView:
     return LocalView(t=0.0, dt=0.01, x=x, v=v, neighbours=list(neighbours), ref=ref or ReferenceView())
+
+
+def law_params(law, **given) -> dict:
+    """A law's parameters as a resolved scenario holds them: its defaults, with ``given`` on top."""
+    cls = get_controller(law) if isinstance(law, str) else law
+    return cls.Params(**given).model_dump(mode="json")

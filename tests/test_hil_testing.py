@@ -30,6 +30,7 @@ from hil.testing import (
     build_scenario,
 )
 from hil.testing.results import HilRun
+from tests.law_views import law_params
 from tests.rrd_reader import read_scalars
 from tests.test_rerun_writer import make_log
 
@@ -79,12 +80,13 @@ def synthetic_run() -> HilRun:
 
 def test_overrides_and_law_swap_build_a_validated_scenario():
     sc = build_scenario(CRUISE, {"radio.latency_s": 0.2, "can.bitrate": 250000, "controller.params.kx_ref": 0.2})
-    assert sc.radio.latency_s == 0.2 and sc.can.bitrate == 250000 and sc.controller.params == {"kx_ref": 0.2}
+    assert sc.radio.latency_s == 0.2 and sc.can.bitrate == 250000 and sc.controller.params == law_params(sc.controller.law, kx_ref=0.2)
     swapped = build_scenario(CRUISE, controller=ConstantForce)
-    assert swapped.controller.law == "tests.test_hil_testing:ConstantForce" and swapped.controller.params == {}
-    assert build_scenario(CRUISE, controller=ConstantForce, params={"force_n": 5.0}).controller.params == {"force_n": 5.0}
+    assert swapped.controller.law == "tests.test_hil_testing:ConstantForce" and swapped.controller.params == law_params(ConstantForce)
+    assert build_scenario(CRUISE, controller=ConstantForce, params={"force_n": 5.0}).controller.params == law_params(
+        ConstantForce, force_n=5.0)
     assert build_scenario(sc, {"seed": 4}).seed == 4  # a Scenario object works too
-    assert build_scenario("seed000", {"controller.law": "consensus"}).controller.params == {}  # as in sweeps
+    assert build_scenario("seed000", {"controller.law": "consensus"}).controller.params == law_params("consensus")  # as in sweeps
     assert build_scenario("seed000", {"controller.params.p1": 5.0}).controller.params["p1"] == 5.0
     with pytest.raises(ScenarioError, match=r"can\.bitrate.*got 300000"):
         build_scenario(CRUISE, {"can.bitrate": 300000})

@@ -18,6 +18,7 @@ from hil.sweep import SweepError, load_sweep, packaged_sweeps
 from hil.sweep.results import NONDETERMINISTIC, flatten_metrics, load_results
 from hil.sweep.runner import MANIFEST, run_sweep
 from hil.sweep.spec import canonical_json, sweep_from_dict
+from tests.law_views import law_params
 
 SEED000 = load_scenario("seed000")
 
@@ -120,13 +121,6 @@ def test_grid_is_the_cartesian_product_times_seeds_with_stable_ids(tmp_path):
     assert not {q.run_id for q in longer.points} & {q.run_id for q in pts}
     assert spec.axis_columns == ["radio.latency_s", "radio.loss.model", "radio.loss.p", "radio.loss.p_good_to_bad"]
     assert pts[2].columns == {"radio.latency_s": 0.0, "radio.loss.model": "gilbert_elliott", "radio.loss.p_good_to_bad": 0.01}
-
-
-def law_params(law: str, **given) -> dict:
-    """A law's parameters as a resolved scenario holds them: its defaults, with ``given`` on top."""
-    from ecu_sim.controllers.base import get_controller
-
-    return get_controller(law).Params(**given).model_dump(mode="json")
 
 
 def test_changing_the_law_resets_params_unless_they_are_given(tmp_path):
