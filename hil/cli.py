@@ -139,7 +139,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     else:
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
                               record=not args.no_record, progress=not args.quiet, live=live,
-                              overrides=_given(args, overrides), source=str(args.scenario))
+                              overrides=_given(args, overrides), source=str(args.scenario), keep_signals=False)
     print_summary(result.metrics, out)
     if result.metrics.get("stopped_early"):  # a plant or radio process died: not the Ctrl-C code
         print(f"hil: error: the run stopped early: {result.metrics['stopped_early']} (what ran is in {out})",

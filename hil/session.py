@@ -61,6 +61,15 @@ class IncrementalRecorder:
             self.frames.write(self.writer)
         self.writer.flush()
 
+    @property
+    def signals_written(self) -> int:
+        """How many signal rows are in the recording."""
+        return self._signals
+
+    def load_written(self, bus) -> int:
+        """How many of ``bus``'s load windows are in the recording."""
+        return self._bus_offsets.get(bus.name, (0, 0))[0]
+
     def frames_written(self, bus) -> int:
         """How many of ``bus``'s frame rows are in the recording."""
         return self._bus_offsets.get(bus.name, (0, 0))[1]
@@ -79,13 +88,15 @@ def _can_loggers(rig: VirtualRig, out_dir: Path, fmt: str) -> list:
 def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, duration_s: float | None = None,
                  can_log: str | bool | None = None, ideal: bool = False, record: bool = True, progress: bool = False,
                  chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None,
-                 overrides: dict | None = None, source: str | None = None) -> RunResult:
+                 overrides: dict | None = None, source: str | None = None, keep_signals: bool = True) -> RunResult:
     """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir
     (``can_log``: "asc", "blf" or "mf4", True for ASC).
 
     ``live``: also stream the recording to a viewer as the simulation goes (flushed every simulated second, at
     most every LIVE_FLUSH_WALL_S of wall time); with ``record=False`` only there. ``overrides`` and ``source``
-    (the ``--set`` options and the scenario as named) go into metrics.json's provenance."""
+    (the ``--set`` options and the scenario as named) go into metrics.json's provenance. ``keep_signals=False``
+    (``hil run``, sweeps): in virtual time the samples are let go once recorded and summarised for the metrics, so
+    memory does not grow with the run's length, and ``result.log`` holds only the last of them."""
     if live is not None:
         chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
     fmt = None if ideal else log_format(can_log)  # checked before anything is written
@@ -114,6 +125,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
                 recorder(log)
         else:
             rig = VirtualRig(scenario, seed)
+            rig.log.summary(scenario.plant.coupler_band_m)  # the metrics' figures, kept as the samples come
             if recorder and scenario.recording.frames:
                 from hil.record.frames import FrameRecorder
 
@@ -124,7 +136,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
             flush = _every(_marking(recorder, out_dir, scenario.name, runtime), chunk_s, min_flush_wall_s) \
                 if recorder else None
             log = rig.run(duration, progress=(lambda t: bar.update(round(t - bar.n, 3))) if bar else None,
-                          on_chunk=_then_release_frames(flush, recorder))
+                          on_chunk=_then_release(flush, recorder, keep_signals))
             if recorder:
                 recorder(log)
     except PlantDiverged as exc:  # non-finite plant state: record what led to it, then report the error
@@ -160,14 +172,19 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     return RunResult(log, metrics, out_dir, files)
 
 
-def _then_release_frames(flush, recorder):
+def _then_release(flush, recorder, keep_signals: bool):
     """After each chunk (and its flush, if due), let go of the per-frame rows that are recorded (or, without a
-    recording, counted): the bus statistics keep what the metrics need, so memory does not grow with the frames."""
+    recording, counted): the bus statistics keep what the metrics need, so memory does not grow with the frames.
+    Unless ``keep_signals``, the same for the sampled signals (the log's signal summary keeps what the metrics
+    need)."""
     def chunk(log: RunLog) -> None:
         if flush is not None:
             flush(log)
         for bus in log.buses:
             bus.frames.release(recorder.frames_written(bus) if recorder is not None else len(bus.frames))
+            bus.load.release_before(recorder.load_written(bus) if recorder is not None else len(bus.load))
+        if not keep_signals:
+            log.release_signals(recorder.signals_written if recorder is not None else len(log.signals))
 
     return chunk
 

@@ -15,6 +15,7 @@ class SampleTable:
         self.width = width
         self._buf = array("d")
         self._cache: np.ndarray | None = None
+        self.released = 0  # rows let go from the front (release_before): the table holds rows released..len
 
     def append(self, row) -> None:
         if len(row) != self.width:
@@ -34,11 +35,31 @@ class SampleTable:
             self._cache = None
 
     def __len__(self) -> int:
-        return len(self._buf) // self.width
+        """Rows appended so far (released ones included)."""
+        return self.released + len(self._buf) // self.width
+
+    def _held(self, start: int) -> int:
+        if start < self.released:
+            raise ValueError(f"row {start} was released (the table holds rows {self.released}..{len(self)})")
+        return (start - self.released) * self.width
 
     def rows_bytes(self, start: int) -> bytes:
         """Rows ``start``.. as native float64 bytes (what ``extend_bytes`` takes): to stream a table to a file."""
-        return self._buf[start * self.width:].tobytes()
+        return self._buf[self._held(start):].tobytes()
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Rows ``start``..``stop`` (row numbers count from the first row ever appended) as an array."""
+        return np.frombuffer(self._buf[self._held(start):self._held(max(stop, start))].tobytes(),
+                             dtype=float).reshape(-1, self.width)
+
+    def release_before(self, row: int) -> None:
+        """Let go of the rows before ``row`` (they were recorded and summarised): memory stays flat. The last row
+        is always held (``last``)."""
+        row = min(row, len(self) - 1)
+        if row > self.released:
+            del self._buf[:self._held(row)]
+            self.released = row
+            self._cache = None
 
     def last(self, column: int = 0) -> float:
         """Value of ``column`` in the last row (NaN when empty), without materialising the table."""
@@ -46,7 +67,7 @@ class SampleTable:
 
     @property
     def array(self) -> np.ndarray:
-        """A read-only (n, width) array of the rows so far."""
+        """A read-only (n, width) array of the rows held (all of them unless some were released)."""
         if self._cache is None:
             self._cache = np.frombuffer(self._buf.tobytes(), dtype=float).reshape(-1, self.width)
         return self._cache

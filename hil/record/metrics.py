@@ -1,6 +1,7 @@
 """Summary metrics of one run (settling, spacing, couplers, effort, CAN timing) as a JSON-ready dict.
 
-Everything is computed vectorised from a RunLog. Values that are undefined (no samples, no couplers,
+The sampled signals' figures come from the log's signal summary (hil/record/signal_summary.py), kept as the
+samples come, so they need not be held to the end of a run. Values that are undefined (no samples, no couplers,
 never settled, non-finite) are None, never NaN, so `json.dumps(..., allow_nan=False)` always works.
 Durations "spent" in a condition use a zero-order hold: sample k holds until sample k+1.
 
@@ -26,6 +27,7 @@ import numpy as np
 from hil.can.frame_stats import LatencyCounts
 from hil.record.runlog import BusLog, RunLog
 from hil.record.safety import safety_report
+from hil.record.signal_summary import SignalSummary
 
 KMH = 1.0 / 3.6
 LEVELS = ("INFO", "WARN", "ERROR")
@@ -36,12 +38,13 @@ def compute_metrics(log: RunLog, coupler_band: tuple[float, float], settle_band_
     lo, hi = _check_band(coupler_band)
     if not settle_band_mps > 0:
         raise ValueError(f"settle_band_mps must be > 0, got {settle_band_mps!r}")
+    summary = log.summary((lo, hi), settle_band_mps)
     out: dict[str, Any] = {}
-    out.update(_settling_metrics(log, settle_band_mps))
-    out.update(_coupler_metrics(log, lo, hi))
-    out.update(_gap_metrics(log))
-    out.update(_safety_metrics(log, lo, hi))
-    out.update(_effort_metrics(log))
+    out.update(_settling_metrics(summary, settle_band_mps))
+    out.update(_coupler_metrics(summary, lo, hi))
+    out.update(_gap_metrics(summary))
+    out.update(_safety_metrics(summary))
+    out.update(_effort_metrics(summary))
     out.update(bus_metrics(log.buses))
     out["frames_lost"] = int(log.frames_lost)
     out["events_by_level"] = _events_by_level(log)
@@ -70,16 +73,13 @@ def _f(x: float | np.floating | None) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _fl(a: np.ndarray) -> list[float | None]:
-    return [_f(v) for v in np.asarray(a, dtype=float).ravel()]
+def _fl(a: np.ndarray | None, n: int) -> list[float | None]:
+    """Each value as ``_f``; ``n`` Nones if there is no array."""
+    return [None] * n if a is None else [_f(v) for v in np.asarray(a, dtype=float).ravel()]
 
 
 def _max(a: np.ndarray) -> float | None:
     return _f(np.max(a)) if a.size else None
-
-
-def _min(a: np.ndarray) -> float | None:
-    return _f(np.min(a)) if a.size else None
 
 
 def _reader_samples(e2e: dict[str, dict[str, int]]) -> dict[str, int]:
@@ -107,114 +107,63 @@ def _check_band(band: tuple[float, float]) -> tuple[float, float]:
     return lo, hi
 
 
-def _hold_durations(t: np.ndarray) -> np.ndarray:
-    """How long each sample holds (zero-order hold); the last sample holds 0 s."""
-    if len(t) == 0:
-        return np.zeros(0)
-    return np.append(np.maximum(np.diff(t), 0.0), 0.0)
+# --------------------------------------------------------------------------- the sampled signals
 
 
-def _time_where(t: np.ndarray, flag: np.ndarray) -> float:
-    return float(np.sum(_hold_durations(t)[flag]))
-
-
-def _segments(log: RunLog) -> list[tuple[float, int, int]]:
-    """(start time, first row, end row) of every reference segment; changes at t <= 0 are the initial reference."""
-    t = log.t
-    changes = sorted({float(c) for c in log.reference_change_times if c > 0})
-    starts = [0.0] + changes
-    rows = np.searchsorted(t, starts, side="left").tolist() + [len(t)]
-    return [(s, rows[k], rows[k + 1]) for k, s in enumerate(starts)]
-
-
-# --------------------------------------------------------------------------- settling / tracking
-
-
-def _settle_row(within: np.ndarray) -> int | None:
-    """First row r such that within[r:] is all True (and non-empty), else None."""
-    bad = np.flatnonzero(~within)
-    r = int(bad[-1]) + 1 if len(bad) else 0
-    return r if r < len(within) else None
-
-
-def _settling_metrics(log: RunLog, band: float) -> dict[str, Any]:
-    t, err = log.t, log.speed_error
-    within = np.all(np.abs(err) <= band, axis=1)
-    segments = _segments(log)
-    rows = [_settle_row(within[r0:r1]) for _, r0, r1 in segments]
-    per_segment = [None if r is None else _f(t[r0 + r] - start) for r, (start, r0, _) in zip(rows, segments)]
-    _, r0, r1 = segments[0]
-    seg0 = err[r0:r1]
-    overshoot = _max(seg0)
+def _settling_metrics(s: SignalSummary, band: float) -> dict[str, Any]:
+    per_segment = [_f(v) for v in s.settling.settling_times()]
+    overshoot = _f(s.settling.overshoot.max)
     return {
         "settling_time_s": per_segment[0],
         "settled": per_segment[0] is not None,
         "settling_time_per_segment_s": per_segment,
         "settle_band_mps": float(band),
         "speed_overshoot_max_mps": None if overshoot is None else max(0.0, overshoot),
-        "speed_error_max_after_settling_mps": None if rows[0] is None else _max(np.abs(seg0[rows[0]:])),
-        "speed_error_max_abs_mps": _max(np.abs(err)),
+        "speed_error_max_after_settling_mps": None if per_segment[0] is None else _f(s.settling.tail_max_abs),
+        "speed_error_max_abs_mps": _f(s.speed_error.max),
     }
 
 
-# --------------------------------------------------------------------------- couplers and gaps
-
-
-def _coupler_metrics(log: RunLog, lo: float, hi: float) -> dict[str, Any]:
-    e = log.couplers
-    out_of_band = np.any((e < lo) | (e > hi), axis=1) if e.size else np.zeros(len(e), dtype=bool)
+def _coupler_metrics(s: SignalSummary, lo: float, hi: float) -> dict[str, Any]:
     return {
         "coupler_band_m": [lo, hi],
-        "coupler_max_abs_m": _max(np.abs(e)),
-        "coupler_min_m": _min(e),
-        "coupler_max_m": _max(e),
-        "coupler_out_of_band_s": _time_where(log.t, out_of_band),
+        "coupler_max_abs_m": _f(s.coupler_abs.max),
+        "coupler_min_m": _f(s.coupler.min),
+        "coupler_max_m": _f(s.coupler.max),
+        "coupler_out_of_band_s": s.coupler_out.total,
     }
 
 
-def _gap_metrics(log: RunLog) -> dict[str, Any]:
-    g, le = log.gaps, log.layout.emergency_gap_m
-    k = len(g)
-    below = np.any(g < le, axis=1) if g.size else np.zeros(k, dtype=bool)
-    overall = _min(g)
+def _gap_metrics(s: SignalSummary) -> dict[str, Any]:
+    le, n_pairs = s.layout.emergency_gap_m, s.layout.n_trains - 1
+    overall = _f(np.min(s.gap.min)) if s.gap.min is not None and np.size(s.gap.min) else None
     return {
-        "gap_min_m": _fl(np.min(g, axis=0)) if k else [None] * g.shape[1],
-        "gap_final_m": _fl(g[-1]) if k else [None] * g.shape[1],
+        "gap_min_m": _fl(s.gap.min, n_pairs),
+        "gap_final_m": _fl(s.final_gaps(), n_pairs),
         "gap_min_overall_m": overall,
         "gap_margin_to_emergency_m": None if overall is None else overall - le,
-        "gap_below_emergency_s": _time_where(log.t, below),
-        "position_error_final_m": _fl(log.position_error[-1]) if k else [None] * log.layout.n_units,
+        "gap_below_emergency_s": s.gap_below.total,
+        "position_error_final_m": _fl(s.final_position_error(), s.layout.n_units),
     }
 
 
-def _safety_metrics(log: RunLog, lo: float, hi: float) -> dict[str, Any]:
+def _safety_metrics(s: SignalSummary) -> dict[str, Any]:
     """Safety verdict over all samples, and the string-stability ratio of the spacing errors (None if undefined)."""
-    g, e, L = log.gaps, log.couplers, log.layout
-    if len(g) == 0:
+    if not s.rows:
         return {"unsafe": None, "collision": None, "string_stability_ratio": None}
-    collision = bool(np.any(g < 0.0))
-    unsafe = collision or bool(np.any(g < L.emergency_gap_m)) or bool(np.any((e < lo) | (e > hi)))
     ratio = None
-    if g.shape[1] >= 2:
-        peak = np.max(np.abs(g - L.spacing_m), axis=0)
+    peak = s.gap_spacing_error.max
+    if peak is not None and np.size(peak) >= 2:
         ratio = _f(peak[-1] / peak[0]) if peak[0] > 0 else None
-    return {"unsafe": unsafe, "collision": collision, "string_stability_ratio": ratio}
+    return {"unsafe": s.unsafe, "collision": s.collision, "string_stability_ratio": ratio}
 
 
-# --------------------------------------------------------------------------- effort and jerk
-
-
-def _effort_metrics(log: RunLog) -> dict[str, Any]:
-    t = log.t
-    if len(t) < 2:
+def _effort_metrics(s: SignalSummary) -> dict[str, Any]:
+    if s.rows < 2:
         return {"control_effort": None, "jerk_rms_mps3": None}
-    per_unit = np.trapezoid(np.abs(log.force_applied) / log.layout.mass_kg[None, :], t, axis=0)
-    dt = np.diff(t)
-    ok = dt > 0
-    jerk = np.diff(log.a, axis=0)[ok] / dt[ok, None]
     return {
-        "control_effort": _f(np.mean(per_unit)),
-        "jerk_rms_mps3": _f(np.sqrt(np.mean(jerk**2))) if jerk.size else None,
+        "control_effort": _f(np.mean(s.effort)),
+        "jerk_rms_mps3": _f(math.sqrt(s.jerk_sq / s.jerk_n)) if s.jerk_n else None,
     }
 
 
@@ -226,14 +175,14 @@ def _id_name(frame_id: int) -> str:
 
 
 def _one_bus(bus: BusLog) -> dict[str, Any]:
-    load = bus.load.array[:, 1]
+    load = bus.load
     latency, deadlines = bus.frames.summary()
     misses, ratio_max = deadlines.totals()
     return {
         "frames_sent": int(bus.frames_sent),
         "frames_dropped": int(bus.frames_dropped),
-        "load_max": _max(load),
-        "load_mean": _f(np.mean(load)) if load.size else None,
+        "load_max": _f(load.max) if load.count else None,
+        "load_mean": _f(load.sum / load.count) if load.count else None,
         "latency_p50_s": _f(latency.percentile(50)),
         "latency_p99_s": _f(latency.percentile(99)),
         "latency_max_s": _f(latency.max()),
@@ -245,15 +194,15 @@ def _one_bus(bus: BusLog) -> dict[str, Any]:
 
 def bus_metrics(buses: list[BusLog]) -> dict[str, Any]:
     """Frames, drops, load, latency and deadline figures of the buses, together and per bus."""
-    loads = np.concatenate([b.load.array[:, 1] for b in buses]) if buses else np.zeros(0)
+    windows = sum(b.load.count for b in buses)
     per_bus = {b.name: _one_bus(b) for b in buses}
     latency = LatencyCounts.merged(b.frames.summary()[0] for b in buses)
     ratios = [p["latency_to_period_max"] for p in per_bus.values() if p["latency_to_period_max"] is not None]
     return {
         "frames_sent": int(sum(b.frames_sent for b in buses)),
         "frames_dropped": int(sum(b.frames_dropped for b in buses)),
-        "bus_load_max": _max(loads),
-        "bus_load_mean": _f(np.mean(loads)) if loads.size else None,
+        "bus_load_max": _f(max(b.load.max for b in buses)) if windows else None,
+        "bus_load_mean": _f(sum(b.load.sum for b in buses) / windows) if windows else None,
         "frame_latency_p50_s": _f(latency.percentile(50)),
         "frame_latency_p99_s": _f(latency.percentile(99)),
         "frame_latency_max_s": _f(latency.max()),

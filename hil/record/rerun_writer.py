@@ -143,7 +143,7 @@ class RerunWriter:
             raise ValueError(f"write_signals rows [{start}, {stop}) outside the log's {len(log.signals)} samples")
         if start == stop:
             return
-        rows = log.signals.array[start:stop]
+        rows = log.signals.rows(start, stop)
         times = self._indexes(rows[:, 0])
         for path, values in signal_columns(self.layout, rows).items():
             self._send(path, times, values)
@@ -174,7 +174,7 @@ class RerunWriter:
     def write_bus(self, bus: BusLog, start_load: int, start_frames: int) -> tuple[int, int]:
         """Send bus load windows and frame latencies not yet written; return the new (load, frames) offsets."""
         self._check_open()
-        load, frames = bus.load.array[start_load:], bus.frames.rows_from(start_frames)
+        load, frames = bus.load.rows(start_load, len(bus.load)), bus.frames.rows_from(start_frames)
         if len(load):
             self._send(paths.bus_path(bus.name, "load"), self._indexes(load[:, 0]), load[:, 1])
         if len(frames):

@@ -2,6 +2,10 @@
 
 The runtimes append to it while running (preallocated chunks, no per-sample allocation);
 metrics and the rerun writer read it. Arrays are indexed [sample, unit] front to back.
+
+A long run need not keep its samples: ``release_signals(row)`` summarises the rows before ``row`` for the metrics
+(``hil.record.signal_summary``) and lets them go, so memory does not grow with the run's length. The array views
+(``t``, ``x``, ...) then hold only the samples not released.
 """
 from __future__ import annotations
 
@@ -11,7 +15,10 @@ import numpy as np
 
 from hil.can.stats import BusLog
 from hil.layout import TrainLayout
+from hil.record.signal_summary import SignalSummary
 from hil.tables import SampleTable
+
+SETTLE_BAND_MPS = 0.5 / 3.6  # the metrics' default settling band: 0.5 km/h
 
 __all__ = ["BusLog", "Event", "RunLog", "SampleTable"]
 
@@ -44,9 +51,34 @@ class RunLog:
     sim_time_s: float = 0.0
     wall_time_s: float = 0.0
     fault_report: dict | None = None  # the faults block of metrics.json, set by hil.faults when faults are scheduled
+    # (coupler band, settle band, line limit) -> the summary of the samples and how many rows it has seen
+    summaries: dict[tuple, tuple[SignalSummary, int]] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         self.signals = SampleTable(3 + 5 * self.layout.n_units)
+
+    def summary(self, coupler_band: tuple[float, float], settle_band_mps: float = SETTLE_BAND_MPS,
+                line_limit_mps: float | None = None) -> SignalSummary:
+        """The summary of every sample so far, for these bands: kept up to date as samples come (a summary asked
+        for after samples were released must have been asked for before, so it has seen them)."""
+        key = (tuple(float(b) for b in coupler_band), float(settle_band_mps), line_limit_mps)
+        summary, fed = self.summaries.get(key, (None, 0))
+        if summary is None:
+            if self.signals.released:
+                raise ValueError(f"no summary for {key}: the samples before row {self.signals.released} were "
+                                 "released without one")
+            summary = SignalSummary(self.layout, key[0], key[1], self.reference_change_times, line_limit_mps)
+        n = len(self.signals)
+        if n > fed:
+            summary.add(self.signals.rows(fed, n))
+        self.summaries[key] = (summary, n)
+        return summary
+
+    def release_signals(self, row: int) -> None:
+        """Summarise the samples before ``row`` (every summary asked for so far) and let them go."""
+        for key in list(self.summaries):
+            self.summary(*key)
+        self.signals.release_before(row)
 
     def tally_frames_lost(self) -> int:
         """Frames lost in the network: dropped from TX queues (or by a fault) on the buses, and offered to the radio

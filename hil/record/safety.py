@@ -18,96 +18,30 @@ that train (or pair) shortly before: injected faults active then or ended up to 
 from __future__ import annotations
 
 import re
-from dataclasses import asdict, dataclass
-
-import numpy as np
+from dataclasses import asdict
 
 from hil.record.runlog import Event, RunLog
+from hil.record.signal_summary import KMH, MAX_LISTED, Violation, ebi_margin
 
-KMH = 1.0 / 3.6
-EBI_MIN_MARGIN, EBI_MAX_MARGIN = 7.5 * KMH, 15.0 * KMH  # dV_ebi_min / dV_ebi_max
-EBI_MIN_SPEED, EBI_MAX_SPEED = 110.0 * KMH, 210.0 * KMH  # V_ebi_min / V_ebi_max
+__all__ = ["KMH", "MAX_LISTED", "VERDICTS", "Violation", "check_safety", "ebi_margin", "explain", "safety_report"]
+
 CAUSE_WINDOW_S = 60.0
-MAX_LISTED = 50  # violations listed per verdict (all are counted)
 VERDICTS = ("gap_below_le", "collision", "coupler_out_of_band", "overspeed")
 _FAULT_EVENT = re.compile(r"^#(\d+) (\S+) on (.+?): (injected|over)")
 
 
-@dataclass
-class Violation:
-    verdict: str
-    where: str  # "train 1-2", "train 2 coupler 1-2", "train 3 unit 1"
-    start_s: float
-    end_s: float
-    duration_s: float
-    worst: float  # the gap (m), the displacement (m) or the excess speed (m/s) at its worst
-    worst_at_s: float
-    limit: float
-    cause: str = ""
-
-    @property
-    def trains(self) -> set[int]:
-        """1-based trains this violation is about."""
-        m = re.match(r"train (\d+)(?:-(\d+))?", self.where)
-        return {int(g) for g in m.groups() if g} if m else set()
-
-    def text(self) -> str:
-        what = {"gap_below_le": f"gap {self.worst:.1f} m below l_e = {self.limit:g} m",
-                "collision": f"collision (gap {self.worst:.2f} m)",
-                "coupler_out_of_band": f"coupler at {self.worst:+.3f} m outside the band",
-                "overspeed": f"{self.worst * 3.6:.1f} km/h above the permitted speed + margin"}[self.verdict]
-        return (f"SAFETY {self.verdict} on {self.where} from t = {self.start_s:.2f} s to {self.end_s:.2f} s "
-                f"({self.duration_s:.2f} s): {what} at t = {self.worst_at_s:.2f} s; cause: {self.cause}")
-
-
-def ebi_margin(v_ref: np.ndarray) -> np.ndarray:
-    """ETCS emergency-brake intervention margin above the permitted speed (m/s), per permitted speed (m/s)."""
-    frac = np.clip((v_ref - EBI_MIN_SPEED) / (EBI_MAX_SPEED - EBI_MIN_SPEED), 0.0, 1.0)
-    return EBI_MIN_MARGIN + frac * (EBI_MAX_MARGIN - EBI_MIN_MARGIN)
-
-
-def _runs(flag: np.ndarray) -> list[tuple[int, int]]:
-    """(first row, row after the last) of every run of True in a 1-D boolean array."""
-    edges = np.diff(np.concatenate(([0], flag.astype(np.int8), [0])))
-    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
-
-
-def _intervals(verdict: str, t: np.ndarray, bad: np.ndarray, value: np.ndarray, worst_is_min: bool,
-               names: list[str], limit: float) -> list[Violation]:
-    out = []
-    for j in np.flatnonzero(bad.any(axis=0)):
-        for a, b in _runs(bad[:, j]):
-            seg = value[a:b, j]
-            k = int(np.argmin(seg) if worst_is_min else np.argmax(seg))
-            end = t[b] if b < len(t) else t[-1]
-            out.append(Violation(verdict, names[j], float(t[a]), float(end), float(end - t[a]), float(seg[k]),
-                                 float(t[a + k]), limit))
-    return out
+def tally(log: RunLog, band: tuple[float, float], line_limit_mps: float | None = None) -> dict[str, tuple]:
+    """Per verdict: (count, total seconds, first start, the MAX_LISTED earliest violations), from the log's
+    signal summary (hil/record/signal_summary.py)."""
+    summary = log.summary(band, line_limit_mps=line_limit_mps)
+    t_last = summary.t_last if summary.t_last is not None else 0.0
+    return {verdict: summary.violations[verdict].result(t_last) for verdict in VERDICTS}
 
 
 def check_safety(log: RunLog, band: tuple[float, float], line_limit_mps: float | None = None) -> list[Violation]:
-    """Every violation of the run, in time order, without causes (``explain`` adds them)."""
-    t, L = log.t, log.layout
-    if len(t) == 0:
-        return []
-    lo, hi = band
-    out: list[Violation] = []
-    g = log.gaps
-    if g.size:
-        pairs = [f"train {i + 1}-{i + 2}" for i in range(g.shape[1])]
-        out += _intervals("gap_below_le", t, g < L.emergency_gap_m, g, True, pairs, L.emergency_gap_m)
-        out += _intervals("collision", t, g < 0.0, g, True, pairs, 0.0)
-    e = log.couplers
-    if e.size:
-        names = [f"train {L.train_unit(int(a))[0] + 1} coupler {L.train_unit(int(a))[1] + 1}-{L.train_unit(int(a))[1] + 2}"
-                 for a, _ in L.coupler_pairs()]
-        out += _intervals("coupler_out_of_band", t, (e < lo) | (e > hi), np.abs(e), False, names, hi)
-    permitted = log.v_ref[:, None] + ebi_margin(log.v_ref)[:, None]
-    if line_limit_mps is not None:
-        permitted = np.minimum(permitted, line_limit_mps)
-    excess = log.v - permitted
-    units = [f"train {L.train_unit(u)[0] + 1} unit {L.train_unit(u)[1] + 1}" for u in range(L.n_units)]
-    out += _intervals("overspeed", t, excess > 0.0, excess, False, units, 0.0)
+    """The violations of the run (the MAX_LISTED earliest of each verdict; all are counted in ``safety_report``),
+    in time order, without causes (``explain`` adds them)."""
+    out = [v for _, _, _, listed in tally(log, band, line_limit_mps).values() for v in listed]
     out.sort(key=lambda v: (v.start_s, v.verdict, v.where))
     return out
 
@@ -172,26 +106,22 @@ def explain(violations: list[Violation], events: list[Event], n_trains: int) -> 
 def safety_report(log: RunLog, band: tuple[float, float], line_limit_mps: float | None = None) -> dict:
     """The verdicts for metrics.json: per verdict whether it happened, how many intervals, how long in total,
     and the violations themselves (at most MAX_LISTED per verdict) with their causes."""
-    violations = explain(check_safety(log, band, line_limit_mps), log.events, log.layout.n_trains)
-    out: dict = {"safe": not violations, "overspeed_margin": "ETCS EBI: 7.5 km/h to 110 km/h, 15 km/h from 210 km/h"}
+    counts = tally(log, band, line_limit_mps)
+    listed = explain(check_safety(log, band, line_limit_mps), log.events, log.layout.n_trains)
+    out: dict = {"safe": not any(c[0] for c in counts.values()),
+                 "overspeed_margin": "ETCS EBI: 7.5 km/h to 110 km/h, 15 km/h from 210 km/h"}
     for verdict in VERDICTS:
-        mine = [v for v in violations if v.verdict == verdict]
-        out[verdict] = {"violated": bool(mine), "count": len(mine),
-                        "total_s": float(sum(v.duration_s for v in mine)),
-                        "first_s": mine[0].start_s if mine else None,
-                        "violations": [asdict(v) for v in mine[:MAX_LISTED]]}
+        count, total, first, _ = counts[verdict]
+        mine = [v for v in listed if v.verdict == verdict]
+        out[verdict] = {"violated": bool(count), "count": count, "total_s": float(total), "first_s": first,
+                        "violations": [asdict(v) for v in mine]}
     return out
 
 
 def violation_events(log: RunLog, band: tuple[float, float]) -> list[Event]:
     """The violations as timeline events (source ``safety``, ERROR), at most MAX_LISTED per verdict."""
     violations = explain(check_safety(log, band), log.events, log.layout.n_trains)
-    out, per = [], dict.fromkeys(VERDICTS, 0)
-    for v in violations:
-        per[v.verdict] += 1
-        if per[v.verdict] <= MAX_LISTED:
-            out.append(Event(v.start_s, "ERROR", "safety", v.text()))
-    return out
+    return [Event(v.start_s, "ERROR", "safety", v.text()) for v in violations]
 
 
 def record_violations(log: RunLog, band: tuple[float, float]) -> None:

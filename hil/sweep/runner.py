@@ -74,7 +74,7 @@ def execute_point(scenario: Scenario) -> dict[str, Any]:
         warnings.simplefilter("always")
         try:
             with tempfile.TemporaryDirectory(prefix="hil-sweep-") as tmp:
-                result = run_scenario(scenario, Path(tmp), record=False, progress=False)
+                result = run_scenario(scenario, Path(tmp), record=False, progress=False, keep_signals=False)
             outcome = {"status": "interrupted"} if result.log.interrupted else {"status": "ok", "metrics": result.metrics}
         except KeyboardInterrupt:
             outcome = {"status": "interrupted"}
