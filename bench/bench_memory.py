@@ -1,9 +1,9 @@
 """Peak memory (RSS) of `hil run seed000` against its simulated length: 100, 1000 and 10000 s by default.
 
 Each run is a fresh `hil run` process (with its recording, as a user runs it); the figure is its peak resident set
-size (getrusage of the child). The bus statistics are kept as the frames come and the per-frame rows are let go
-once recorded (hil/can/frame_stats.py); what still grows is the sampled signals (63 values at 10 Hz for seed000,
-about 5 kB per simulated second) that the metrics are computed from at the end.
+size (getrusage of the child). The bus statistics are kept as the frames come (hil/can/frame_stats.py), the
+metrics' figures of the sampled signals too (hil/record/signal_summary.py), and `hil run` lets the per-frame rows,
+the load windows and the signal samples go once they are recorded, so the peak should not grow with the length.
     python bench/bench_memory.py [--sims 100,1000,10000] [--scenario seed000]
 """
 from __future__ import annotations
