@@ -192,12 +192,9 @@ class EcuDiagnostics:
 
 
 def neighbour_names(layout, u: int) -> list[str]:
-    """Readable names of unit u's neighbours, in the order of its NeighbourViews (``trainT/unitU``)."""
-    out = []
-    for q, _, _ in layout.neighbours(u):
-        train, unit = layout.train_unit(q)
-        out.append(f"train{train + 1}/unit{unit + 1}")
-    return out
+    """Readable names of unit u's neighbours, in the order of its NeighbourViews (``trainT/unitU``, as the rig's
+    layout names its units)."""
+    return [layout.unit_name(q) for q, _, _ in layout.neighbours(u)]
 
 
 __all__ = ["EcuDiagnostics", "SensorPlausibility", "neighbour_names"]

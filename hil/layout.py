@@ -68,7 +68,11 @@ class TrainLayout:
 
     def unit_name(self, u: int) -> str:
         """``train<t>/unit<k>`` (1-based) of flat unit u: the name in scenarios, events and node lists."""
-        train, unit = self.train_unit(u)
+        return self.name_of(*self.train_unit(u))
+
+    @staticmethod
+    def name_of(train: int, unit: int) -> str:
+        """``train<t>/unit<k>`` of (train, unit), both 0-based: the one place a unit's name is formatted."""
         return f"train{train + 1}/unit{unit + 1}"
 
     def unit_index(self, name: str) -> int:

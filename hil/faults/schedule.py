@@ -38,7 +38,7 @@ def fault_rng(seed: int, key: int) -> np.random.Generator:
 def target_of(spec) -> str:
     """What a fault hits, as the rig names it: ``train2/unit1``, ``bus2``, ``radio 1-2``, ``radio (all pairs)``."""
     if hasattr(spec, "unit"):
-        return f"train{spec.train}/unit{spec.unit}"
+        return TrainLayout.name_of(spec.train - 1, spec.unit - 1)
     if hasattr(spec, "pair"):
         return "radio (all pairs)" if spec.pair is None else f"radio {spec.pair}-{spec.pair + 1}"
     return f"bus{spec.train}"

@@ -25,7 +25,8 @@ from ecu_sim.codec import TrainDb
 from hil.faults.schedule import needs_fault_machinery
 from hil.faults.watchdog import Watchdog, restart_text
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
-from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.record.integrity import write_json_atomic
+from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     for u, ecu in ecus.items():
         train, unit = layout.train_unit(u)
         np.save(out / f"timing_ecu_{train + 1}_{unit + 1}.npy", stats[u].table())
-        write_json(out / f"ecu_{train + 1}_{unit + 1}.json", {
+        write_json_atomic(out / f"ecu_{train + 1}_{unit + 1}.json", {
             "name": ecu.name, "unit": u, **stats[u].summary(), "e2e": ecu.e2e_summary(),
             "controller_errors": ecu.counters.controller_errors,
             "events": [list(e) for e in ecu.events], "codec_saturations": db.total_saturations()})

@@ -15,7 +15,7 @@ from hil.layout import TrainLayout
 from hil.runtime.realtime.busserver import BusServer
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.record import paths
-from hil.record.rerun_writer import RerunWriter
+from hil.record.rerun_writer import write_runlog
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.reference import ReferenceProfile
 from hil.scenario.model import Scenario
@@ -114,27 +114,21 @@ def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> 
 
 
 def write_recording(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path,
-               wall_clock: tuple[float, float] | None) -> None:
+                    wall_clock: tuple[float, float] | None) -> None:
     """The recording of a real-time run: signals, buses, events and timing on sim time, plus the wall-clock
     timeline (``wall_clock`` = (T0 epoch s, pace)) when the run got as far as its start."""
-    with RerunWriter(path, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m,
-                     sc.trains.emergency_gap_m, realtime=True, wall_clock=wall_clock) as w:
-        write_log(w, log, nodes_dir)
+    write_runlog(path, log, sc, wall_clock=wall_clock, realtime=True, extra_series=timing_scalars(nodes_dir))
 
 
-def write_log(w: RerunWriter, log: RunLog, nodes_dir: Path, signals_from: int = 0) -> None:
-    """Signals (from row ``signals_from``), buses, events and the nodes' timing series into a writer, flushed."""
-    if len(log.signals) > signals_from:
-        w.write_signals(log, signals_from, len(log.signals))
-    for bus in log.buses:
-        w.write_bus(bus, 0, 0)
-    if log.events:
-        w.write_events(log.events)
-    for entity, f in timing_series(nodes_dir):  # cycle lateness per node, sensor-to-actuator latency, in ms
+def timing_scalars(nodes_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Entity path -> (sim time, value in ms) of every timing series the nodes left (cycle lateness per node,
+    sensor-to-actuator latency)."""
+    out = {}
+    for entity, f in timing_series(nodes_dir):
         data = np.load(f)
         if len(data):
-            w.write_scalars(entity, data[:, 0], data[:, 1] * 1e3)
-    w.flush()
+            out[entity] = (data[:, 0], data[:, 1] * 1e3)
+    return out
 
 
 def timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:

@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Iterable
 
 import can
 
-from hil.record.integrity import write_json_atomic
 from hil.scenario.model import CanConfig, Scenario
 
 
@@ -50,8 +49,3 @@ def open_bus(run: str, train: int, ids: Iterable[int], can_cfg: CanConfig, name:
                        receive_own_messages=receive_own, fd=can_cfg.fd)
     return can.Bus(interface="trainhil", channel=f"{run}/bus{train + 1}", can_filters=filters, node_name=name,
                    receive_own_messages=receive_own, fd=can_cfg.fd)
-
-
-def write_json(path: Path, data: dict[str, Any]) -> None:
-    """Write atomically (the orchestrator may read while a node is being killed)."""
-    write_json_atomic(path, data)

@@ -45,7 +45,8 @@ from typing import Any, Callable
 from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.busserver import BusServer
-from hil.runtime.realtime.merge import merge_nodes, write_log, write_recording
+from hil.record.rerun_writer import write_log
+from hil.runtime.realtime.merge import merge_nodes, timing_scalars, write_recording
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.external import ExternalUnitMissing, JoinWait
 from hil.runtime.realtime.live_tail import LiveTail
@@ -260,7 +261,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         write_recording(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
         files.append(out_dir / "run.rrd")
     if tail is not None:  # the rest of the run to the viewer: the signals it has not seen, buses, events, timing
-        write_log(tail.writer, log, nodes_dir, signals_from=tail.sent)
+        write_log(tail.writer, log, signals_from=tail.sent, extra_series=timing_scalars(nodes_dir))
         tail.close()
     metrics = run_metrics(log, scenario, "realtime", seed, pace=float(pace), overrides=overrides, source=source)
     metrics.update(extra)

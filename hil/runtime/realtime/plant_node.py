@@ -37,7 +37,8 @@ from typing import Callable
 import numpy as np
 
 from ecu_sim.codec import TrainDb
-from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.record.integrity import write_json_atomic
+from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_after_s
 from hil.runtime.realtime.frame_io import node_frames
@@ -276,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
             e2e = np.column_stack((np.frombuffer(node.e2e_t, dtype=float), np.frombuffer(node.e2e, dtype=float))) \
                 if node.e2e else np.zeros((0, 2))
             np.save(out / "timing_e2e.npy", e2e)
-            write_json(out / "plant.json", node.results(st))
+            write_json_atomic(out / "plant.json", node.results(st))
 
         rows = SignalStream(out / SIGNAL_STREAM, node.log)
         try:

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from ecu_sim.codec import TrainDb
 from hil.runtime.realtime.frame_io import node_frames
-from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus, write_json
+from hil.record.integrity import write_json_atomic
+from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
@@ -56,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         for b in buses:
             b.shutdown()
-    write_json(Path(args.out) / "radio.json",
+    write_json_atomic(Path(args.out) / "radio.json",
                {"links": {name: dict(link.stats) for name, link in gateway.links.items()},
                 "undelivered_queued": bridge.in_flight if "bridge" in locals() else 0})
     return 0
