@@ -95,8 +95,9 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     ``live``: also stream the recording to a viewer as the simulation goes (flushed every simulated second, at
     most every LIVE_FLUSH_WALL_S of wall time); with ``record=False`` only there. ``overrides`` and ``source``
     (the ``--set`` options and the scenario as named) go into metrics.json's provenance. ``keep_signals=False``
-    (``hil run``, sweeps): in virtual time the samples are let go once recorded and summarised for the metrics, so
-    memory does not grow with the run's length, and ``result.log`` holds only the last of them."""
+    (``hil run``, sweeps): the samples are let go once recorded and summarised for the metrics, so memory does not
+    grow with the run's length, and ``result.log`` holds only the last of them. The ideal loop records as it goes
+    too, and stops on Ctrl-C with what it has, as a virtual-time run does."""
     if live is not None:
         chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
     fmt = None if ideal else log_format(can_log)  # checked before anything is written
@@ -119,13 +120,9 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     rig, failure = None, None
     try:
         stop.arm()  # from here SIGTERM/SIGHUP stop the run like Ctrl-C (the run loop returns what it has)
-        if ideal:
-            log = IdealLoop(scenario, seed).run(duration)
-            if recorder:
-                recorder(log)
-        else:
-            rig = VirtualRig(scenario, seed)
-            rig.log.summary(scenario.plant.coupler_band_m)  # the metrics' figures, kept as the samples come
+        rig = IdealLoop(scenario, seed) if ideal else VirtualRig(scenario, seed)
+        rig.log.summary(scenario.plant.coupler_band_m)  # the metrics' figures, kept as the samples come
+        if not ideal:
             if recorder and scenario.recording.frames:
                 from hil.record.frames import FrameRecorder
 
@@ -133,12 +130,12 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
             if fmt is not None:
                 loggers = _can_loggers(rig, out_dir, fmt)
                 files += [log_path(out_dir, b.name, fmt) for b in rig.buses]
-            flush = _every(_marking(recorder, out_dir, scenario.name, runtime), chunk_s, min_flush_wall_s) \
-                if recorder else None
-            log = rig.run(duration, progress=(lambda t: bar.update(round(t - bar.n, 3))) if bar else None,
-                          on_chunk=_then_release(flush, recorder, keep_signals))
-            if recorder:
-                recorder(log)
+        flush = _every(_marking(recorder, out_dir, scenario.name, runtime), chunk_s, min_flush_wall_s) \
+            if recorder else None
+        log = rig.run(duration, progress=(lambda t: bar.update(round(t - bar.n, 3))) if bar else None,
+                      on_chunk=_then_release(flush, recorder, keep_signals))
+        if recorder:
+            recorder(log)
     except PlantDiverged as exc:  # non-finite plant state: record what led to it, then report the error
         if rig is None:
             raise

@@ -102,3 +102,17 @@ def test_hil_run_lets_the_samples_go_and_reports_the_same_metrics(tmp_path):
     drop = ("wall_time_s", "realtime_factor", "provenance")
     assert_same({k: v for k, v in let_go.metrics.items() if k not in drop},
                 {k: v for k, v in kept.metrics.items() if k not in drop})
+
+
+def test_the_ideal_loop_records_as_it_goes_and_lets_its_samples_go(tmp_path):
+    from hil.scenario import load_scenario
+    from hil.session import run_scenario
+
+    sc = load_scenario("seed000")
+    kept = run_scenario(sc, tmp_path / "kept", duration_s=20.0, ideal=True)
+    let_go = run_scenario(sc, tmp_path / "let-go", duration_s=20.0, ideal=True, keep_signals=False, chunk_s=1.0,
+                          min_flush_wall_s=0.0)
+    assert len(let_go.log.signals) == len(kept.log.signals.array) == 200 and len(let_go.log.signals.array) <= 11
+    drop = ("wall_time_s", "realtime_factor", "provenance")
+    assert_same({k: v for k, v in let_go.metrics.items() if k not in drop},
+                {k: v for k, v in kept.metrics.items() if k not in drop})

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Callable
 
 from ecu_sim.view import LocalView, NeighbourView, ReferenceView
 from hil.record.runlog import RunLog
@@ -65,17 +66,30 @@ class IdealLoop:
             self._applied[u] = cmd.force_n
             plant.command(u, cmd.force_n, int(cmd.mode), t)
 
-    def run(self, duration_s: float | None = None) -> RunLog:
+    def run(self, duration_s: float | None = None, progress: Callable[[float], None] | None = None,
+            on_chunk: Callable[[RunLog], None] | None = None, chunk_s: float = 1.0) -> RunLog:
+        """Run to ``duration_s``, calling ``on_chunk`` every ``chunk_s`` simulated seconds, as ``VirtualRig.run``
+        does (incremental recording); Ctrl-C stops early and returns the log so far, ``log.interrupted`` set."""
         duration = self.sc.duration_s if duration_s is None else duration_s
         plant, ref, log = self.parts.plant, self.parts.reference, self.log
-        n_steps = to_ns(duration) // to_ns(self.sc.plant.step_s)
+        step_ns = to_ns(self.sc.plant.step_s)
+        n_steps, per_chunk = to_ns(duration) // step_ns, max(1, to_ns(chunk_s) // step_ns)
         wall0 = time.perf_counter()
         step_s = self.sc.plant.step_s
-        for k in range(n_steps):
-            t = k * step_s
-            if k % self._control_every == 0:
-                self._control(t)
-            plant_step(plant, ref, log, t, k % self._record_every == 0)
+        try:
+            for k in range(n_steps):
+                t = k * step_s
+                if k % self._control_every == 0:
+                    self._control(t)
+                plant_step(plant, ref, log, t, k % self._record_every == 0)
+                if (k + 1) % per_chunk == 0 or k + 1 == n_steps:
+                    if progress:
+                        progress(plant.t)
+                    if on_chunk:
+                        on_chunk(log)
+        except KeyboardInterrupt:
+            log.interrupted = True
+            log.event(plant.t, "WARN", "rig", "run interrupted (Ctrl-C)")
         log.sim_time_s = plant.t
         log.wall_time_s = time.perf_counter() - wall0
         record_violations(log, self.sc.plant.coupler_band_m)  # every safety violation on the timeline
