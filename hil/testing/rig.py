@@ -23,7 +23,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from hil.scenario import Scenario, scenario_from_dict
 from hil.testing.results import HilRun, Series
@@ -199,10 +198,11 @@ class Rig:
 def _timing_series(nodes_dir: Path) -> dict[str, Series]:
     """The real-time timing series the nodes left (ms), on the entity paths the orchestrator records them under."""
     from hil.runtime.realtime.merge import timing_series as timing_files  # one definition of those paths
+    from hil.runtime.realtime.series_stats import read_series
 
     out = {}
     for entity, f in timing_files(nodes_dir):
-        data = np.load(f)
+        data = read_series(f)
         if len(data):
             out[entity] = Series(data[:, 0], data[:, 1] * 1e3)
     return out

@@ -19,7 +19,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
 
 from ecu_sim.codec import TrainDb
 from hil.faults.schedule import needs_fault_machinery
@@ -70,14 +69,14 @@ def main(argv: list[str] | None = None) -> int:
             for frame_id, listeners in table.items():
                 for ecu in listeners:
                     io.route(i, frame_id, ecu.mailbox)
-        stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late)
+        stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late, Path(args.out))
     finally:
         for b in buses:
             b.shutdown()
     out = Path(args.out)
     for u, ecu in ecus.items():
         train, unit = layout.train_unit(u)
-        np.save(out / f"timing_ecu_{train + 1}_{unit + 1}.npy", stats[u].table())
+        stats[u].series.close()  # its rows are in timing_ecu_<train>_<unit>.bin
         write_json_atomic(out / f"ecu_{train + 1}_{unit + 1}.json", {
             "name": ecu.name, "unit": u, **stats[u].summary(), "e2e": ecu.e2e_summary(),
             "controller_errors": ecu.counters.controller_errors,
@@ -86,13 +85,14 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFrames, bus_of: dict, duration: float,
-        stop: StopFlag, join_late: bool = False) -> dict[int, LatenessStats]:
-    """Cycle every hosted unit on the paced kernel to ``duration`` (``join_late``: from the first cycle after now).
+        stop: StopFlag, join_late: bool = False, out: Path | None = None) -> dict[int, LatenessStats]:
+    """Cycle every hosted unit on the paced kernel to ``duration`` (``join_late``: from the first cycle after now);
+    each unit's cycle lateness goes to ``out/timing_ecu_<train>_<unit>.bin`` (kept in memory without ``out``).
 
     With ``ecu.restart_after_s``, a unit whose controller stopped it (exception, NaN) is restarted in place after
     that long, as the virtual rig's watchdog does."""
     kernel = PacedKernel(clock, io, stop)
-    cycles = UnitCycles(kernel, sc, ecus, io, bus_of)
+    cycles = UnitCycles(kernel, sc, layout, ecus, io, bus_of, out)
     start = clock.now() if join_late else 0.0
     for u in ecus:
         phase = sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s
@@ -108,14 +108,21 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
     return cycles.stats
 
 
+def timing_name(layout, u: int) -> str:
+    """The file of unit ``u``'s cycle lateness (hil/runtime/realtime/merge.py records it)."""
+    train, unit = layout.train_unit(u)
+    return f"timing_ecu_{train + 1}_{unit + 1}.bin"
+
+
 class UnitCycles:
     """Each hosted unit's cycle as a kernel event: cycle the firmware, send its frames, book its lateness, and
     schedule the next deadline (a unit more than one cycle late skips to its next future deadline)."""
 
-    def __init__(self, kernel: PacedKernel, sc, ecus: dict, io, bus_of: dict) -> None:
+    def __init__(self, kernel: PacedKernel, sc, layout, ecus: dict, io, bus_of: dict, out: Path | None) -> None:
         self.kernel, self.ecus, self.io, self.bus_of = kernel, ecus, io, bus_of
         self.cycle_s = sc.ecu.cycle_s
-        self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace) for u in ecus}
+        self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace, None if out is None else out / timing_name(layout, u))
+                      for u in ecus}
         self.watchdog = Watchdog(sc.ecu.restart_after_s) if sc.ecu.restart_after_s is not None else None
 
     def schedule(self, u: int, deadline: float) -> None:

@@ -14,6 +14,7 @@ import numpy as np
 from hil.layout import TrainLayout
 from hil.runtime.realtime.busserver import BusServer
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
+from hil.runtime.realtime.series_stats import read_series
 from hil.record import paths
 from hil.record.rerun_writer import write_runlog
 from hil.record.runlog import BusLog, Event, RunLog
@@ -54,7 +55,7 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
             sat[k] = sat.get(k, 0) + v
     log.codec_saturations = sat
     log.sim_time_s = float(plant.get("sim_time_s", 0.0))
-    if len(log.signals):  # a plant killed between saves streamed further than its plant.json says
+    if len(log.signals):  # a plant killed between saves of plant.json streamed further than it says
         log.sim_time_s = max(log.sim_time_s, float(log.signals.last(0)))
     log.wall_time_s = float(plant.get("wall_time_s") or wall)  # the plant's: sim t = 0 to its last step
     log.interrupted = bool(stop_reason) or bool(plant.get("interrupted", True))
@@ -62,17 +63,12 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
 
 
 def _signal_rows(nodes_dir: Path, width: int) -> bytes:
-    """The plant's signal rows: its last save (signals.npy), or its stream (signals.bin) if that has more rows,
-    as it does when the plant was killed between saves."""
-    saved = np.load(nodes_dir / "signals.npy") if (nodes_dir / "signals.npy").exists() else np.zeros((0, width))
+    """The plant's signal rows, whole rows of its stream (signals.bin; a plant killed mid-write leaves a part)."""
     try:
         streamed = (nodes_dir / SIGNAL_STREAM).read_bytes()
     except OSError:
-        streamed = b""
-    streamed = streamed[:len(streamed) - len(streamed) % (8 * width)]
-    if len(streamed) > saved.size * 8:
-        return streamed
-    return np.ascontiguousarray(saved, dtype=float).tobytes()
+        return b""
+    return streamed[:len(streamed) - len(streamed) % (8 * width)]
 
 
 def _sim_bus_log(server: BusServer, t0: float, pace: float, duration: float) -> BusLog:
@@ -125,17 +121,18 @@ def timing_scalars(nodes_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     sensor-to-actuator latency)."""
     out = {}
     for entity, f in timing_series(nodes_dir):
-        data = np.load(f)
+        data = read_series(f)
         if len(data):
             out[entity] = (data[:, 0], data[:, 1] * 1e3)
     return out
 
 
 def timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:
-    """(entity path, .npy of (sim time, value s)) of every timing series the nodes left."""
-    out = [(paths.TIMING + "/plant/lateness_ms", nodes_dir / "timing_plant.npy"),
-           (paths.TIMING + "/e2e_latency_ms", nodes_dir / "timing_e2e.npy")]
-    for f in sorted(nodes_dir.glob("timing_ecu_*_*.npy")):
+    """(entity path, file of (sim time, value s) rows, hil/runtime/realtime/series_stats.py) of every timing series
+    the nodes left."""
+    out = [(paths.TIMING + "/plant/lateness_ms", nodes_dir / "timing_plant.bin"),
+           (paths.TIMING + "/e2e_latency_ms", nodes_dir / "timing_e2e.bin")]
+    for f in sorted(nodes_dir.glob("timing_ecu_*_*.bin")):
         train, unit = f.stem.split("_")[-2:]
         out.append((f"{paths.TIMING}/train{train}/unit{unit}/ecu_lateness_ms", f))
     return [(entity, f) for entity, f in out if f.exists()]

@@ -16,10 +16,12 @@ import signal
 import sys
 import threading
 import time
-from array import array
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+
+from hil.runtime.realtime.series_stats import StreamedSeries
 
 __all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "handshake", "linger", "wait_until", "set_timer_slack",
            "set_fifo_priority"]
@@ -73,40 +75,33 @@ class SimClock:
 class LatenessStats:
     """Per-cycle lateness (actual start - deadline, wall seconds) and deadline misses of one periodic task.
 
-    A miss is a cycle that starts after the next cycle's deadline (lateness > one period)."""
+    A miss is a cycle that starts after the next cycle's deadline (lateness > one period). The rows (deadline in
+    simulated seconds, lateness) go to ``path`` as they come (``StreamedSeries``; kept in memory without one)."""
 
-    def __init__(self, period_s: float, pace: float) -> None:
+    def __init__(self, period_s: float, pace: float, path: Path | None = None) -> None:
         self.period_sim_s = period_s
         self.pace = pace
-        self.samples = array("d")
-        self.deadlines = array("d")  # simulated time of each cycle's deadline
+        self.series = StreamedSeries(path)
         self.misses = 0
         self.skipped = 0  # cycles not run at all because the task was more than a period late
 
     def add(self, lateness_sim_s: float, deadline: float = math.nan) -> int:
         """Record one cycle's lateness (given in simulated seconds); returns how many whole periods it overran."""
-        self.samples.append(lateness_sim_s / self.pace)
-        self.deadlines.append(deadline)
+        self.series.add(deadline, lateness_sim_s / self.pace)
         if lateness_sim_s > self.period_sim_s:
             self.misses += 1
             return int(lateness_sim_s // self.period_sim_s)
         return 0
 
     def table(self) -> np.ndarray:
-        """(n, 2): deadline (simulated s), lateness (wall s) per cycle, for the recording."""
-        return np.column_stack((np.frombuffer(self.deadlines, dtype=float), np.frombuffer(self.samples, dtype=float))) \
-            if self.samples else np.zeros((0, 2))
+        """(n, 2): deadline (simulated s), lateness (wall s) per cycle, for a task without a file."""
+        return self.series.table()
 
     def summary(self) -> dict[str, float | int | None]:
-        lat = np.frombuffer(self.samples, dtype=float) if self.samples else np.zeros(0)
-        q = np.percentile(lat, [50, 99]) if lat.size else (None, None)
-        return {"cycles": int(lat.size), "lateness_p50_s": _f(q[0]), "lateness_p99_s": _f(q[1]),
-                "lateness_max_s": _f(lat.max()) if lat.size else None, "deadline_misses": self.misses,
+        s = self.series
+        return {"cycles": s.n, "lateness_p50_s": s.percentile(50), "lateness_p99_s": s.percentile(99),
+                "lateness_max_s": s.max if s.n else None, "deadline_misses": self.misses,
                 "cycles_skipped": self.skipped}
-
-
-def _f(x) -> float | None:
-    return None if x is None else float(x)
 
 
 class StopFlag:

@@ -20,9 +20,10 @@ in the same cycle as its TractionCmd (which has the lower ID, so it is on the bu
 unit u arrives, the latency is the arrival time of u's last TractionCmd minus the publication time of Sensor
 sample k: sensor sampled -> command at the plant (applied at the next plant step, within ``plant.step_s``).
 
-At the end, and every ``SAVE_EVERY_WALL_S`` of wall time during the run: ``DIR/signals.npy`` (the RunLog signal
-table) and ``DIR/plant.json`` (events, e2e latencies, lateness, counters); every ``STREAM_EVERY_WALL_S`` the new
-signal rows are appended to ``DIR/signals.bin`` (the live view follows it).
+Every ``STREAM_EVERY_WALL_S`` of wall time the new signal rows are appended to ``DIR/signals.bin`` and let go (the
+live view follows the file, the merge reads it: the plant's memory does not grow with its signals); at the end,
+and every ``SAVE_EVERY_WALL_S``, ``DIR/plant.json`` (events, e2e latencies, lateness, counters) and the timing
+series.
 """
 from __future__ import annotations
 
@@ -30,7 +31,6 @@ import math
 import os
 import sys
 import time
-from array import array
 from pathlib import Path
 from typing import Callable
 
@@ -44,6 +44,7 @@ from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_afte
 from hil.runtime.realtime.frame_io import node_frames
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
+from hil.runtime.realtime.series_stats import StreamedSeries
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
@@ -57,7 +58,8 @@ STREAM_EVERY_WALL_S = 0.25  # new signal rows are appended to DIR/signals.bin th
 class PlantNode:
     """The plant and wayside of every train, driven by a SimClock."""
 
-    def __init__(self, sc, seed: int, db: TrainDb, buses: list, wayside: list) -> None:
+    def __init__(self, sc, seed: int, db: TrainDb, buses: list, wayside: list, out: Path | None = None) -> None:
+        """``out``: where the timing series go as they come (timing_plant.bin, timing_e2e.bin); None: memory."""
         self.sc, self.db = sc, db
         self.parts = assemble(sc, seed)
         self.plant, self.layout = self.parts.plant, self.parts.layout
@@ -69,8 +71,9 @@ class PlantNode:
                            for i in range(L.n_trains)]
         self.sensor_pub = np.full((L.n_units, 16), -math.inf)  # publication time by unit and sample counter
         self.last_cmd_t = np.full(L.n_units, -math.inf)
-        self.e2e = array("d")  # sensor-to-actuator latencies (s) ...
-        self.e2e_t = array("d")  # ... and the command arrival times they end at
+        self.out = out
+        # sensor-to-actuator latencies (s), by the command arrival time they end at
+        self.e2e = StreamedSeries(None if out is None else out / "timing_e2e.bin")
         self.extended = sc.can.extended_ids
         self.clock: SimClock | None = None
         self.frames = None  # the node's frame I/O (hil/runtime/realtime/frame_io.py), once the clock runs
@@ -121,8 +124,7 @@ class PlantNode:
             return
         u = self.state_unit[i].get(fid)
         if u is not None and self.last_cmd_t[u] >= (pub := self.sensor_pub[u, data[1] & 0xF]):
-            self.e2e.append(self.last_cmd_t[u] - pub)
-            self.e2e_t.append(self.last_cmd_t[u])
+            self.e2e.add(self.last_cmd_t[u], self.last_cmd_t[u] - pub)
 
     # ---- sending
     def publish_sensors(self, t: float) -> None:
@@ -173,7 +175,8 @@ class PlantNode:
         self.every = {name: max(1, round(period / step)) for name, period in
                       (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
         self.publish_every = math.gcd(self.every["sensor"], self.every["ref"])
-        self.stats = LatenessStats(self.publish_every * step, clock.pace)
+        self.stats = LatenessStats(self.publish_every * step, clock.pace,
+                                   None if self.out is None else self.out / "timing_plant.bin")
         self.n_steps = int(round(duration / step))
         self.target = 0
         if self.n_steps > 0:
@@ -221,12 +224,11 @@ class PlantNode:
             self.tick += 1
 
     def results(self, stats: LatenessStats) -> dict:
-        e2e = np.frombuffer(self.e2e, dtype=float) if self.e2e else np.zeros(0)
-        q = np.percentile(e2e, [50, 99]).tolist() if e2e.size else [None, None]
+        e2e = self.e2e
         return {"sim_time_s": self.log.sim_time_s, "wall_time_s": self.log.wall_time_s,
                 "interrupted": self.log.interrupted, **stats.summary(),
-                "e2e_latency_n": int(e2e.size), "e2e_latency_p50_s": q[0], "e2e_latency_p99_s": q[1],
-                "e2e_latency_max_s": float(e2e.max()) if e2e.size else None, "e2e_crc_errors": self.io.e2e_errors,
+                "e2e_latency_n": e2e.n, "e2e_latency_p50_s": e2e.percentile(50), "e2e_latency_p99_s": e2e.percentile(99),
+                "e2e_latency_max_s": e2e.max if e2e.n else None, "e2e_crc_errors": self.io.e2e_errors,
                 "late_commands": self.late_commands, "late_command_max_s": self.late_command_max_s,
                 "malformed_frames": self.io.malformed_frames,
                 "events": [[e.t, e.level, e.source, e.text] for e in self.log.events],
@@ -235,8 +237,8 @@ class PlantNode:
 
 
 class SignalStream:
-    """Appends the run log's new signal rows (native float64) to a file: the live view follows it, and it survives
-    whatever happens to the processes."""
+    """Appends the run log's new signal rows (native float64) to a file and lets them go: the live view follows it,
+    the merge reads it, and it survives whatever happens to the processes."""
 
     def __init__(self, path: Path, log: RunLog) -> None:
         self.log, self.rows = log, 0
@@ -247,6 +249,7 @@ class SignalStream:
         if n > self.rows:
             os.write(self.fd, self.log.signals.rows_bytes(self.rows))
             self.rows = n
+            self.log.signals.release_before(n)
 
     def close(self) -> None:
         os.close(self.fd)
@@ -260,23 +263,18 @@ def main(argv: list[str] | None = None) -> int:
     set_timer_slack(1)
     sc, db = load_scenario_json(args.scenario_json), TrainDb.load()
     n = sc.trains.count
-    node = PlantNode(sc, args.seed, db, [], [])
+    out = Path(args.out)
+    node = PlantNode(sc, args.seed, db, [], [], out)
     try:
         for i in range(n):
             node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can, "Plant"))
             node.wayside.append(open_bus(args.run, i, (), sc.can, "Wayside"))
         clock = SimClock(handshake(stop), args.pace)
         stats = LatenessStats(sc.plant.step_s, args.pace)
-        out = Path(args.out)
 
         def save(st: LatenessStats) -> None:
-            tmp = out / "signals.tmp.npy"
-            np.save(tmp, node.log.signals.array)
-            tmp.replace(out / "signals.npy")
-            np.save(out / "timing_plant.npy", st.table())
-            e2e = np.column_stack((np.frombuffer(node.e2e_t, dtype=float), np.frombuffer(node.e2e, dtype=float))) \
-                if node.e2e else np.zeros((0, 2))
-            np.save(out / "timing_e2e.npy", e2e)
+            st.series.flush()
+            node.e2e.flush()
             write_json_atomic(out / "plant.json", node.results(st))
 
         rows = SignalStream(out / SIGNAL_STREAM, node.log)
@@ -285,7 +283,10 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             rows.write()
             rows.close()
-            save(stats)
+            final = node.stats if node.stats is not None else stats  # a run that failed early: its own so far
+            save(final)
+            final.series.close()
+            node.e2e.close()
     finally:
         for b in node.buses + node.wayside:
             b.shutdown()
