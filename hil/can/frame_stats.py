@@ -192,6 +192,18 @@ class FrameTable:
             self._rows.extend_bytes(kept)
             self._first += drop
 
+    def hand_off(self, upto: int) -> None:
+        """Let the rows before ``upto`` go uncounted: they went to a spool whose reader keeps their statistics (a
+        real-time bus server's table, hil/runtime/realtime/bus_spool.py). This table's own statistics then cover
+        none of the rows handed off."""
+        drop = min(upto, len(self)) - self._first
+        if drop > 0:
+            kept = self._rows.rows_bytes(drop)
+            self._rows = SampleTable(WIDTH)
+            self._rows.extend_bytes(kept)
+            self._first += drop
+            self._folded = max(self._folded, self._first)
+
     def fold(self) -> None:
         """Bring the statistics up to the last row."""
         if self._folded < len(self):

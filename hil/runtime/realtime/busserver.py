@@ -390,6 +390,11 @@ class BusServer:
     def log(self) -> BusLog:
         return self.model.log
 
+    def with_log(self, fn):
+        """``fn(log)`` under the server's lock (the rig's spool)."""
+        with self._lock:
+            return fn(self.model.log)
+
     # ---- running
     def serve_forever(self) -> None:
         """Run the loop in this thread until shutdown()."""

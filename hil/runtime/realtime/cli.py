@@ -156,7 +156,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
     return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
                         run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
-                        source=str(args.scenario))
+                        source=str(args.scenario), keep_signals=False)
 
 
 def print_channels(channels) -> None:

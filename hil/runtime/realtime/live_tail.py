@@ -45,6 +45,7 @@ class LiveTail:
             self.writer.write_signals(self.log, self.sent, n)
             self.writer.flush()
             self.sent = n
+            self.log.signals.release_before(n)  # the viewer has them
 
     def _read(self) -> None:
         try:

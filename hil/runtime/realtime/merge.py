@@ -14,9 +14,10 @@ import numpy as np
 from hil.layout import TrainLayout
 from hil.runtime.realtime.busserver import BusServer
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
-from hil.runtime.realtime.series_stats import read_series
+from hil.runtime.realtime.bus_spool import FRAME_WIDTH, LOAD_WIDTH, chunks, spool_paths
+from hil.runtime.realtime.series_stats import series_chunks
 from hil.record import paths
-from hil.record.rerun_writer import write_runlog
+from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.reference import ReferenceProfile
 from hil.scenario.model import Scenario
@@ -29,12 +30,22 @@ def _read_json(path: Path) -> dict | None:
         return None
 
 
+Sink = tuple  # (RerunWriter, first signal row it still needs)
+
+
 def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[BusServer], events: list[Event],
-           t0: float | None, pace: float, duration: float, wall: float, stop_reason: str | None):
+                t0: float | None, pace: float, duration: float, wall: float, stop_reason: str | None,
+                sinks: list[Sink] = (), keep_rows: bool = True):
+    """The nodes' files and the servers' spools as one RunLog in simulated time, and the timing metrics.
+
+    The plant's signals and the buses' rows are read chunk by chunk into the log's statistics and into each of
+    ``sinks`` (writers, with the first signal row each needs); ``keep_rows=False`` lets each chunk go once it is
+    counted and written, so the merge of a long run needs no memory for them."""
     log = RunLog(layout)
     log.reference_change_times = ReferenceProfile.from_config(sc.reference).change_times
+    log.summary(sc.plant.coupler_band_m)  # the metrics' figures, kept as the chunks come
     plant = _read_json(nodes_dir / "plant.json") or {}
-    log.signals.extend_bytes(_signal_rows(nodes_dir, log.signals.width))
+    _stream_signals(log, nodes_dir, sinks, keep_rows)
     log.events.extend(Event(*e) for e in plant.get("events", []))
     ecus = [d for p in sorted(nodes_dir.glob("ecu_*.json")) if (d := _read_json(p))]
     for d in ecus:
@@ -47,7 +58,8 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
     radio = (_read_json(nodes_dir / "radio.json") or {}).get("links", {})
     log.radio_stats = radio
     for s in servers:
-        log.buses.append(s.log if t0 is None else _sim_bus_log(s, t0, pace, duration))
+        shift = 0.0 if t0 is None else (t0 - s.epoch0) * pace
+        log.buses.append(_stream_bus(s.log, nodes_dir, shift, None if t0 is None else duration, sinks, keep_rows))
     log.tally_frames_lost()
     sat: dict[str, int] = {}
     for d in [plant, *ecus]:
@@ -62,25 +74,36 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
     return log, _timing_metrics(plant, ecus, servers)
 
 
-def _signal_rows(nodes_dir: Path, width: int) -> bytes:
-    """The plant's signal rows, whole rows of its stream (signals.bin; a plant killed mid-write leaves a part)."""
-    try:
-        streamed = (nodes_dir / SIGNAL_STREAM).read_bytes()
-    except OSError:
-        return b""
-    return streamed[:len(streamed) - len(streamed) % (8 * width)]
+def _stream_signals(log: RunLog, nodes_dir: Path, sinks: list[Sink], keep_rows: bool) -> None:
+    """The plant's signal rows (its stream, signals.bin; a row cut by a killed plant is left out) into the log."""
+    for rows in chunks(nodes_dir / SIGNAL_STREAM, log.signals.width):
+        start = len(log.signals)
+        log.signals.extend_bytes(rows.tobytes())
+        for writer, first in sinks:
+            if len(log.signals) > max(start, first):
+                writer.write_signals(log, max(start, first), len(log.signals))
+        if not keep_rows:
+            log.release_signals(len(log.signals))
 
 
-def _sim_bus_log(server: BusServer, t0: float, pace: float, duration: float) -> BusLog:
-    """The server's BusLog with its times moved to simulated time (model t -> t - (T0 - epoch0) * pace)."""
-    src, shift = server.log, (t0 - server.epoch0) * pace
+def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | None, sinks: list[Sink],
+                keep_rows: bool) -> BusLog:
+    """A server's spooled rows (hil/runtime/realtime/bus_spool.py) moved to simulated time (model t -> t - shift)
+    and cut to [0, duration] (None: as they are), as one BusLog, written to the sinks chunk by chunk."""
     out = BusLog(src.name, src.bitrate, frames_sent=src.frames_sent, frames_dropped=src.frames_dropped)
-    for table, dst in ((src.load.array, out.load), (src.frames.array, out.frames)):
-        if len(table):
-            rows = table.copy()
+    frames_path, load_path = spool_paths(nodes_dir, src.name)
+    offsets = [(0, 0) for _ in sinks]
+    for path, width, dst in ((load_path, LOAD_WIDTH, out.load), (frames_path, FRAME_WIDTH, out.frames)):
+        for rows in chunks(path, width):
+            rows = rows.copy()
             rows[:, 0] -= shift
-            rows = rows[(rows[:, 0] >= 0) & (rows[:, 0] <= duration + 1e-9)]
+            if duration is not None:
+                rows = rows[(rows[:, 0] >= 0) & (rows[:, 0] <= duration + 1e-9)]
             dst.extend_bytes(np.ascontiguousarray(rows, dtype=float).tobytes())
+            offsets = [writer.write_bus(out, *at) for (writer, _), at in zip(sinks, offsets)]
+            if not keep_rows:
+                out.frames.release(len(out.frames))
+                out.load.release_before(len(out.load))
     return out
 
 
@@ -109,22 +132,22 @@ def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> 
     }
 
 
-def write_recording(sc: Scenario, layout: TrainLayout, log: RunLog, path: Path, nodes_dir: Path,
-                    wall_clock: tuple[float, float] | None) -> None:
-    """The recording of a real-time run: signals, buses, events and timing on sim time, plus the wall-clock
-    timeline (``wall_clock`` = (T0 epoch s, pace)) when the run got as far as its start."""
-    write_runlog(path, log, sc, wall_clock=wall_clock, realtime=True, extra_series=timing_scalars(nodes_dir))
+def open_recording(sc: Scenario, layout: TrainLayout, path: Path, wall_clock: tuple[float, float] | None,
+                   bus_names: list[str]) -> RerunWriter:
+    """The run.rrd of a real-time run, for merge_nodes to stream into (``wall_clock`` = (T0 epoch s, pace), when
+    the run got as far as its start: the wall-clock timeline)."""
+    return RerunWriter(path, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m, sc.trains.emergency_gap_m,
+                       bus_names or None, realtime=True, wall_clock=wall_clock)
 
 
-def timing_scalars(nodes_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Entity path -> (sim time, value in ms) of every timing series the nodes left (cycle lateness per node,
-    sensor-to-actuator latency)."""
-    out = {}
-    for entity, f in timing_series(nodes_dir):
-        data = read_series(f)
-        if len(data):
-            out[entity] = (data[:, 0], data[:, 1] * 1e3)
-    return out
+def write_rest(w: RerunWriter, log: RunLog, nodes_dir: Path) -> None:
+    """After merge_nodes streamed the signals and buses: the events and the nodes' timing series (in ms), flushed."""
+    if log.events:
+        w.write_events(log.events)
+    for entity, f in timing_series(nodes_dir):  # cycle lateness per node, sensor-to-actuator latency
+        for rows in series_chunks(f):
+            w.write_scalars(entity, rows[:, 0], rows[:, 1] * 1e3)
+    w.flush()
 
 
 def timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:

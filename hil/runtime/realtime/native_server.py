@@ -179,10 +179,19 @@ class NativeBusServer:
                     listener(tx)
 
     def _collect_log(self) -> None:
+        with self._lock:
+            self._collect_locked()
+
+    def _collect_locked(self) -> None:
         if self._closed:
             return
+        frames, load, sent, dropped = self._core.take_log()
+        self._log.frames.extend_bytes(frames)
+        self._log.load.extend_bytes(load)
+        self._log.frames_sent, self._log.frames_dropped = sent, dropped
+
+    def with_log(self, fn):
+        """``fn(log)`` under the server's lock, the engine's new rows taken over first (the rig's spool)."""
         with self._lock:
-            frames, load, sent, dropped = self._core.take_log()
-            self._log.frames.extend_bytes(frames)
-            self._log.load.extend_bytes(load)
-            self._log.frames_sent, self._log.frames_dropped = sent, dropped
+            self._collect_locked()
+            return fn(self._log)

@@ -45,8 +45,8 @@ from typing import Any, Callable
 from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.busserver import BusServer
-from hil.record.rerun_writer import write_log
-from hil.runtime.realtime.merge import merge_nodes, timing_scalars, write_recording
+from hil.runtime.realtime.bus_spool import BusSpool
+from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.external import ExternalUnitMissing, JoinWait
 from hil.runtime.realtime.live_tail import LiveTail
@@ -150,14 +150,17 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None,
                  can_log: str | bool | None = None,
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
-                 live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None):
+                 live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
+                 keep_signals: bool = True):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: the plant polls this long before each publication (0: sleep only). ``on_start(t0)`` is
     called with the epoch time of simulated t = 0 once every node is ready (tools, tests). ``can_log``: write
     ``<bus>.<asc|blf|mf4>`` per bus, frames stamped in simulated seconds as in a virtual-time run. ``run``: the run name
     (the python-can channel prefix; default: a fresh one); ``on_channels(channels)`` is called once the buses are
-    up, before the nodes start, so that an external device can join (``ecu.external``). ``live``: stream the
+    up, before the nodes start, so that an external device can join (``ecu.external``). ``keep_signals=False``
+    (``hil run``): the merge lets the signals and the bus rows go chunk by chunk once written, so
+    ``result.log`` holds the last of them only. ``live``: stream the
     recording to a viewer as the run goes (hil/runtime/realtime/live_tail.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
@@ -195,6 +198,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     clock = {"t0": math.inf}  # epoch of simulated t = 0, once known (the CAN logs' time origin)
     faults = None  # hil.faults.realtime.RealtimeFaults when the scenario has faults or a restart policy
     tail = None  # LiveTail, with a live target once the run has started
+    spool = None  # BusSpool, once the servers are up
     asc: list = []
     try:
         with _StopRequest() as stop:
@@ -207,6 +211,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
                 servers.append(server.start())
             faults = _faults(scenario, layout, servers, seed)
+            spool = BusSpool(servers, nodes_dir)  # the servers' frame rows to files as the run goes
             if on_channels is not None:
                 on_channels(channels(run, scenario))
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us,
@@ -233,7 +238,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     tail = LiveTail(live, scenario, layout, nodes_dir, (t0, pace), run)
                     if say is not None:
                         say(live.describe())
-                ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None) if f]
+                ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None,
+                                     spool.tick) if f]
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
                                          (lambda t: [f(t) for f in ticks]) if ticks else None, join)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
@@ -245,23 +251,30 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     finally:
         _kill_all(nodes)
         server_stats = {s.log.name: s.stats.as_dict() for s in servers}
+        if spool is not None:
+            spool.close()
         for s in servers:
             s.close()
         for w in asc:
             w.stop()
         remove_run_dir(run)
     wall = run_wall if t0 is not None else time.perf_counter() - wall0
-    log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason)
+    rrd = open_recording(scenario, layout, out_dir / "run.rrd", None if t0 is None else (t0, pace),
+                         [s.log.name for s in servers]) if record else None
+    sinks = ([(rrd, 0)] if rrd is not None else []) + ([(tail.writer, tail.sent)] if tail is not None else [])
+    log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason,
+                             sinks, keep_rows=keep_signals)
     if faults is not None:
         faults.finish(log, t0, pace)
     record_violations(log, scenario.plant.coupler_band_m)  # every safety violation on the timeline
     extra["realtime"]["bus_servers"] = server_stats
     files = [log_path(out_dir, f"bus{i + 1}", fmt) for i in range(len(asc))] if fmt else []
-    if record:
-        write_recording(scenario, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (t0, pace))
+    for writer, _ in sinks:  # the rest to the recording and the viewer: events, timing
+        write_rest(writer, log, nodes_dir)
+    if rrd is not None:
+        rrd.close()
         files.append(out_dir / "run.rrd")
-    if tail is not None:  # the rest of the run to the viewer: the signals it has not seen, buses, events, timing
-        write_log(tail.writer, log, signals_from=tail.sent, extra_series=timing_scalars(nodes_dir))
+    if tail is not None:
         tail.close()
     metrics = run_metrics(log, scenario, "realtime", seed, pace=float(pace), overrides=overrides, source=source)
     metrics.update(extra)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from hil.layout import TrainLayout
 from hil.runtime.realtime.node import load_scenario_json
-from hil.runtime.realtime.merge import merge_nodes, write_recording
+from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.orchestrator import RUN_FILE
 from hil.record.integrity import RUNNING, write_json_atomic
 from hil.record.metrics import run_metrics
@@ -45,10 +45,12 @@ def recover(out_dir: Path, wait_s: float = NODES_GRACE_S) -> dict:
     layout = TrainLayout.from_config(sc.trains)
     lost = Event(0.0, "WARN", "rig", "recovered by hil recover: the rig's orchestrator stopped during the run; its bus "
                                      "load and latency tables and its own events were lost with it")
-    log, extra = merge_nodes(sc, layout, nodes_dir, [], [lost], None, pace, duration, 0.0, "the orchestrator died")
-    record_violations(log, sc.plant.coupler_band_m)
     t0 = run.get("t0")
-    write_recording(sc, layout, log, out_dir / "run.rrd", nodes_dir, None if t0 is None else (float(t0), pace))
+    with open_recording(sc, layout, out_dir / "run.rrd", None if t0 is None else (float(t0), pace), []) as rrd:
+        log, extra = merge_nodes(sc, layout, nodes_dir, [], [lost], None, pace, duration, 0.0, "the orchestrator died",
+                                 [(rrd, 0)], keep_rows=False)
+        record_violations(log, sc.plant.coupler_band_m)
+        write_rest(rrd, log, nodes_dir)
     log.interrupted = True
     metrics = run_metrics(log, sc, "realtime", int(run.get("seed", sc.seed)), pace=pace)
     metrics.update(extra)

@@ -1,0 +1,89 @@
+"""The bus servers' per-frame rows and load windows of a real-time run, spooled to files as the run goes.
+
+Every SPOOL_EVERY_WALL_S the orchestrator moves each server's new rows into ``nodes/<bus>.frames.bin`` (rows of
+``hil.can.frame_stats``: t_end, frame id, latency, queueing) and ``nodes/<bus>.load.bin`` (t_window_end, load),
+native float64, and lets them go from the server's BusLog; so its memory does not grow with the frames. At the end
+the merge reads them back chunk by chunk (``chunks``), in bus time, into the recording and the bus statistics.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from hil.can.frame_stats import WIDTH as FRAME_WIDTH
+from hil.record.runlog import BusLog
+
+SPOOL_EVERY_WALL_S = 1.0
+CHUNK_ROWS = 1 << 16
+LOAD_WIDTH = 2
+
+
+def spool_paths(nodes_dir: Path, bus: str) -> tuple[Path, Path]:
+    """(frames file, load file) of bus ``bus``."""
+    return nodes_dir / f"{bus}.frames.bin", nodes_dir / f"{bus}.load.bin"
+
+
+class BusSpool:
+    """Moves the servers' new frame rows and load windows to their files; ``tick`` from the supervising loop."""
+
+    def __init__(self, servers: list, nodes_dir: Path) -> None:
+        self.servers, self.nodes_dir = servers, nodes_dir
+        self._files = {}
+        self._written: dict[str, list[int]] = {}  # bus -> [frame rows, load rows] written
+        for s in servers:
+            name = s.log.name
+            frames, load = spool_paths(nodes_dir, name)
+            self._files[name] = (open(frames, "wb"), open(load, "wb"))
+            self._written[name] = [0, 0]
+        self._next = 0.0
+
+    def tick(self, _sim_now: float = 0.0) -> None:
+        if time.monotonic() >= self._next:
+            self.spool()
+            self._next = time.monotonic() + SPOOL_EVERY_WALL_S
+
+    def spool(self) -> None:
+        """Every server's rows so far into the files (under each server's lock)."""
+        for s in self.servers:
+            s.with_log(self._take)
+
+    def _take(self, log: BusLog) -> None:
+        frames_f, load_f = self._files[log.name]
+        written = self._written[log.name]
+        frames = log.frames.rows_from(written[0])
+        if len(frames):
+            frames_f.write(np.ascontiguousarray(frames, dtype=float).tobytes())
+            written[0] += len(frames)
+        log.frames.hand_off(written[0])  # the merge counts them from the file
+        load = log.load.rows(written[1], len(log.load))
+        if len(load):
+            load_f.write(load.tobytes())
+            written[1] += len(load)
+        log.load.release_before(written[1])
+        frames_f.flush()
+        load_f.flush()
+
+    def close(self) -> None:
+        """The last rows, then the files closed (before the servers close)."""
+        self.spool()
+        for frames_f, load_f in self._files.values():
+            frames_f.close()
+            load_f.close()
+
+
+def chunks(path: Path, width: int, rows: int = CHUNK_ROWS) -> Iterator[np.ndarray]:
+    """The rows of a spool file, ``rows`` at a time (a missing file has none)."""
+    try:
+        f = open(path, "rb")
+    except OSError:
+        return
+    with f:
+        while data := f.read(8 * width * rows):
+            whole = len(data) - len(data) % (8 * width)
+            if whole:
+                yield np.frombuffer(data[:whole], dtype=float).reshape(-1, width)
+            if whole < len(data):
+                break

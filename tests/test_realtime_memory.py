@@ -1,0 +1,61 @@
+"""A real-time run's memory does not grow with its length: the bus servers' rows are spooled to files as the run
+goes (hil/runtime/realtime/bus_spool.py) and the merge streams them, and the plant's signals, chunk by chunk into
+the recording and the metrics; letting each chunk go gives the metrics of keeping them all."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from hil.layout import TrainLayout
+from hil.record.metrics import compute_metrics
+from hil.record.runlog import BusLog
+from hil.runtime.realtime.bus_spool import FRAME_WIDTH, BusSpool, chunks, spool_paths
+from hil.runtime.realtime.merge import merge_nodes
+from hil.runtime.realtime.orchestrator import run_realtime
+from hil.scenario import load_scenario
+from tests.test_realtime_rig import rt  # noqa: F401  (fixture)
+from tests.test_signal_summary import assert_same
+
+
+class FakeServer:
+    """A bus server's log and lock, as BusSpool sees them."""
+
+    def __init__(self, name: str) -> None:
+        self.log = BusLog(name, 500_000)
+        self.epoch0 = 0.0
+
+    def with_log(self, fn):
+        return fn(self.log)
+
+
+def test_the_spool_moves_the_rows_to_files_and_the_server_keeps_none(tmp_path):
+    server = FakeServer("bus1")
+    spool = BusSpool([server], tmp_path)
+    rows = np.column_stack((np.arange(5000) * 1e-4, np.full(5000, 0x80), np.full(5000, 2e-4), np.zeros(5000)))
+    for k in range(0, 5000, 1000):
+        server.log.frames.extend_bytes(rows[k:k + 1000].tobytes())
+        server.log.load.append((k * 1e-4, 0.3))
+        spool.spool()
+        assert len(server.log.frames.array) == 0 and len(server.log.load.array) <= 1
+    spool.close()
+    frames_path, load_path = spool_paths(tmp_path, "bus1")
+    back = np.concatenate(list(chunks(frames_path, FRAME_WIDTH, rows=777)))
+    assert np.array_equal(back, rows) and len(list(chunks(load_path, 2))[0]) == 5
+
+
+def test_a_real_time_run_merged_chunk_by_chunk_has_the_metrics_of_the_whole(rt, tmp_path):  # noqa: F811
+    sc = load_scenario("seed000")
+    res = run_realtime(sc, tmp_path / "rt", pace=1.0, duration_s=3.0, ecus_per_process=6, record=False,
+                       keep_signals=False)
+    assert len(res.log.signals) == 30 and len(res.log.signals.array) == 1  # streamed and let go
+    assert len(res.log.buses[0].frames.array) == 0 and res.log.buses[0].frames.summary()[0].n > 5000
+    nodes = tmp_path / "rt" / "nodes"
+    layout = TrainLayout.from_config(sc.trains)
+    servers = [SimpleNamespace(log=BusLog(f"bus{i + 1}", sc.can.bitrate), epoch0=0.0) for i in range(3)]
+    merged = [merge_nodes(sc, layout, nodes, servers, [], None, 1.0, 3.0, 3.0, None, keep_rows=keep)[0]
+              for keep in (True, False)]
+    whole, let_go = (compute_metrics(log, sc.plant.coupler_band_m) for log in merged)
+    assert len(merged[0].signals.array) == 30 and len(merged[1].signals.array) == 1
+    assert_same(let_go, whole)
+    assert whole["per_bus"]["bus1"]["latency_p99_s"] is not None
