@@ -226,8 +226,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 join = JoinWait(layout, external, scenario.ecu.join_timeout_s, nodes[0].lines, say)
             if not stop.requested:
                 t0 = clock["t0"] = time.time() + GO_MARGIN_S
-                write_json_atomic(nodes_dir / RUN_FILE, {"run": run, "t0": t0, "pace": pace, "duration_s": duration,
-                                                         "seed": seed})  # what hil recover needs
+                write_json_atomic(nodes_dir / RUN_FILE, {  # what hil recover needs
+                    "run": run, "t0": t0, "pace": pace, "duration_s": duration, "seed": seed,
+                    "buses": {s.log.name: {"epoch0": s.epoch0, "bitrate": s.log.bitrate} for s in servers}})
                 for n in nodes:
                     n.tell(f"go {t0!r}")
                 if on_start is not None:

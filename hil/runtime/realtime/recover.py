@@ -3,23 +3,26 @@
 The orchestrator writes the recording when the run ends, from the files its node processes leave in
 ``RUN_DIR/nodes``. If the orchestrator itself dies (``kill -9``, an out-of-memory kill, a power cut of the
 terminal), the nodes notice that their stdin closed, stop, and write their results; the plant has also streamed
-its signal rows to ``nodes/signals.bin`` all along. This merges those files as the orchestrator would have. What
-lived only in the orchestrator is gone and is said so: the bus servers' load and latency tables, and its own
-events. The result is marked ``"recovered": true`` and ``"interrupted": true``.
+its signal rows to ``nodes/signals.bin`` all along, and the orchestrator its bus servers' frame rows and load
+windows to ``nodes/<bus>.*.bin`` every second. This merges those files as the orchestrator would have. What lived
+only in the orchestrator is gone and is said so: its own events, the TX-queue drop counts, and the bus rows of the
+last second. The result is marked ``"recovered": true`` and ``"interrupted": true``.
 """
 from __future__ import annotations
 
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 from hil.layout import TrainLayout
 from hil.runtime.realtime.node import load_scenario_json
+from hil.runtime.realtime.bus_spool import FRAME_WIDTH, spool_paths
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.orchestrator import RUN_FILE
 from hil.record.integrity import RUNNING, write_json_atomic
 from hil.record.metrics import run_metrics
-from hil.record.runlog import Event
+from hil.record.runlog import BusLog, Event
 from hil.record.safety import record_violations
 
 NODES_GRACE_S = 10.0  # how long the nodes of a killed rig may still be writing their results
@@ -43,20 +46,35 @@ def recover(out_dir: Path, wait_s: float = NODES_GRACE_S) -> dict:
     run = _read(nodes_dir / RUN_FILE) or {}
     pace, duration = float(run.get("pace", 1.0)), float(run.get("duration_s", sc.duration_s))
     layout = TrainLayout.from_config(sc.trains)
-    lost = Event(0.0, "WARN", "rig", "recovered by hil recover: the rig's orchestrator stopped during the run; its bus "
-                                     "load and latency tables and its own events were lost with it")
+    lost = Event(0.0, "WARN", "rig", "recovered by hil recover: the rig's orchestrator stopped during the run; its own "
+                                     "events, the TX-queue drop counts and up to a second of bus rows were lost with it")
     t0 = run.get("t0")
-    with open_recording(sc, layout, out_dir / "run.rrd", None if t0 is None else (float(t0), pace), []) as rrd:
-        log, extra = merge_nodes(sc, layout, nodes_dir, [], [lost], None, pace, duration, 0.0, "the orchestrator died",
-                                 [(rrd, 0)], keep_rows=False)
+    buses = spooled_buses(nodes_dir, run) if t0 is not None else []
+    with open_recording(sc, layout, out_dir / "run.rrd", None if t0 is None else (float(t0), pace),
+                        [b.log.name for b in buses]) as rrd:
+        log, extra = merge_nodes(sc, layout, nodes_dir, buses, [lost], t0, pace, duration, 0.0,
+                                 "the orchestrator died", [(rrd, 0)], keep_rows=False)
         record_violations(log, sc.plant.coupler_band_m)
         write_rest(rrd, log, nodes_dir)
     log.interrupted = True
     metrics = run_metrics(log, sc, "realtime", int(run.get("seed", sc.seed)), pace=pace)
     metrics.update(extra)
-    metrics.update(recovered=True, recovered_missing=["bus load and latency tables", "orchestrator events"])
+    metrics.update(recovered=True, recovered_missing=[
+        "orchestrator events", "TX-queue drop counts", "the bus rows of the last second before the kill"])
     write_json_atomic(out_dir / "metrics.json", metrics)
     return metrics
+
+
+def spooled_buses(nodes_dir: Path, run: dict) -> list[SimpleNamespace]:
+    """The killed rig's buses as merge_nodes reads them: their spooled rows (hil/runtime/realtime/bus_spool.py), the
+    epoch and bitrate from run.json; frames sent = the rows spooled, drops unknown (0)."""
+    out = []
+    for name, bus in (run.get("buses") or {}).items():
+        frames, _ = spool_paths(nodes_dir, name)
+        if frames.exists():
+            sent = frames.stat().st_size // (8 * FRAME_WIDTH)
+            out.append(SimpleNamespace(log=BusLog(name, int(bus["bitrate"]), frames_sent=sent), epoch0=float(bus["epoch0"])))
+    return out
 
 
 def _status(path: Path) -> str | None:
