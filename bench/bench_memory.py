@@ -4,7 +4,10 @@ Each run is a fresh `hil run` process (with its recording, as a user runs it); t
 size (getrusage of the child). The bus statistics are kept as the frames come (hil/can/frame_stats.py), the
 metrics' figures of the sampled signals too (hil/record/signal_summary.py), and `hil run` lets the per-frame rows,
 the load windows and the signal samples go once they are recorded, so the peak should not grow with the length.
-    python bench/bench_memory.py [--sims 100,1000,10000] [--scenario seed000]
+    python bench/bench_memory.py [--sims 100,1000,10000] [--scenario seed000] [--realtime]
+
+With ``--realtime`` the runs are real-time runs at pace 1, and wait4's peak is that of the rig's largest process
+(the orchestrator or one of its nodes).
 """
 from __future__ import annotations
 
@@ -34,12 +37,14 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sims", default="100,1000,10000", help="simulated seconds, comma-separated")
     p.add_argument("--scenario", default="seed000")
+    p.add_argument("--realtime", action="store_true", help="real-time runs (pace 1: each takes its simulated length); "
+                   "the figure is the largest process of the rig (orchestrator or a node)")
     args = p.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for k, sim in enumerate(float(s) for s in args.sims.split(",")):
             argv = [sys.executable, "-m", "hil.cli", "run", args.scenario, "--duration", repr(sim), "--quiet",
-                    "--out", os.path.join(tmp, f"r{k}")]
+                    "--out", os.path.join(tmp, f"r{k}")] + (["--realtime"] if args.realtime else [])
             rss, wall = peak_rss_mb(argv)
             rows.append((sim, rss, wall))
             print(f"{args.scenario} {sim:8.0f} s simulated: peak RSS {rss:7.1f} MB   ({wall:6.1f} s wall)", flush=True)

@@ -31,6 +31,7 @@ def _read_json(path: Path) -> dict | None:
 
 
 Sink = tuple  # (RerunWriter, first signal row it still needs)
+SIGNAL_CHUNK_ROWS = 4096  # signal rows merged at a time (each is 3 + 5 x units values, with their columns)
 
 
 def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[BusServer], events: list[Event],
@@ -76,12 +77,13 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
 
 def _stream_signals(log: RunLog, nodes_dir: Path, sinks: list[Sink], keep_rows: bool) -> None:
     """The plant's signal rows (its stream, signals.bin; a row cut by a killed plant is left out) into the log."""
-    for rows in chunks(nodes_dir / SIGNAL_STREAM, log.signals.width):
+    for rows in chunks(nodes_dir / SIGNAL_STREAM, log.signals.width, SIGNAL_CHUNK_ROWS):
         start = len(log.signals)
         log.signals.extend_bytes(rows.tobytes())
         for writer, first in sinks:
             if len(log.signals) > max(start, first):
                 writer.write_signals(log, max(start, first), len(log.signals))
+                writer.flush()  # to the file now: rerun would hold the whole run in its buffers otherwise
         if not keep_rows:
             log.release_signals(len(log.signals))
 
@@ -101,6 +103,8 @@ def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | No
                 rows = rows[(rows[:, 0] >= 0) & (rows[:, 0] <= duration + 1e-9)]
             dst.extend_bytes(np.ascontiguousarray(rows, dtype=float).tobytes())
             offsets = [writer.write_bus(out, *at) for (writer, _), at in zip(sinks, offsets)]
+            for writer, _ in sinks:
+                writer.flush()
             if not keep_rows:
                 out.frames.release(len(out.frames))
                 out.load.release_before(len(out.load))
