@@ -4,7 +4,8 @@ latency), streamed to a file as it comes, with its distribution kept in 1 µs bi
 A node adds one (t, value) row per cycle: the rows go to ``path`` (native float64 pairs, appended every
 FLUSH_ROWS rows and at ``flush()``) for the recording, and only the bin counts stay in memory, so a node's memory
 does not grow with the run's length. Percentiles are numpy's linear interpolation over the values rounded to the
-microsecond; the maximum and the count are exact. Without a path the rows are kept in memory (``table()``).
+microsecond; the maximum and the count (of finite values) are exact. Without a path the rows are kept in
+memory (``table()``).
 """
 from __future__ import annotations
 
@@ -36,13 +37,15 @@ class StreamedSeries:
     def add(self, t: float, value: float) -> None:
         self._rows.append(t)
         self._rows.append(value)
+        if self._fd is not None and len(self._rows) >= 2 * FLUSH_ROWS:
+            self.flush()
+        if not math.isfinite(value):  # recorded, but no place in the distribution
+            return
         k = round(value / RESOLUTION_S)
         self._bins[k] = self._bins.get(k, 0) + 1
         self.n += 1
         if value > self.max:
             self.max = value
-        if self._fd is not None and len(self._rows) >= 2 * FLUSH_ROWS:
-            self.flush()
 
     def flush(self) -> None:
         """Write the rows not written yet (a node calls this at its saves and at its end)."""
