@@ -72,5 +72,5 @@ def test_the_watchdog_restarts_a_crashed_process_and_a_controller_error_in_real_
     assert any("train2/unit3: restart asked (watchdog, after a crash)" in t for t in rig), rig
     ecu = [e for e in res.log.events if e.source == "train1/unit2/ecu"]
     restarted = [e.t for e in ecu if "restarted with a reset controller (watchdog, after a controller error)" in e.text]
-    assert len(restarted) == 1 and 1.4 <= restarted[0] < 1.6, [(e.t, e.text) for e in ecu]
+    assert len(restarted) == 1 and 1.4 <= restarted[0] < 2.0, [(e.t, e.text) for e in ecu]  # 0.4 s after the error
     assert res.metrics["faults"]["injected"] == 1
