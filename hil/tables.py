@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 from array import array
+from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 
@@ -71,3 +73,19 @@ class SampleTable:
         if self._cache is None:
             self._cache = np.frombuffer(self._buf.tobytes(), dtype=float).reshape(-1, self.width)
         return self._cache
+
+
+def row_chunks(path: Path, width: int, rows: int = 1 << 16) -> Iterator[np.ndarray]:
+    """The rows of a file of native float64 rows of ``width`` values (a node's stream, a spool), ``rows`` at a
+    time; a missing file has none, and a row cut by a killed writer is left out."""
+    try:
+        f = open(path, "rb")
+    except OSError:
+        return
+    with f:
+        while data := f.read(8 * width * rows):
+            whole = len(data) - len(data) % (8 * width)
+            if whole:
+                yield np.frombuffer(data[:whole], dtype=float).reshape(-1, width)
+            if whole < len(data):
+                break

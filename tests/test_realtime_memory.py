@@ -10,7 +10,8 @@ import numpy as np
 from hil.layout import TrainLayout
 from hil.record.metrics import compute_metrics
 from hil.record.runlog import BusLog
-from hil.runtime.realtime.bus_spool import FRAME_WIDTH, BusSpool, chunks, spool_paths
+from hil.runtime.realtime.bus_spool import FRAME_WIDTH, BusSpool, spool_paths
+from hil.tables import row_chunks
 from hil.runtime.realtime.merge import merge_nodes
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.scenario import load_scenario
@@ -40,8 +41,8 @@ def test_the_spool_moves_the_rows_to_files_and_the_server_keeps_none(tmp_path):
         assert len(server.log.frames.array) == 0 and len(server.log.load.array) <= 1
     spool.close()
     frames_path, load_path = spool_paths(tmp_path, "bus1")
-    back = np.concatenate(list(chunks(frames_path, FRAME_WIDTH, rows=777)))
-    assert np.array_equal(back, rows) and len(list(chunks(load_path, 2))[0]) == 5
+    back = np.concatenate(list(row_chunks(frames_path, FRAME_WIDTH, rows=777)))
+    assert np.array_equal(back, rows) and len(list(row_chunks(load_path, 2))[0]) == 5
 
 
 def test_a_real_time_run_merged_chunk_by_chunk_has_the_metrics_of_the_whole(rt, tmp_path):  # noqa: F811

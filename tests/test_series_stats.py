@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from hil.runtime.realtime.pacing import LatenessStats
-from hil.runtime.realtime.series_stats import FLUSH_ROWS, StreamedSeries, read_series, series_chunks
+from hil.runtime.realtime.series_stats import FLUSH_ROWS, StreamedSeries, read_series
+from hil.tables import row_chunks
 
 
 def test_rows_go_to_the_file_and_only_the_unwritten_ones_stay(tmp_path):
@@ -20,7 +21,7 @@ def test_rows_go_to_the_file_and_only_the_unwritten_ones_stay(tmp_path):
     s.close()
     rows = read_series(path)
     assert rows.shape == (len(values), 2) and np.array_equal(rows[:, 1], values)
-    assert [len(c) for c in series_chunks(path, rows=1000)] == [1000, 1000, 1000, 89]
+    assert [len(c) for c in row_chunks(path, 2, rows=1000)] == [1000, 1000, 1000, 89]
     with pytest.raises(ValueError, match="read_series"):
         s.table()
 

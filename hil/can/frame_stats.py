@@ -185,12 +185,7 @@ class FrameTable:
     def release(self, upto: int) -> None:
         """Count the rows into the statistics and let those before index ``upto`` go."""
         self.fold()
-        drop = min(upto, len(self)) - self._first
-        if drop > 0:
-            kept = self._rows.rows_bytes(drop)
-            self._rows = SampleTable(WIDTH)
-            self._rows.extend_bytes(kept)
-            self._first += drop
+        self.hand_off(upto)
 
     def hand_off(self, upto: int) -> None:
         """Let the rows before ``upto`` go uncounted: they went to a spool whose reader keeps their statistics (a

@@ -272,29 +272,21 @@ def event_path(source: str) -> str:
 def write_runlog(path: Path, log: RunLog, scenario, *, wall_clock: tuple[float, float] | None = None,
                  realtime: bool = False, frames=None,
                  extra_series: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Path:
-    """Write a finished RunLog to ``path`` in one go (tests keep failing runs this way; real-time runs too).
+    """Write a finished RunLog to ``path`` in one go (tests keep failing runs this way, hil.testing too).
 
     ``frames``: a :class:`hil.record.frames.FrameRecorder` whose rows are written as well; ``extra_series``:
     entity path -> (t, values) of further scalars (the real-time timing series)."""
     with RerunWriter(path, log.layout, scenario.name, scenario.plant.coupler_band_m, scenario.trains.spacing_m,
                      scenario.trains.emergency_gap_m, [b.name for b in log.buses] or None,
                      frames=frames is not None, realtime=realtime, wall_clock=wall_clock) as w:
-        write_log(w, log, frames=frames, extra_series=extra_series)
+        if len(log.signals):
+            w.write_signals(log, 0, len(log.signals))
+        for bus in log.buses:
+            w.write_bus(bus, 0, 0)
+        if log.events:
+            w.write_events(log.events)
+        if frames is not None:
+            frames.write(w)
+        for entity, (t, values) in (extra_series or {}).items():
+            w.write_scalars(entity, t, values)
     return Path(path)
-
-
-def write_log(w: RerunWriter, log: RunLog, signals_from: int = 0, frames=None,
-              extra_series: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
-    """A finished RunLog into an open writer: signals (from row ``signals_from``), buses, events, frame rows and
-    further scalars (see ``write_runlog``), then flushed."""
-    if len(log.signals) > signals_from:
-        w.write_signals(log, signals_from, len(log.signals))
-    for bus in log.buses:
-        w.write_bus(bus, 0, 0)
-    if log.events:
-        w.write_events(log.events)
-    if frames is not None:
-        frames.write(w)
-    for entity, (t, values) in (extra_series or {}).items():
-        w.write_scalars(entity, t, values)
-    w.flush()

@@ -3,12 +3,11 @@
 Every SPOOL_EVERY_WALL_S the orchestrator moves each server's new rows into ``nodes/<bus>.frames.bin`` (rows of
 ``hil.can.frame_stats``: t_end, frame id, latency, queueing) and ``nodes/<bus>.load.bin`` (t_window_end, load),
 native float64, and lets them go from the server's BusLog; so its memory does not grow with the frames. At the end
-the merge reads them back chunk by chunk (``chunks``), in bus time, into the recording and the bus statistics.
+the merge reads them back chunk by chunk (``hil.tables.row_chunks``), in bus time, into the recording and the bus statistics.
 """
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,6 @@ from hil.can.frame_stats import WIDTH as FRAME_WIDTH
 from hil.record.runlog import BusLog
 
 SPOOL_EVERY_WALL_S = 1.0
-CHUNK_ROWS = 1 << 16
 LOAD_WIDTH = 2
 
 
@@ -72,18 +70,3 @@ class BusSpool:
         for frames_f, load_f in self._files.values():
             frames_f.close()
             load_f.close()
-
-
-def chunks(path: Path, width: int, rows: int = CHUNK_ROWS) -> Iterator[np.ndarray]:
-    """The rows of a spool file, ``rows`` at a time (a missing file has none)."""
-    try:
-        f = open(path, "rb")
-    except OSError:
-        return
-    with f:
-        while data := f.read(8 * width * rows):
-            whole = len(data) - len(data) % (8 * width)
-            if whole:
-                yield np.frombuffer(data[:whole], dtype=float).reshape(-1, width)
-            if whole < len(data):
-                break

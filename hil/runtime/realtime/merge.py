@@ -14,8 +14,8 @@ import numpy as np
 from hil.layout import TrainLayout
 from hil.runtime.realtime.busserver import BusServer
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
-from hil.runtime.realtime.bus_spool import FRAME_WIDTH, LOAD_WIDTH, chunks, spool_paths
-from hil.runtime.realtime.series_stats import series_chunks
+from hil.runtime.realtime.bus_spool import FRAME_WIDTH, LOAD_WIDTH, spool_paths
+from hil.tables import row_chunks
 from hil.record import paths
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
@@ -77,7 +77,7 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
 
 def _stream_signals(log: RunLog, nodes_dir: Path, sinks: list[Sink], keep_rows: bool) -> None:
     """The plant's signal rows (its stream, signals.bin; a row cut by a killed plant is left out) into the log."""
-    for rows in chunks(nodes_dir / SIGNAL_STREAM, log.signals.width, SIGNAL_CHUNK_ROWS):
+    for rows in row_chunks(nodes_dir / SIGNAL_STREAM, log.signals.width, SIGNAL_CHUNK_ROWS):
         start = len(log.signals)
         log.signals.extend_bytes(rows.tobytes())
         for writer, first in sinks:
@@ -96,7 +96,7 @@ def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | No
     frames_path, load_path = spool_paths(nodes_dir, src.name)
     offsets = [(0, 0) for _ in sinks]
     for path, width, dst in ((load_path, LOAD_WIDTH, out.load), (frames_path, FRAME_WIDTH, out.frames)):
-        for rows in chunks(path, width):
+        for rows in row_chunks(path, width):
             rows = rows.copy()
             rows[:, 0] -= shift
             if duration is not None:
@@ -149,7 +149,7 @@ def write_rest(w: RerunWriter, log: RunLog, nodes_dir: Path) -> None:
     if log.events:
         w.write_events(log.events)
     for entity, f in timing_series(nodes_dir):  # cycle lateness per node, sensor-to-actuator latency
-        for rows in series_chunks(f):
+        for rows in row_chunks(f, 2):
             w.write_scalars(entity, rows[:, 0], rows[:, 1] * 1e3)
     w.flush()
 

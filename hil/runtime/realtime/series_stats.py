@@ -12,14 +12,14 @@ from __future__ import annotations
 import math
 import os
 from array import array
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from hil.tables import row_chunks
+
 RESOLUTION_S = 1e-6
 FLUSH_ROWS = 1024
-CHUNK_ROWS = 1 << 16  # rows read at a time from a series file
 
 
 class StreamedSeries:
@@ -77,18 +77,7 @@ class StreamedSeries:
         return np.frombuffer(self._rows, dtype=float).reshape(-1, 2) if self._rows else np.zeros((0, 2))
 
 
-def series_chunks(path: Path, rows: int = CHUNK_ROWS) -> Iterator[np.ndarray]:
-    """The (t, value) rows of a series file, ``rows`` at a time (a row cut by a killed writer is left out)."""
-    with open(path, "rb") as f:
-        while data := f.read(16 * rows):
-            whole = len(data) - len(data) % 16
-            if whole:
-                yield np.frombuffer(data[:whole], dtype=float).reshape(-1, 2)
-            if whole < len(data):
-                break
-
-
 def read_series(path: Path) -> np.ndarray:
     """Every (t, value) row of a series file."""
-    parts = list(series_chunks(path))
+    parts = list(row_chunks(path, 2))
     return np.concatenate(parts) if parts else np.zeros((0, 2))
