@@ -11,7 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
@@ -133,7 +133,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
         flush = _every(_marking(recorder, out_dir, scenario.name, runtime), chunk_s, min_flush_wall_s) \
             if recorder else None
         log = rig.run(duration, progress=(lambda t: bar.update(round(t - bar.n, 3))) if bar else None,
-                      on_chunk=_then_release(flush, recorder, keep_signals))
+                      on_chunk=_checking(stop, _then_release(flush, recorder, keep_signals)))
         if recorder:
             recorder(log)
     except PlantDiverged as exc:  # non-finite plant state: record what led to it, then report the error
@@ -167,6 +167,15 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     if failure is not None:
         raise failure
     return RunResult(log, metrics, out_dir, files)
+
+
+def _checking(stop: StopSignals, on_chunk: Callable[[RunLog], None]) -> Callable[[RunLog], None]:
+    """``on_chunk``, after raising a stop signal whose exception was lost (``StopSignals.check``)."""
+    def chunk(log: RunLog) -> None:
+        stop.check()
+        on_chunk(log)
+
+    return chunk
 
 
 def _then_release(flush, recorder, keep_signals: bool):

@@ -101,3 +101,32 @@ def test_stop_signals_are_remembered_in_set_up_and_writing_and_raised_in_the_loo
         with pytest.raises(KeyboardInterrupt):
             stop.restore()  # ... and re-sent to the previous handler (Ctrl-C -> KeyboardInterrupt)
     assert signal.getsignal(signal.SIGTERM) == previous
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the drop is the point
+def test_a_stop_whose_exception_python_dropped_is_raised_at_the_next_chunk():
+    """A handler that runs inside a finalizer has its KeyboardInterrupt printed and dropped (the CI run on
+    64c8561 ran a SIGINT'd run to its end): ``check``, called by the run loop at every chunk, raises it."""
+    import gc
+    import os
+
+    from hil.record.integrity import StopSignals
+
+    class SignalsInFinalizer:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(1000))  # bytecodes: the handler runs here, inside __del__
+
+    stop = StopSignals().install()
+    try:
+        stop.arm()
+        stop.check()  # nothing received: nothing raised
+        SignalsInFinalizer()
+        gc.collect()
+        assert stop.received == "SIGINT"  # the handler ran, its exception went nowhere
+        with pytest.raises(KeyboardInterrupt, match="SIGINT"):
+            stop.check()
+        stop.defer()
+        stop.check()  # no longer armed: the files are being written
+    finally:
+        stop.restore()

@@ -59,6 +59,10 @@ class StopSignals:
     remembered again while the files are written (``defer``), then the previous handlers (``restore``), which
     re-sends a signal remembered meanwhile, so a Ctrl-C or SIGTERM during the final writing still takes effect.
 
+    Python runs a signal handler between any two bytecodes; one that runs inside a finalizer (``__del__``, a
+    generator being collected) has its KeyboardInterrupt printed and dropped. The run loop therefore also calls
+    ``check`` at every chunk, which raises a stop that arrived while armed, so a stop is never lost.
+
     Active only in the main thread of a process that is not a multiprocessing child (a sweep's pool owns its
     workers' signals); elsewhere every method does nothing. Signals that were ignored stay ignored."""
 
@@ -68,6 +72,7 @@ class StopSignals:
         self.received: str | None = None
         self._pending: int | None = None  # a signal remembered and not yet acted on
         self._previous: dict[int, Any] = {}
+        self._armed = False
         self._active = threading.current_thread() is threading.main_thread() and multiprocessing.parent_process() is None
 
     def install(self) -> "StopSignals":
@@ -91,16 +96,25 @@ class StopSignals:
 
     def arm(self) -> None:
         if self._previous:
+            self._armed = True
             self._set(self._interrupt)
             if self._pending is not None:
                 self._pending = None
                 raise KeyboardInterrupt(self.received)
 
+    def check(self) -> None:
+        """Raise the KeyboardInterrupt of a stop signal received while armed (one whose exception Python dropped
+        because the handler ran inside a finalizer); nothing otherwise."""
+        if self._armed and self.received is not None:
+            raise KeyboardInterrupt(self.received)
+
     def defer(self) -> None:
+        self._armed = False
         if self._previous:
             self._set(self._remember)
 
     def restore(self) -> None:
+        self._armed = False
         for s, h in self._previous.items():
             signal.signal(s, h if h is not None else signal.SIG_DFL)
         self._previous = {}
