@@ -70,6 +70,18 @@ class Mailbox:
     def ids(self) -> list[int]: ...
     def take_first_malformed(self) -> tuple[float, int, int] | None: ...
 
+class Packing:
+    """CAN FD frame packing: a sender's batch that holds every part of a container goes as that one frame, and
+    receivers get its parts back as the frames they were (engine/src/packing.rs)."""
+
+    def __init__(self, containers: Sequence[tuple[int, int, Sequence[tuple[int, int, int]]]]) -> None:
+        """[(container_id, data_length, [(part_id, byte_offset, byte_length)])]; a ValueError says what is wrong."""
+    def pack(self, frames: Sequence[tuple[int, bytes]]) -> list[tuple[int, bytes]]: ...
+    def unpack(self, frame_id: int, data: bytes) -> list[tuple[int, bytes]] | None:
+        """The parts of a container frame that lie within ``data``; None when ``frame_id`` is not a container."""
+    def containers_of(self, ids: Sequence[int]) -> list[int]:
+        """The containers carrying any of ``ids``: a receiver of ``ids`` accepts these too."""
+
 class Network:
     """Every train bus, the radio gateway and the mailboxes on one virtual-time event queue."""
 
@@ -97,7 +109,10 @@ class Network:
     def advance(self, until_ns: int) -> int | None:
         """Run the frame events before until_ns; the token of a due task (clock at its time), or None."""
     def send(self, bus: int, node: int, frame_id: int, data: bytes | bytearray) -> bool: ...
-    def send_frames(self, bus: int, node: int, frames: Sequence[tuple[int, bytes]]) -> None: ...
+    def send_frames(self, bus: int, node: int, frames: Sequence[tuple[int, bytes]]) -> None:
+        """One node's batch at the current time (packed into containers on a bus with ``set_packing``)."""
+    def set_packing(self, bus: int, packing: Packing) -> None:
+        """Pack the batches sent on this CAN FD bus and unpack them at its receivers (ValueError on classical CAN)."""
     has_commands: bool  # commands or rejected frames wait for drain_commands
 
     def attach_commands(self, bus: int, name: str, commands: Sequence[tuple[int, MessageCodec, int]],
@@ -155,6 +170,8 @@ class FrameLink:
 
     def __init__(self, fd: int, t0: float, pace: float, keep: bool = False) -> None: ...
     def route(self, frame_id: int, mailbox: Mailbox) -> None: ...
+    def set_packing(self, packing: Packing) -> None:
+        """Pack each ``send`` batch into containers; unpack the containers received into their parts."""
     def pump(self) -> int: ...
     def take(self) -> list[tuple[int, bytes, float]]: ...
     def send(self, frames: Sequence[tuple[int, bytes]], extended: bool = False, fd: bool = False,

@@ -7,8 +7,10 @@
 
 use std::cmp::{Ordering, Reverse};
 use std::collections::{BinaryHeap, HashMap, VecDeque};
+use std::sync::Arc;
 
 use crate::frame::{fd_padded_len, BitTiming, FrameError, MAX_CLASSIC_DATA, MAX_DATA};
+use crate::packing::Packing;
 
 /// Where a node's received frames go (resolved by the driver).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -144,6 +146,13 @@ pub struct Node {
     pub attached: bool,
 }
 
+impl Node {
+    /// The acceptance filter lets `frame_id` through.
+    pub fn accepts(&self, frame_id: u32) -> bool {
+        self.rx_ids.as_ref().is_none_or(|ids| ids.contains(&frame_id))
+    }
+}
+
 /// A frame on the wire.
 #[derive(Debug, Clone, Copy)]
 pub struct Transmission {
@@ -191,6 +200,8 @@ pub struct Bus {
     pub stats: BusStats,
     /// When set, every completed transmission is also kept here for the driver (CAN logs, frame rows).
     pub trace: Option<Vec<Transmission>>,
+    /// Container frames on this bus (CAN FD frame packing): a node accepting a part also receives its container.
+    pub packing: Option<Arc<Packing>>,
 }
 
 impl Bus {
@@ -198,7 +209,7 @@ impl Bus {
         Bus {
             name: name.to_string(), timing, policy, depth, extended, format: Format::Classical, nodes: Vec::new(), heap: BinaryHeap::new(), seq: 0,
             receivers_std: vec![None; 1 << 11], receivers_ext: HashMap::new(), busy_until: 0, current: None, window_ns: load_window_ns,
-            window_end: load_window_ns, window_busy: 0, stats: BusStats::default(), trace: None,
+            window_end: load_window_ns, window_busy: 0, stats: BusStats::default(), trace: None, packing: None,
         }
     }
 
@@ -211,9 +222,11 @@ impl Bus {
         self.nodes.len() - 1
     }
 
-    fn find_receivers(nodes: &[Node], frame_id: u32) -> Vec<usize> {
+    fn find_receivers(nodes: &[Node], frame_id: u32, packing: Option<&Packing>) -> Vec<usize> {
+        let parts = packing.and_then(|p| p.parts(frame_id)).unwrap_or(&[]);
+        let wants = |ids: &Vec<u32>| ids.contains(&frame_id) || parts.iter().any(|p| ids.contains(&p.id));
         let mut found: Vec<usize> = (0..nodes.len())
-            .filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.as_ref().is_some_and(|ids| ids.contains(&frame_id)))
+            .filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.as_ref().is_some_and(wants))
             .collect();
         found.extend((0..nodes.len()).filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.is_none()));
         found
@@ -221,11 +234,18 @@ impl Bus {
 
     /// Nodes that receive `frame_id`: filtered nodes in attach order, then the catch-all ones.
     pub fn receivers(&mut self, frame_id: u32) -> &[usize] {
-        let nodes = &self.nodes;
+        let (nodes, packing) = (&self.nodes, self.packing.as_deref());
         if let Some(slot) = self.receivers_std.get_mut(frame_id as usize) {
-            return slot.get_or_insert_with(|| Self::find_receivers(nodes, frame_id));
+            return slot.get_or_insert_with(|| Self::find_receivers(nodes, frame_id, packing));
         }
-        self.receivers_ext.entry(frame_id).or_insert_with(|| Self::find_receivers(nodes, frame_id))
+        self.receivers_ext.entry(frame_id).or_insert_with(|| Self::find_receivers(nodes, frame_id, packing))
+    }
+
+    /// Pack the frames of this bus's containers (see `packing`); the receiver lists are built again.
+    pub fn set_packing(&mut self, packing: Option<Arc<Packing>>) {
+        self.packing = packing;
+        self.receivers_std.iter_mut().for_each(|r| *r = None);
+        self.receivers_ext.clear();
     }
 
     /// Move the receiver list of `frame_id` out of the cache (no copy per frame); give it back with `put_receivers`.

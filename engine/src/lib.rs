@@ -5,6 +5,7 @@
 //! * `codec`: the DBC message layouts compiled from cantools (saturate and count, never wrap);
 //! * `mailbox`: an ECU's input mailboxes, read once per cycle;
 //! * `bus`: the CAN bus model (TX queues, arbitration, filters, statistics);
+//! * `packing`: CAN FD frame packing (several messages in one container frame, unpacked at the receivers);
 //! * `radio`: the train-to-train links and the routing gateway;
 //! * `kernel` and `network`: the virtual-time event queue and the network it drives;
 //! * `server`: the real-time bus server, one OS thread per bus.
@@ -18,6 +19,7 @@ pub mod frame;
 pub mod kernel;
 pub mod mailbox;
 pub mod network;
+pub mod packing;
 pub mod radio;
 pub mod server;
 

@@ -9,7 +9,7 @@ use std::collections::HashMap;
 use std::rc::Rc;
 use std::sync::Arc;
 
-use crate::bus::{Bus, Payload, Sink};
+use crate::bus::{Bus, Payload, Sink, Transmission};
 use crate::codec::MessageLayout;
 use crate::frame::{self, FrameError};
 use crate::kernel::EventQueue;
@@ -140,6 +140,29 @@ impl Network {
         Ok(ok)
     }
 
+    /// Queue a node's batch of frames at the current time: on a bus with frame packing, the batch goes as its
+    /// containers (`Packing::pack`). Returns how many frames the node's full queue refused.
+    pub fn send_batch(&mut self, bus: usize, node: usize, frames: &[(u32, &[u8])]) -> Result<usize, FrameError> {
+        let mut refused = 0;
+        match self.buses[bus].packing.clone() {
+            Some(packing) => {
+                let b = &self.buses[bus];
+                for &(id, data) in frames {
+                    frame::validate_as(id, data.len(), b.extended, b.format.is_fd())?;
+                }
+                for (id, data) in packing.pack(frames) {
+                    refused += usize::from(!self.send(bus, node, id, data.as_slice())?);
+                }
+            }
+            None => {
+                for &(id, data) in frames {
+                    refused += usize::from(!self.send(bus, node, id, data)?);
+                }
+            }
+        }
+        Ok(refused)
+    }
+
     fn arbitrate(&mut self, bus: usize) -> Result<(), FrameError> {
         self.arbitration_pending[bus] = false;
         if let Some(end) = self.buses[bus].arbitrate(self.queue.now)? {
@@ -151,32 +174,18 @@ impl Network {
     fn end<E: From<FrameError>>(&mut self, bus: usize, refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
         let tx = self.buses[bus].complete();
         let receivers = self.buses[bus].take_receivers(tx.frame_id);
-        for &node in &receivers {
-            let n = &self.buses[bus].nodes[node];
-            if node == tx.node && !n.receive_own {
-                continue;
-            }
-            match n.sink {
-                Sink::None => {}
-                Sink::Mailbox(m) => {
-                    self.mailboxes[m].borrow_mut().put(tx.frame_id, tx.data.as_slice(), tx.t_end as f64 * 1e-9);
-                }
-                Sink::Inbox(i) => self.inbox.push((i, tx.frame_id, tx.data, tx.t_end)),
-                Sink::Commands(i) => {
-                    match self.command_tables[i].decode(tx.frame_id, tx.data.as_slice(), tx.t_end, &mut self.scratch) {
-                        Some(cmd) => self.commands.push(cmd),
-                        None => self.rejected.push((i, tx.frame_id, tx.data, tx.t_end)),
-                    }
-                }
-                Sink::Gateway(b) => {
-                    if let Err(e) = self.forward(b, tx.frame_id, tx.data, tx.t_end, refill) {
-                        self.buses[bus].put_receivers(tx.frame_id, receivers);
-                        return Err(e);
-                    }
-                }
-            }
-        }
+        let packing = self.buses[bus].packing.clone();
+        let parts = packing.as_deref().and_then(|p| p.unpack(tx.frame_id, tx.data.as_slice()));
+        let delivered = match parts {
+            // a container: each receiver takes the parts its filter accepts, as the frames they were
+            Some(parts) => parts.collect::<Vec<_>>().into_iter().try_for_each(|(id, data)| {
+                let takers: Vec<usize> = receivers.iter().copied().filter(|&n| self.buses[bus].nodes[n].accepts(id)).collect();
+                self.deliver(bus, &takers, &tx, id, Payload::new(data), refill)
+            }),
+            None => self.deliver(bus, &receivers, &tx, tx.frame_id, tx.data, refill),
+        };
         self.buses[bus].put_receivers(tx.frame_id, receivers);
+        delivered?;
         if self.arbitration_pending[bus] || !self.buses[bus].pending() {
             return Ok(());
         }
@@ -188,6 +197,32 @@ impl Network {
         } else {
             Ok(self.arbitrate(bus)?)
         }
+    }
+
+    /// Hand frame `frame_id` (a transmission, or one part of a container) to each of `receivers`' sinks.
+    fn deliver<E>(&mut self, bus: usize, receivers: &[usize], tx: &Transmission, frame_id: u32, data: Payload,
+                  refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
+        for &node in receivers {
+            let n = &self.buses[bus].nodes[node];
+            if node == tx.node && !n.receive_own {
+                continue;
+            }
+            match n.sink {
+                Sink::None => {}
+                Sink::Mailbox(m) => {
+                    self.mailboxes[m].borrow_mut().put(frame_id, data.as_slice(), tx.t_end as f64 * 1e-9);
+                }
+                Sink::Inbox(i) => self.inbox.push((i, frame_id, data, tx.t_end)),
+                Sink::Commands(i) => {
+                    match self.command_tables[i].decode(frame_id, data.as_slice(), tx.t_end, &mut self.scratch) {
+                        Some(cmd) => self.commands.push(cmd),
+                        None => self.rejected.push((i, frame_id, data, tx.t_end)),
+                    }
+                }
+                Sink::Gateway(b) => self.forward(b, frame_id, data, tx.t_end, refill)?,
+            }
+        }
+        Ok(())
     }
 
     /// Offer a frame heard on `bus` to every matching route of the gateway.
@@ -279,5 +314,32 @@ mod tests {
         let n = net.buses[b].attach("X", Sink::None, None, false);
         assert!(net.send(b, n, 0x800, &[]).is_err());
         assert!(net.send(b, n, 0x100, &[0; 9]).is_err());
+    }
+
+    #[test]
+    fn a_packed_batch_is_one_frame_on_the_bus_and_its_parts_at_each_receiver() {
+        use crate::bus::Format;
+        use crate::packing::{Container, Packing, Part};
+        let mut net = Network::default();
+        let bus = Bus::new("bus1", BitTiming::new(1_000_000, 5_000_000).unwrap(), Policy::Priority, 8, false, 100_000_000)
+            .with_format(Format::FdBrs);
+        let b = net.add_bus(bus);
+        let packing = Packing::new(vec![Container { id: 0x70, len: 20, parts: vec![
+            Part { id: 0x80, offset: 0, len: 5 }, Part { id: 0x100, offset: 5, len: 8 }, Part { id: 0x120, offset: 13, len: 7 }] }]).unwrap();
+        net.buses[b].set_packing(Some(Arc::new(packing)));
+        let (plant, neighbour) = (net.add_inbox(), net.add_inbox());
+        let ecu = net.buses[b].attach("ECU", Sink::None, None, false);
+        net.buses[b].attach("Plant", Sink::Inbox(plant), Some(vec![0x80]), false);
+        net.buses[b].attach("ECU2", Sink::Inbox(neighbour), Some(vec![0x100, 0x120]), false);
+        let tick = net.every(0, 10_000_000);
+        assert_eq!(net.advance(1_000_000_000, &mut no_draws).unwrap(), Some(tick));
+        let (cmd, state, aux) = ([1u8; 5], [2u8; 8], [3u8; 7]);
+        assert_eq!(net.send_batch(b, ecu, &[(0x80, &cmd), (0x100, &state), (0x120, &aux)]).unwrap(), 0);
+        net.send_batch(b, ecu, &[(0x80, &cmd)]).unwrap(); // a command alone goes as itself
+        assert_eq!(net.advance(10_000_000, &mut no_draws).unwrap(), None);
+        assert_eq!(net.buses[b].stats.frames_sent, 2);
+        let got: Vec<(usize, u32, Vec<u8>)> = net.inbox.iter().map(|f| (f.0, f.1, f.2.as_slice().to_vec())).collect();
+        assert_eq!(got, vec![(plant, 0x80, cmd.to_vec()), (neighbour, 0x100, state.to_vec()), (neighbour, 0x120, aux.to_vec()),
+                             (plant, 0x80, cmd.to_vec())]);
     }
 }

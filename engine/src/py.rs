@@ -15,6 +15,7 @@ use crate::e2e::{self, STATUS_NAMES};
 use crate::frame::{self, BitTiming, FrameError, MAX_DATA};
 use crate::mailbox;
 use crate::network::Network as CoreNetwork;
+use crate::packing::{Container, Packing as CorePacking, Part};
 use crate::radio::{Draws, Hop, Link, Loss};
 
 fn frame_err(e: FrameError) -> PyErr {
@@ -337,6 +338,41 @@ impl Mailbox {
 // ------------------------------------------------------------------------------------------------ network
 
 /// Every train bus, the radio gateway, the mailboxes and inboxes, on one virtual-time event queue.
+/// CAN FD frame packing: container frames and the messages they carry (see engine/src/packing.rs).
+#[pyclass(module = "trainhil_engine._native", frozen)]
+pub struct Packing {
+    inner: Arc<CorePacking>,
+}
+
+#[pymethods]
+impl Packing {
+    /// `containers`: [(container_id, data_length, [(part_id, byte_offset, byte_length)])], checked.
+    #[new]
+    fn new(containers: Vec<(u32, usize, Vec<(u32, usize, usize)>)>) -> PyResult<Self> {
+        let containers = containers.into_iter()
+            .map(|(id, len, parts)| Container { id, len, parts: parts.into_iter().map(|(id, offset, len)| Part { id, offset, len }).collect() })
+            .collect();
+        Ok(Packing { inner: Arc::new(CorePacking::new(containers).map_err(PyValueError::new_err)?) })
+    }
+
+    /// A sender's batch [(frame_id, data)] as it goes on the bus: complete containers replace their parts.
+    fn pack<'py>(&self, py: Python<'py>, frames: Vec<(u32, PyBackedBytes)>) -> PyResult<Vec<(u32, Bound<'py, PyBytes>)>> {
+        let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
+        Ok(self.inner.pack(&batch).into_iter().map(|(id, data)| (id, PyBytes::new(py, data.as_slice()))).collect())
+    }
+
+    /// The parts [(frame_id, data)] a container frame carries; None when `frame_id` is not a container.
+    fn unpack<'py>(&self, py: Python<'py>, frame_id: u32, data: PyBackedBytes) -> Option<Vec<(u32, Bound<'py, PyBytes>)>> {
+        let parts = self.inner.unpack(frame_id, &data)?;
+        Some(parts.map(|(id, d)| (id, PyBytes::new(py, d))).collect())
+    }
+
+    /// The containers that carry any of `ids` (what a receiver of `ids` must also accept), sorted.
+    fn containers_of(&self, ids: Vec<u32>) -> Vec<u32> {
+        self.inner.containers_of(&ids)
+    }
+}
+
 #[pyclass(module = "trainhil_engine._native", unsendable)]
 pub struct Network {
     core: CoreNetwork,
@@ -517,14 +553,23 @@ impl Network {
         out
     }
 
-    /// Queue several (frame_id, data) frames from one node.
+    /// Queue several (frame_id, data) frames from one node at once (packed into containers on a bus with packing).
     fn send_frames(&mut self, bus: usize, node: usize, frames: Vec<(u32, PyBackedBytes)>) -> PyResult<()> {
         self.check_node(bus, node)?;
         let started = std::time::Instant::now();
-        for (frame_id, data) in frames {
-            self.core.send(bus, node, frame_id, &data).map_err(frame_err)?;
-        }
+        let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
+        self.core.send_batch(bus, node, &batch).map_err(frame_err)?;
         self.busy += started.elapsed();
+        Ok(())
+    }
+
+    /// Pack the batches sent on a CAN FD bus into `packing`'s containers, and unpack them at its receivers.
+    fn set_packing(&mut self, bus: usize, packing: &Packing) -> PyResult<()> {
+        let b = self.bus_mut(bus)?;
+        if !b.format.is_fd() {
+            return Err(PyValueError::new_err(format!("{}: frame packing needs a CAN FD bus (fd=True)", b.name)));
+        }
+        b.set_packing(Some(packing.inner.clone()));
         Ok(())
     }
 
@@ -635,9 +680,10 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<MessageCodec>()?;
     m.add_class::<Mailbox>()?;
     m.add_class::<Network>()?;
+    m.add_class::<Packing>()?;
     m.add_class::<BusServerCore>()?;
     m.add_class::<FrameLink>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "MessageCodec", "Mailbox", "Network",
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "MessageCodec", "Mailbox", "Network", "Packing",
                           "BusServerCore", "FrameLink", "wait_readable"])?;
     Ok(())
 }
@@ -805,6 +851,8 @@ pub struct FrameLink {
     /// Keep the frames that have no route for `take` (a node that handles its frames itself).
     keep: bool,
     kept: Vec<(u32, crate::bus::Payload, f64)>,
+    /// Container frames: packed on send, unpacked on receipt.
+    packing: Option<Arc<CorePacking>>,
 }
 
 impl FrameLink {
@@ -836,17 +884,25 @@ impl FrameLink {
             }
             off += (1 + extra) * RS;
             let t = (stamp - self.t0) * self.pace;
-            if let Some(boxes) = self.routes.get(&id) {
-                for mb in boxes {
-                    mb.borrow_mut().put(id, &data[..dlc], t);
-                }
-                self.received += 1;
-            } else if self.keep {
-                self.kept.push((id, crate::bus::Payload::new(&data[..dlc]), t));
-                self.received += 1;
+            match self.packing.clone().as_deref().and_then(|p| p.unpack(id, &data[..dlc])) {
+                Some(parts) => parts.for_each(|(part, bytes)| self.hand_over(part, bytes, t)),
+                None => self.hand_over(id, &data[..dlc], t),
             }
         }
         off
+    }
+
+    /// One received frame into its mailboxes, else kept (or dropped when nothing takes it).
+    fn hand_over(&mut self, id: u32, data: &[u8], t: f64) {
+        if let Some(boxes) = self.routes.get(&id) {
+            for mb in boxes {
+                mb.borrow_mut().put(id, data, t);
+            }
+            self.received += 1;
+        } else if self.keep {
+            self.kept.push((id, crate::bus::Payload::new(data), t));
+            self.received += 1;
+        }
     }
 }
 
@@ -861,7 +917,12 @@ impl FrameLink {
             return Err(PyValueError::new_err(format!("pace={pace} must be positive")));
         }
         Ok(FrameLink { fd, t0, pace, routes: Default::default(), partial: Vec::new(), received: 0, keep,
-                       kept: Vec::new() })
+                       kept: Vec::new(), packing: None })
+    }
+
+    /// Pack each `send` batch into `packing`'s containers, and unpack the containers received.
+    fn set_packing(&mut self, packing: &Packing) {
+        self.packing = Some(packing.inner.clone());
     }
 
     /// The socket's file descriptor (for `wait_readable`).
@@ -916,10 +977,15 @@ impl FrameLink {
         let format = Format::of(fd, brs);
         let flags = if extended { 1 } else { 0 } | crate::server::format_flags(format);
         let limit = if fd { crate::frame::MAX_DATA } else { 8 };
-        for (id, data) in &frames {
-            if data.len() > limit {
-                return Err(PyValueError::new_err(format!("frame {id:#x}: {} data bytes > {limit}", data.len())));
-            }
+        if let Some((id, data)) = frames.iter().find(|(_, d)| d.len() > limit) {
+            return Err(PyValueError::new_err(format!("frame {id:#x}: {} data bytes > {limit}", data.len())));
+        }
+        let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
+        let packed = match &self.packing {
+            Some(p) => p.pack(&batch),
+            None => batch.iter().map(|&(id, d)| (id, crate::bus::Payload::new(d))).collect(),
+        };
+        for (id, data) in packed.iter().map(|(id, d)| (id, d.as_slice())) {
             let padded = if fd { crate::frame::fd_padded_len(data.len()).unwrap_or(data.len()) } else { data.len() };
             let mut payload = data.to_vec();
             payload.resize(padded, 0);
