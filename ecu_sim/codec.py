@@ -6,22 +6,30 @@ per-frame path never calls cantools. Encoding saturates out-of-range values (cou
 E2E header; NaN is an error naming the signal.
 A DBC that does not fit the firmware (missing or unknown messages, two messages on one ID, a signal too
 short or too coarse for ``SIGNAL_NEEDS``, a bad E2E header or data ID) is a DbcMismatchError at load.
+
+A CAN FD DBC (``dbc/train_fd.dbc``) may also define containers: FD messages whose ``ContainedMessages`` attribute
+lists the messages they carry in byte order, and whose signals are those messages' signals at their offsets.
+``TrainDb.packing`` turns them into the engine's frame packing (``trainhil_engine.Packing``).
 """
 from __future__ import annotations
 
 import math
+import re
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cantools
 
-from trainhil_engine import MessageCodec
+from trainhil_engine import MessageCodec, Packing
 
 # The E2E header every message must carry: signal -> (start bit, length), unsigned, identity scaling.
 E2E_HEADER = {"CRC": (0, 8), "AliveCounter": (8, 4)}
 DATA_ID_ATTRIBUTE = "E2EDataID"
+CONTAINED_ATTRIBUTE = "ContainedMessages"
 MAX_CLASSIC_DLC = 8
+FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
 # What the firmware and the rig rely on: payload signal names in start-bit order per message family.
 # Per-unit families are named <family>_U01 .. _U<max_units>; the rest are single messages.
@@ -54,14 +62,39 @@ SIGNAL_NEEDS: dict[str, tuple[float, float, float]] = {
 }
 
 
-def default_dbc_path() -> Path:
-    """dbc/train.dbc of the source tree, else the copy a wheel installs under sys.prefix."""
-    repo = Path(__file__).resolve().parents[1] / "dbc" / "train.dbc"
-    installed = Path(sys.prefix) / "share" / "trainhil" / "dbc" / "train.dbc"
+def default_dbc_path(name: str = "train.dbc") -> Path:
+    """A packaged DBC (default dbc/train.dbc) of the source tree, else the copy a wheel installs under sys.prefix."""
+    repo = Path(__file__).resolve().parents[1] / "dbc" / name
+    installed = Path(sys.prefix) / "share" / "trainhil" / "dbc" / name
     for path in (repo, installed):
         if path.is_file():
             return path
-    raise FileNotFoundError(f"train DBC not found: looked for {repo} and {installed}")
+    raise FileNotFoundError(f"DBC {name} not found: looked for {repo} and {installed}")
+
+
+def fd_length(n: int) -> int | None:
+    """The smallest CAN FD data length that holds n bytes (None above 64)."""
+    return next((length for length in FD_LENGTHS if length >= n), None)
+
+
+@dataclass(frozen=True)
+class ContainerPart:
+    """One message inside a container: its name, frame ID, first byte and length."""
+
+    name: str
+    frame_id: int
+    offset: int
+    length: int
+
+
+@dataclass(frozen=True)
+class Container:
+    """A CAN FD container frame of the DBC and the messages it carries, in byte order."""
+
+    name: str
+    frame_id: int
+    length: int
+    parts: tuple[ContainerPart, ...]
 
 
 def unit_message_name(family: str, unit0: int) -> str:
@@ -158,10 +191,12 @@ class TrainDb:
     """The train DBC: cantools' object model plus one compiled codec per message."""
 
     def __init__(self, path: Path, database: cantools.database.can.Database, codecs: Sequence[MessageCodec],
-                 max_units: int) -> None:
+                 max_units: int, containers: Sequence[Container] = ()) -> None:
         self.path = path
         self.database = database  # cantools object model (not used per frame)
         self.max_units = max_units
+        self.containers: tuple[Container, ...] = tuple(containers)
+        self.container_by_id: dict[int, Container] = {c.frame_id: c for c in containers}
         self.by_name: dict[str, MessageCodec] = {c.name: c for c in codecs}
         self.by_id: dict[int, MessageCodec] = _FrameIdMap((c.frame_id, c) for c in codecs)
         self._units = {f: tuple(self.by_name[unit_message_name(f, u)] for u in range(max_units)) for f in UNIT_FAMILIES}
@@ -176,7 +211,8 @@ class TrainDb:
             database = cantools.database.load_file(path, strict=True)
         except cantools.errors.Error as exc:
             raise DbcMismatchError(f"DBC {path}: cantools cannot load it: {exc}") from exc
-        by_name = {m.name: m for m in database.messages}
+        every = {m.name: m for m in database.messages}
+        by_name = {n: m for n, m in every.items() if not _contained(m)}
         max_units = _count_unit_slots(by_name, path)
         expected = dict(SINGLE_MESSAGES)
         for family, signals in UNIT_FAMILIES.items():
@@ -187,9 +223,22 @@ class TrainDb:
         extra = [name for name in by_name if name not in expected]
         if extra:
             raise DbcMismatchError(f"DBC {path}: message(s) the code does not know: {', '.join(extra)}")
-        _check_unique_ids(by_name, path)
+        _check_unique_ids(every, path)
         codecs = [_compile(by_name[n], sig, f"DBC {path}: message {n}") for n, sig in expected.items()]
-        return cls(path, database, codecs, max_units)
+        containers = [_container(m, by_name, f"DBC {path}: container {n}") for n, m in every.items() if _contained(m)]
+        return cls(path, database, codecs, max_units, containers)
+
+    def packing(self, units: int | None = None) -> Packing | None:
+        """The engine's frame packing of this DBC's containers for a train of ``units`` unit slots (default: all):
+        parts of slots beyond it are left out and each container shortened to what is left (a sender never
+        completes a container whose parts no one sends). None when the DBC has no containers."""
+        spec = []
+        for c in self.containers:
+            parts = [p for p in c.parts if (_unit_slot(p.name) or 0) < (self.max_units if units is None else units)]
+            if parts:
+                end = max(p.offset + p.length for p in parts)
+                spec.append((c.frame_id, fd_length(end), [(p.frame_id, p.offset, p.length) for p in parts]))
+        return Packing(spec) if spec else None
 
     def traction_cmd(self, unit0: int) -> MessageCodec:
         """TractionCmd codec of 0-based unit index ``unit0`` (slot _U{unit0 + 1:02d})."""
@@ -244,6 +293,44 @@ class TrainDb:
         """Zero the saturation counts of every codec."""
         for codec in self.by_name.values():
             codec.reset_saturations()
+
+
+def _contained(message) -> str:
+    """The ContainedMessages attribute of a message ("" for an ordinary message)."""
+    attr = message.dbc.attributes.get(CONTAINED_ATTRIBUTE) if message.dbc else None
+    return str(attr.value).strip() if attr is not None else ""
+
+
+def _unit_slot(name: str) -> int | None:
+    """0-based unit slot of a per-unit message name (TractionCmd_U03 -> 2), None for the others."""
+    m = re.fullmatch(r"(\w+)_U(\d\d)", name)
+    return int(m.group(2)) - 1 if m and m.group(1) in UNIT_FAMILIES else None
+
+
+def _signal_key(signal, shift: int = 0) -> tuple:
+    return (signal.start + shift, signal.length, signal.byte_order, bool(signal.is_signed), float(signal.scale),
+            float(signal.offset))
+
+
+def _container(message, messages: dict, where: str) -> Container:
+    """Check a container (an FD frame whose signals are its parts' signals at their byte offsets) and describe it."""
+    if not message.is_fd or message.is_extended_frame:
+        raise DbcMismatchError(f"{where}: a container must be a CAN FD frame with an 11-bit ID (VFrameFormat StandardCAN_FD)")
+    parts, offset = [], 0
+    for name in _contained(message).split():
+        part = messages.get(name)
+        if part is None:
+            raise DbcMismatchError(f"{where}: {CONTAINED_ATTRIBUTE} names {name}, which is not a message of the DBC")
+        parts.append(ContainerPart(name, part.frame_id, offset, part.length))
+        offset += part.length
+    if message.length != fd_length(offset):
+        raise DbcMismatchError(f"{where}: its parts take {offset} bytes, so its length must be {fd_length(offset)}, "
+                               f"not {message.length}")
+    expected = sorted(_signal_key(s, 8 * p.offset) for p in parts for s in messages[p.name].signals)
+    if sorted(_signal_key(s) for s in message.signals) != expected:
+        raise DbcMismatchError(f"{where}: its signals must be its parts' signals at their byte offsets "
+                               f"({', '.join(f'{p.name} at byte {p.offset}' for p in parts)})")
+    return Container(message.name, message.frame_id, message.length, tuple(parts))
 
 
 def _check_unique_ids(by_name: dict, path: Path) -> None:

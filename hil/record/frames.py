@@ -42,6 +42,13 @@ class FrameRecorder:
         0.254 ms"; a frame not in the DBC shows its bytes; a CRC mismatch is a WARN row."""
         codec = self.db.by_id.get(frame_id)
         latency = f"latency {latency_ns * 1e-6:.3f} ms"
+        container = self.db.container_by_id.get(frame_id)
+        if container is not None:  # a CAN FD container: each part it carries, as its own row would say it
+            rows = [self.format(p.frame_id, data[p.offset:p.offset + p.length], latency_ns)
+                    for p in container.parts if p.offset + p.length <= len(data)]
+            parts = " || ".join(text.rsplit(" | latency", 1)[0] for text, _ in rows)
+            return f"0x{frame_id:03X} {container.name} [{parts}] | {latency}", \
+                ("WARN" if any(level == "WARN" for _, level in rows) else "DEBUG")
         if codec is None or len(data) != codec.dlc:
             return f"0x{frame_id:03X} (not in the DBC) data {data.hex(' ')} | {latency}", "WARN"
         values = codec.decode(data)
@@ -60,7 +67,7 @@ class FrameRecorder:
             for row in rows[:stop]:
                 by_id[row[1]].append(row)
             for frame_id, group in by_id.items():
-                codec = self.db.by_id.get(frame_id)
+                codec = self.db.by_id.get(frame_id) or self.db.container_by_id.get(frame_id)
                 texts, levels = zip(*(self.format(fid, data, lat) for _, fid, data, lat in group))
                 t = np.fromiter((r[0] for r in group), dtype=np.int64, count=len(group)) * 1e-9
                 writer.write_text_rows(frames_path(bus, frame_id, codec.name if codec else "unknown"), t,

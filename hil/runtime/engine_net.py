@@ -94,8 +94,13 @@ class EngineBus:
             self._tracing = True
 
     def send_frames(self, node: int, frames: list[tuple[int, bytes]]) -> None:
-        """Queue several frames of one node at the current time (one call for an ECU's outputs)."""
+        """Queue several frames of one node at the current time (one call for an ECU's outputs); with frame
+        packing, a batch holding a container's parts goes as that container."""
         self.net.send_frames(self.index, node, frames)
+
+    def set_packing(self, packing: engine.Packing) -> None:
+        """Pack the batches sent on this (CAN FD) bus into containers, unpacked at the receivers."""
+        self.net.set_packing(self.index, packing)
 
     def collect(self) -> None:
         """Move the statistics and the traced frames gathered since the last call into the log and the listeners."""

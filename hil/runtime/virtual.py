@@ -32,6 +32,8 @@ from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.firmware import EcuFactory, build_ecu, refuse_external_units
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
 from hil.runtime.kernel import Kernel, to_ns
+from hil.runtime.train_db import bus_packing, check_train_db, load_train_db
+from hil.scenario.loader import ScenarioError
 from hil.scenario.model import Scenario
 
 NETWORK_MODELS = ("engine", "python")
@@ -62,14 +64,21 @@ class VirtualRig:
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout
         self.plant = self.parts.plant
-        self.db = db or TrainDb.load()
-        if self.layout.units_per_train > self.db.max_units:
-            raise ValueError(f"trains.units = {self.layout.units_per_train} exceeds the {self.db.max_units} unit slots of the DBC")
+        self.db = db or load_train_db(scenario)
+        check_train_db(scenario, self.db)
+        packing = bus_packing(scenario, self.db)
+        if packing is not None and self.network == "python":
+            raise ScenarioError(f"scenario {scenario.name}: can.dbc = {scenario.can.dbc!r} packs frames, which only the "
+                                "frame engine does; faults and ECU restarts run on the Python bus model, so use "
+                                "can.dbc = 'train.dbc' with them")
         self.net = engine.Network() if self.network == "engine" else None
         self.kernel = EngineKernel(self.net) if self.net is not None else Kernel()
         self.log = RunLog(self.layout)
         self.log.reference_change_times = self.parts.reference.change_times
         self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
+        if packing is not None:
+            for bus in self.buses:
+                bus.set_packing(packing)  # type: ignore[union-attr]
         self.plant_io = PlantCanNode(self.db, self.layout, self.plant, self.parts.reference, self.log)
         self._command_train: dict[int, int] = {}  # the engine's command table -> train (bus) index
         self._plant_nodes = [self._attach_plant(i) for i in range(self.layout.n_trains)]
@@ -208,8 +217,7 @@ class VirtualRig:
     def _wayside_tick(self, t_ns: int) -> None:
         frames = self.plant_io.reference_frames(t_ns * 1e-9)
         for bus, node in zip(self.buses, self._wayside_nodes):
-            for frame_id, data in frames:
-                bus.send(node, frame_id, data)
+            bus.send_frames(node, frames)
 
     def _ecu_tick(self, u: int, t_ns: int) -> None:
         ecu = self.ecus[u]

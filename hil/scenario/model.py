@@ -7,6 +7,7 @@ scenario file is reported with its dotted path instead of being silently ignored
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
@@ -445,6 +446,16 @@ class EcuConfig(Section):
 # --------------------------------------------------------------------------- networks
 
 
+def dbc_file(name: str) -> Path:
+    """A DBC named in a scenario: the packaged one of that name (dbc/), else the path as given."""
+    from ecu_sim.codec import default_dbc_path
+
+    try:
+        return default_dbc_path(name) if "/" not in name else Path(name)
+    except FileNotFoundError:
+        return Path(name)
+
+
 class CanConfig(Section):
     """Per-train CAN bus settings."""
 
@@ -458,9 +469,23 @@ class CanConfig(Section):
         default=None, ge=MIN_BITRATE, le=MAX_DATA_BITRATE,
         description="CAN FD data-phase bitrate (bit/s), at least the nominal bitrate; default: the nominal bitrate")
     brs: bool = Field(default=True, description="CAN FD bit-rate switch: the data phase runs at data_bitrate")
+    dbc: str = Field(default="train.dbc", description="the train DBC: a packaged one (train.dbc; train_fd.dbc, "
+                     "which packs each sender's frames into CAN FD containers) or the path of your own")
     transport: Literal["emulated", "socketcan"] = Field(
         default="emulated", description="real-time runs only: the rig's emulated buses, or the host's SocketCAN (vcan) interfaces")
     socketcan_channels: list[str] = Field(default=[], description="with transport = socketcan: one interface per train, e.g. vcan0")
+
+    @field_validator("dbc")
+    @classmethod
+    def _check_dbc(cls, value: str) -> str:
+        if not dbc_file(value).is_file():
+            raise ValueError(f"no DBC {value!r}: name a packaged one (train.dbc, train_fd.dbc) or an existing file")
+        return value
+
+    @property
+    def dbc_path(self) -> Path:
+        """The DBC file: the packaged one of that name, else the path as given."""
+        return dbc_file(self.dbc)
 
     @model_validator(mode="after")
     def _check_transport(self) -> "CanConfig":

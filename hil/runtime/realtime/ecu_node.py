@@ -20,7 +20,6 @@ import sys
 from pathlib import Path
 
 
-from ecu_sim.codec import TrainDb
 from hil.faults.schedule import needs_fault_machinery
 from hil.faults.watchdog import Watchdog, restart_text
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
@@ -31,6 +30,7 @@ from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
 from hil.runtime.firmware import build_ecu
+from hil.runtime.train_db import bus_packing, load_train_db
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     set_timer_slack(1)
     sc = load_scenario_json(args.scenario_json)
     parts = assemble(sc, args.seed)
-    layout, db = parts.layout, TrainDb.load()
+    layout, db = parts.layout, load_train_db(sc)
     for u in args.unit:
         if not 0 <= u < layout.n_units:
             raise SystemExit(f"--unit {u}: out of range 0..{layout.n_units - 1}")
@@ -53,18 +53,19 @@ def main(argv: list[str] | None = None) -> int:
         for u, ecu in ecus.items():
             ecu.monitors.append(EcuDiagnostics(ecu, sc.can.sensor_period_s, neighbour_names(layout, u), parts.plant_info))
     trains = sorted({layout.train_unit(u)[0] for u in ecus})
+    packing = bus_packing(sc, db)
     buses, routes = [], []  # per bus: frame id -> the hosted ECUs that listen to it
     for train in trains:
         mine = [e for u, e in ecus.items() if layout.train_unit(u)[0] == train]
         ids = set().union(*(e.rx_ids for e in mine))
         first = min(layout.train_unit(u)[1] for u in ecus if layout.train_unit(u)[0] == train)
         buses.append(open_bus(args.run, train, ids, sc.can, f"ECU_T{train + 1}_U{first + 1:02d}x{len(mine)}",
-                              receive_own=len(mine) > 1))
+                              receive_own=len(mine) > 1, packing=packing))
         routes.append({i: [e for e in mine if i in e.rx_ids] for i in ids})
     bus_of = {u: trains.index(layout.train_unit(u)[0]) for u in ecus}
     try:
         clock = SimClock(handshake(stop), args.pace)
-        io = node_frames(clock, buses, sc.can)
+        io = node_frames(clock, buses, sc.can, packing)
         for i, table in enumerate(routes):
             for frame_id, listeners in table.items():
                 for ecu in listeners:

@@ -7,6 +7,9 @@ SocketCAN. Both have one interface, so the node loops do not care which:
 * ``drain(on_frame)``: whatever waits now; ``wait_any(wall_s, on_frame)``: the first frames within ``wall_s``;
 * ``send(bus, frames)``: queue ``[(frame_id, data)]`` on bus ``bus``.
 
+With a CAN FD frame packing (``can.dbc = "train_fd.dbc"``), each ``send`` batch goes as its containers and every
+container received is handed over as the frames it carries (``trainhil_engine.Packing``), in both classes.
+
 The buses are python-can buses the node opened (``node.open_bus``): python-can makes the connection (handshake,
 acceptance filters); the engine then reads and writes the socket itself, so no python-can ``Message`` is built per
 frame. Frame times are the bus's end-of-transmission stamps in simulated seconds (``SimClock.from_epoch``).
@@ -28,9 +31,13 @@ MAX_SLEEP_S = 0.05  # wall seconds between stop checks
 class EngineFrames:
     """The engine's FrameLink on each bus socket."""
 
-    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True) -> None:
+    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True,
+                 packing: engine.Packing | None = None) -> None:
         self.clock, self.extended, self.fd, self.brs = clock, extended, fd, brs
         self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True) for bus in buses]
+        if packing is not None:
+            for link in self.links:
+                link.set_packing(packing)
         self._fds = [link.fd for link in self.links]
 
     def route(self, bus: int, frame_id: int, mailbox: engine.Mailbox) -> None:
@@ -79,8 +86,10 @@ class EngineFrames:
 class PythonCanFrames:
     """python-can in both directions (SocketCAN); routed mailboxes are filled from Python."""
 
-    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True) -> None:
+    def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True,
+                 packing: engine.Packing | None = None) -> None:
         self.clock, self.buses, self.extended, self.fd, self.brs = clock, buses, extended, fd, brs
+        self.packing = packing
         self._routes: list[dict[int, list[engine.Mailbox]]] = [{} for _ in buses]
         self._handler: FrameHandler | None = None
 
@@ -89,6 +98,11 @@ class PythonCanFrames:
 
     def _on_msg(self, i: int, msg: can.Message) -> None:
         t, fid, data = self.clock.from_epoch(msg.timestamp), msg.arbitration_id, bytes(msg.data)
+        parts = self.packing.unpack(fid, data) if self.packing is not None else None
+        for part_id, part in parts if parts is not None else [(fid, data)]:
+            self._hand_over(i, part_id, part, t)
+
+    def _hand_over(self, i: int, fid: int, data: bytes, t: float) -> None:
         boxes = self._routes[i].get(fid)
         if boxes is not None:
             for mb in boxes:
@@ -109,12 +123,13 @@ class PythonCanFrames:
         wait_until(self.clock, sim_t, self.buses, self._on_msg, spin_s)
 
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
-        for frame_id, data in frames:
+        for frame_id, data in self.packing.pack(frames) if self.packing is not None else frames:
             self.buses[bus].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended,
                                              is_fd=self.fd, bitrate_switch=self.fd and self.brs))
 
 
-def node_frames(clock: SimClock, buses: list[can.BusABC], can_cfg) -> EngineFrames | PythonCanFrames:
-    """The engine on the rig's emulated buses, python-can on SocketCAN."""
+def node_frames(clock: SimClock, buses: list[can.BusABC], can_cfg,
+                packing: engine.Packing | None = None) -> EngineFrames | PythonCanFrames:
+    """The engine on the rig's emulated buses, python-can on SocketCAN; ``packing``: CAN FD containers."""
     cls = EngineFrames if can_cfg.transport == "emulated" else PythonCanFrames
-    return cls(clock, buses, can_cfg.extended_ids, can_cfg.fd, can_cfg.brs)
+    return cls(clock, buses, can_cfg.extended_ids, can_cfg.fd, can_cfg.brs, packing)

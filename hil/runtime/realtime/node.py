@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Iterable
 
 import can
+import trainhil_engine as engine
 
 from hil.scenario.model import CanConfig, Scenario
 
@@ -31,16 +32,19 @@ def load_scenario_json(path: str) -> Scenario:
 
 
 def open_bus(run: str, train: int, ids: Iterable[int], can_cfg: CanConfig, name: str,
-             receive_own: bool = False) -> can.BusABC:
+             receive_own: bool = False, packing: engine.Packing | None = None) -> can.BusABC:
     """A python-can node on train ``train``'s (0-based) bus accepting exactly ``ids`` (none: accepts nothing).
 
     The bus is the rig's emulated one (``trainhil`` interface, channel ``<run>/bus<i>``) or, with
     ``can.transport = "socketcan"``, the host's SocketCAN interface ``can.socketcan_channels[train]`` (vcan).
     ``receive_own``: the node hears its own frames back (stamped with their end of transmission), which a process
-    hosting several ECUs of one bus needs so they hear each other as separate ECUs would."""
+    hosting several ECUs of one bus needs so they hear each other as separate ECUs would. ``packing``: the node
+    also accepts the CAN FD containers that carry any of ``ids`` (its frame I/O unpacks them)."""
     extended = can_cfg.extended_ids
     mask = 0x1FFFFFFF if extended else 0x7FF
     ids = sorted(set(ids))
+    if packing is not None:
+        ids = sorted(set(ids) | set(packing.containers_of(ids)))
     # an empty set would mean "accept everything" to python-can: match one id that no node sends instead
     filters = [{"can_id": i, "can_mask": mask, "extended": extended} for i in ids] or \
               [{"can_id": mask, "can_mask": mask, "extended": extended}]

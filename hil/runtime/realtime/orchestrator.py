@@ -59,6 +59,7 @@ from hil.record.metrics import run_metrics
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.safety import record_violations
 from hil.runtime.firmware import import_roots
+from hil.runtime.train_db import load_train_db
 from hil.scenario.model import Scenario
 
 READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a loaded 2-core machine is slow
@@ -168,6 +169,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
     socketcan = scenario.can.transport == "socketcan"
     fmt = log_format(can_log)
+    load_train_db(scenario)  # the DBC fits the scenario, before any process starts
     if socketcan:  # configuration only: every node opens the host's interfaces; no bus servers
         check_channels(scenario.can.socketcan_channels, scenario.trains.count)
         if fmt is not None:
@@ -353,9 +355,8 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
         return None
     if not servers and any(f.train for f in scenario.faults if f.kind in BUS_KINDS):
         raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
-    from ecu_sim.codec import TrainDb
 
-    return RealtimeFaults(scenario, layout, servers, seed, TrainDb.load())
+    return RealtimeFaults(scenario, layout, servers, seed, load_train_db(scenario))
 
 
 def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout):

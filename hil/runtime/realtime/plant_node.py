@@ -50,6 +50,7 @@ from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
 from hil.runtime.plant_step import plant_step
+from hil.runtime.train_db import bus_packing, load_train_db
 
 SAVE_EVERY_WALL_S = 5.0  # the plant's data so far is saved this often (a plant killed mid-run leaves it)
 STREAM_EVERY_WALL_S = 0.25  # new signal rows are appended to DIR/signals.bin this often (the live view reads it)
@@ -64,6 +65,7 @@ class PlantNode:
         self.parts = assemble(sc, seed)
         self.plant, self.layout = self.parts.plant, self.parts.layout
         self.buses, self.wayside = buses, wayside
+        self.packing = bus_packing(sc, db)  # CAN FD containers (can.dbc), packed on send and unpacked on receipt
         self.log = RunLog(self.layout)
         self.io = PlantCanNode(db, self.layout, self.plant, self.parts.reference, self.log)
         L = self.layout
@@ -169,7 +171,7 @@ class PlantNode:
     def _schedule(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float) -> None:
         """The node's paced kernel, with the first publication and the end of the run on it."""
         self.clock = clock
-        self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can)
+        self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can, self.packing)
         self.kernel = PacedKernel(clock, self.frames, stop, self.on_frame, spin_s)
         sc, step = self.sc, self.sc.plant.step_s
         self.every = {name: max(1, round(period / step)) for name, period in
@@ -261,13 +263,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
-    sc, db = load_scenario_json(args.scenario_json), TrainDb.load()
+    sc = load_scenario_json(args.scenario_json)
+    db = load_train_db(sc)
     n = sc.trains.count
     out = Path(args.out)
     node = PlantNode(sc, args.seed, db, [], [], out)
     try:
         for i in range(n):
-            node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can, "Plant"))
+            node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can, "Plant", packing=node.packing))
             node.wayside.append(open_bus(args.run, i, (), sc.can, "Wayside"))
         clock = SimClock(handshake(stop), args.pace)
         stats = LatenessStats(sc.plant.step_s, args.pace)

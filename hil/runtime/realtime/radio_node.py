@@ -14,7 +14,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ecu_sim.codec import TrainDb
 from hil.runtime.realtime.frame_io import node_frames
 from hil.record.integrity import write_json_atomic
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
@@ -23,6 +22,7 @@ from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import random_streams
 from hil.runtime.virtual import build_gateway
+from hil.runtime.train_db import bus_packing, load_train_db
 
 IDLE_WAIT_S = 0.05  # simulated seconds between stop checks when nothing is due
 
@@ -32,7 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
-    sc, db = load_scenario_json(args.scenario_json), TrainDb.load()
+    sc = load_scenario_json(args.scenario_json)
+    db = load_train_db(sc)
     gateway = build_gateway(sc, db, random_streams(args.seed)["radio"])
     faults = None
     if sc.faults:  # radio faults arrive as "fault <k> start|end" lines (hil/faults/realtime.py)
@@ -40,13 +41,13 @@ def main(argv: list[str] | None = None) -> int:
 
         faults = RadioNodeFaults(sc, gateway, args.seed)
         stop.on_line = faults.on_line
-    buses = []
+    buses, packing = [], bus_packing(sc, db)
     try:
         for i in range(sc.trains.count):
-            buses.append(open_bus(args.run, i, gateway.ids_for_bus(i), sc.can, "RadioGW"))
+            buses.append(open_bus(args.run, i, gateway.ids_for_bus(i), sc.can, "RadioGW", packing=packing))
         clock = SimClock(handshake(stop), args.pace)
         bridge = RadioBridge(gateway, faults)
-        kernel = bridge.kernel = PacedKernel(clock, node_frames(clock, buses, sc.can), stop, bridge.on_frame,
+        kernel = bridge.kernel = PacedKernel(clock, node_frames(clock, buses, sc.can, packing), stop, bridge.on_frame,
                                              wake_on_frame=True)
         kernel.every(0, to_ns(IDLE_WAIT_S), bridge.idle)  # the kernel always has an event: it keeps listening
         kernel.at(to_ns(args.duration), bridge.idle)  # ... up to the end of the run
