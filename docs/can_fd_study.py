@@ -5,12 +5,15 @@ classical CAN and CAN FD, beside the ideal loop.
 
 Every run is a packaged scenario with the ECU and Sensor periods set to the law's (seed 001: Reference too, as in
 its period study) and the bus set to one of: classical CAN at 1 Mbit/s, or CAN FD at 1 Mbit/s nominal with the
-bit-rate switch to 2, 5 or 8 Mbit/s. The frame set is the DBC's (dbc/train.dbc: Sensor, AgentState, AgentAux and
-TractionCmd per unit, Reference and ReferenceAux), sent as FD frames on the FD buses. Nothing else changes.
+bit-rate switch to 2, 5 or 8 Mbit/s. Two frame sets: dbc/train.dbc's (Sensor, AgentState, AgentAux and
+TractionCmd per unit, Reference and ReferenceAux), sent as FD frames on the FD buses; and on the FD buses also
+dbc/train_fd.dbc's ("packed": each ECU's three frames of a cycle in one 20-byte container, the plant's sensor
+frames in one container per 8 units, Reference and ReferenceAux in one 12-byte container; every part keeps its
+E2E header). Nothing else changes.
 
 Writes docs/figures/can-fd-study.json (every figure of the tables) and prints the markdown tables: the runs
 (bus load, latency, drops, the papers' metrics) and the response-time analysis (worst-case utilisation and the
-shortest period every frame meets, for the DBC's frame set and for a packed one).
+shortest period every frame meets, for both frame sets).
 """
 from __future__ import annotations
 
@@ -21,10 +24,9 @@ import math
 import sys
 from pathlib import Path
 
-from ecu_sim.codec import TrainDb
+from ecu_sim.codec import TrainDb, default_dbc_path
 from hil.can.analysis import TrainBusSetup, analyse_train_bus
-from hil.can.frame import fd_padded_len
-from hil.can.wcrt import BusRates, CanMessage, response_times
+from hil.can.wcrt import BusRates
 from hil.compare.report import CompareRun, families
 from hil.compare.runner import CompareItem, run_items
 from hil.scenario import load_scenario
@@ -34,6 +36,8 @@ NOMINAL = 1_000_000
 BUSES = [("ideal loop", None), ("classical 1M", {}), ("FD 1M/2M", {"can.fd": True, "can.data_bitrate": 2_000_000}),
          ("FD 1M/5M", {"can.fd": True, "can.data_bitrate": 5_000_000}),
          ("FD 1M/8M", {"can.fd": True, "can.data_bitrate": 8_000_000})]
+PACKED = {"can.dbc": "train_fd.dbc"}
+BUSES += [(f"{bus} packed", {**extra, **PACKED}) for bus, extra in BUSES if extra and extra.get("can.fd")]
 # (scenario, the law's period, whether the reference follows the period, which seed)
 LAWS = [("seed001", 0.001, True, "001"), ("seed001-smca", 0.001, True, "001"), ("seed001-pidca", 0.001, True, "001"),
         ("seed001-cca", 0.001, True, "001"), ("seed004-kn", 0.0002, False, "004"), ("seed004-kn-pid", 0.0014, False, "004")]
@@ -107,32 +111,26 @@ def dbc_frame_set_fits(db: TrainDb, name: str, rates: BusRates, units: int | Non
     return fits
 
 
-def packed_frame_set(units: int, period: float) -> list[CanMessage]:
-    """A frame set for CAN FD (hypothetical, not in a DBC): each ECU sends one 16-byte frame (E2E header, its state,
-    aux and traction command: 127 bits of the classical signals) and the plant one frame with every unit's sensor
-    sample (49 bits each, up to 10 units in 64 bytes), plus Reference and ReferenceAux in one 12-byte frame."""
-    sensor_bytes = fd_padded_len(2 + math.ceil(49 * units / 8))  # header + Position (30 bits) and Speed (19) per unit
-    msgs = [CanMessage("SensorAll", 0x0C0, period, sensor_bytes), CanMessage("ReferenceFd", 0x0A0, period, 12)]
-    msgs += [CanMessage(f"Unit_U{u + 1:02d}", 0x100 + u, period, 16) for u in range(units)]
-    return msgs
+def _dbs() -> tuple[TrainDb, TrainDb]:
+    """The two frame sets: dbc/train.dbc's and the packed dbc/train_fd.dbc's."""
+    return TrainDb.load(), TrainDb.load(default_dbc_path("train_fd.dbc"))
 
 
-def packed_fits(units: int, rates: BusRates):
-    def fits(period: float) -> bool:
-        return all(r.schedulable for r in response_times(packed_frame_set(units, period), rates).values())
-    return fits
+def _unpacked_buses() -> list[tuple[str, dict]]:
+    return [(bus, extra) for bus, extra in BUSES[1:] if "can.dbc" not in extra]
 
 
 def analysis_rows() -> list[dict]:
-    db = TrainDb.load()
+    db, packed = _dbs()
     out = []
     for units, label in ((6, "seed 001 (6 cars)"), (8, "seed 004 (8 cars)")):
         name = "seed001" if units == 6 else "seed004-kn"
-        for bus, extra in BUSES[1:]:
+        for bus, extra in _unpacked_buses():
             rates = _rates(extra)
             out.append({"train": label, "bus": bus,
                         "dbc_shortest_period_s": shortest_period(dbc_frame_set_fits(db, name, rates)),
-                        "packed_shortest_period_s": shortest_period(packed_fits(units, rates)) if rates.fd else None})
+                        "packed_shortest_period_s": shortest_period(dbc_frame_set_fits(packed, name, rates))
+                        if rates.fd else None})
     return out
 
 
@@ -148,27 +146,28 @@ def most_units(fits_for_units, period: float, limit: int = 16) -> int:
 
 def capacity_rows() -> list[dict]:
     """For each law's period: how many cars one bus carries, DBC frame set and packed (CAN FD only)."""
-    db = TrainDb.load()
+    db, packed = _dbs()
     out = []
     for label, name, period in (("seed 001 at 1 ms", "seed001", 0.001), ("seed 004 kN at 0.2 ms", "seed004-kn", 0.0002),
                                 ("seed 004 kN PID at 1.4 ms", "seed004-kn-pid", 0.0014)):
-        for bus, extra in BUSES[1:]:
+        for bus, extra in _unpacked_buses():
             rates = _rates(extra)
             out.append({"law": label, "bus": bus,
                         "dbc_units": most_units(lambda n: dbc_frame_set_fits(db, name, rates, n), period),
-                        "packed_units": most_units(lambda n: packed_fits(n, rates), period, 10) if rates.fd else None})
+                        "packed_units": most_units(lambda n: dbc_frame_set_fits(packed, name, rates, n), period)
+                        if rates.fd else None})
     return out
 
 
 def capacity_table(rows: list[dict]) -> str:
-    head = "| law and period | bus | cars per bus, DBC frame set | cars per bus, packed FD frame set |\n|---|---|---|---|\n"
+    head = "| law and period | bus | cars per bus, DBC frame set | cars per bus, packed frame set (train_fd.dbc) |\n|---|---|---|---|\n"
     return head + "\n".join(f"| {r['law']} | {r['bus']} | {r['dbc_units']} | "
                             f"{'–' if r['packed_units'] is None else r['packed_units']} |" for r in rows)
 
 
 def analysis_table(rows: list[dict]) -> str:
     ms = lambda v: "–" if v is None else f"{v * 1e3:.3f}"  # noqa: E731
-    head = ("| train | bus | shortest period, DBC frame set (ms) | shortest period, packed FD frame set (ms) |\n"
+    head = ("| train | bus | shortest period, DBC frame set (ms) | shortest period, packed frame set, train_fd.dbc (ms) |\n"
             "|---|---|---|---|\n")
     return head + "\n".join(f"| {r['train']} | {r['bus']} | {ms(r['dbc_shortest_period_s'])} | "
                             f"{ms(r['packed_shortest_period_s'])} |" for r in rows)

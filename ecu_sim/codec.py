@@ -228,16 +228,23 @@ class TrainDb:
         containers = [_container(m, by_name, f"DBC {path}: container {n}") for n, m in every.items() if _contained(m)]
         return cls(path, database, codecs, max_units, containers)
 
-    def packing(self, units: int | None = None) -> Packing | None:
-        """The engine's frame packing of this DBC's containers for a train of ``units`` unit slots (default: all):
-        parts of slots beyond it are left out and each container shortened to what is left (a sender never
-        completes a container whose parts no one sends). None when the DBC has no containers."""
-        spec = []
+    def containers_for(self, units: int | None = None) -> list[Container]:
+        """This DBC's containers for a train of ``units`` unit slots (default: all): parts of slots beyond it are
+        left out and each container is shortened to what is left (no sender would ever complete a container whose
+        parts no one sends)."""
+        out = []
         for c in self.containers:
-            parts = [p for p in c.parts if (_unit_slot(p.name) or 0) < (self.max_units if units is None else units)]
+            slots = self.max_units if units is None else units
+            parts = tuple(p for p in c.parts if (_unit_slot(p.name) or 0) < slots)
             if parts:
-                end = max(p.offset + p.length for p in parts)
-                spec.append((c.frame_id, fd_length(end), [(p.frame_id, p.offset, p.length) for p in parts]))
+                length = fd_length(max(p.offset + p.length for p in parts))
+                out.append(Container(c.name, c.frame_id, length, parts))  # type: ignore[arg-type]
+        return out
+
+    def packing(self, units: int | None = None) -> Packing | None:
+        """The engine's frame packing of :meth:`containers_for` ``units``; None when the DBC has no containers."""
+        spec = [(c.frame_id, c.length, [(p.frame_id, p.offset, p.length) for p in c.parts])
+                for c in self.containers_for(units)]
         return Packing(spec) if spec else None
 
     def traction_cmd(self, unit0: int) -> MessageCodec:

@@ -12,6 +12,11 @@ What a train bus carries (the virtual rig's wiring, ``hil/runtime/virtual.py``):
   ``AgentState``/``AgentAux``), ``RadioBehindState``/``Aux`` if one runs behind (its head's); the ``Aux``
   frames only with ``forward_aux``. They repeat at their source's period, with a release jitter.
 
+With a DBC that packs frames into CAN FD containers (``dbc/train_fd.dbc``), every container whose parts are all
+in the set replaces them (``pack_messages``): the common case, each sender's frames of one instant in one frame.
+A cycle in which a container is incomplete (an ECU with a stale sensor sends its TractionCmd alone) sends its
+parts as themselves; those frames are not in the analysed set.
+
 A forwarded frame is released on this bus when its source frame has ended on the other bus plus the radio's
 delay, so its release jitter is bounded by the spread of the source's response time there (WCRT - best case)
 plus the radio's own jitter (the constant latency shifts the phase only; the rate cap and losses only remove
@@ -82,7 +87,31 @@ def train_bus_messages(db: TrainDb, units: int, cycle_s: float | None = None, se
         msgs.append(_forwarded(state, db.agent_state(src), cycle_s, extended, jitter))
         if forward_aux:
             msgs.append(_forwarded(aux, db.agent_aux(src), cycle_s, extended, jitter))
-    return msgs
+    return pack_messages(msgs, db, units)
+
+
+def pack_messages(msgs: list[CanMessage], db: TrainDb, units: int) -> list[CanMessage]:
+    """The frame set as sent with the DBC's CAN FD containers: each container whose parts are all in ``msgs``, at
+    one period and jitter, replaces them (unchanged without containers)."""
+    by_name = {m.name: m for m in msgs}
+    for c in db.containers_for(units):
+        parts = [by_name.get(p.name) for p in c.parts]
+        if None in parts or len({(m.period_s, m.jitter_s) for m in parts}) != 1:  # type: ignore[union-attr]
+            continue
+        first = parts[0]
+        for p in c.parts:
+            del by_name[p.name]
+        by_name[c.name] = CanMessage(c.name, c.frame_id, first.period_s, c.length, extended=first.extended,  # type: ignore[union-attr]
+                                     jitter_s=first.jitter_s)  # type: ignore[union-attr]
+    return list(by_name.values())
+
+
+def carrier(db: TrainDb, units: int, name: str, msgs: Sequence[CanMessage]) -> str:
+    """The frame of ``msgs`` that carries message ``name``: itself, or the container it is packed in."""
+    names = {m.name for m in msgs}
+    if name in names:
+        return name
+    return next((c.name for c in db.containers_for(units) if c.name in names and any(p.name == name for p in c.parts)), name)
 
 
 # --------------------------------------------------------------------------- one train's buses
@@ -165,11 +194,13 @@ def _source_bounds(db: TrainDb, setup: TrainBusSetup, jitter: tuple[float, float
         ahead, behind = setup.radio_sides(k)
         if not (ahead or behind):
             continue
-        bounds = response_times(setup.messages(db, jitter, k), rates)
+        msgs = setup.messages(db, jitter, k)
+        bounds, by_name = response_times(msgs, rates), {m.name: m for m in msgs}
         for side, unit, feeds in ((0, tail, behind), (1, head, ahead)):
             if feeds:
                 codecs = [db.agent_state(unit)] + ([db.agent_aux(unit)] if setup.forward_aux else [])
-                spread = (bounds[c.name].r_s - rates.best_case_ns(c.dlc, setup.extended) * 1e-9 for c in codecs)
+                frames = [by_name[carrier(db, setup.units, c.name, msgs)] for c in codecs]
+                spread = (bounds[m.name].r_s - rates.best_case_ns(m.dlc, setup.extended) * 1e-9 for m in frames)
                 worst[side] = max(worst[side], *spread)
     return worst[0], worst[1]
 

@@ -142,11 +142,18 @@ def _period(value: float | None) -> str:
     return "DBC" if value is None else f"{value * 1e3:g} ms"
 
 
+def _scenario_dbc(args: argparse.Namespace) -> Path:
+    """The DBC of the scenario given with --scenario (its can.dbc), else the packaged train.dbc."""
+    if not args.scenario:
+        return default_dbc_path()
+    return load_scenario(args.scenario, dict(parse_assignment(a) for a in args.set)).can.dbc_path
+
+
 def _analyse(args: argparse.Namespace) -> None:
     if args.dbc and Path(args.dbc).suffix.lower() == ".toml":
         raise CanAnalysisError(f"{args.dbc} looks like a scenario file; the positional argument is a DBC file. "
                                f"Analyse a scenario's bus with --scenario {args.dbc}")
-    db = TrainDb.load(Path(args.dbc) if args.dbc else default_dbc_path())
+    db = TrainDb.load(Path(args.dbc) if args.dbc else _scenario_dbc(args))
     bus_index = parse_bus(args.bus)
     setup, where = _setup(args, bus_index, db)
     measured, metrics = read_measured(Path(args.measured), f"bus{bus_index + 1}") if args.measured else ({}, {})
