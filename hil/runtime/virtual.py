@@ -68,9 +68,8 @@ class VirtualRig:
         check_train_db(scenario, self.db)
         packing = bus_packing(scenario, self.db)
         if packing is not None and self.network == "python":
-            raise ScenarioError(f"scenario {scenario.name}: can.dbc = {scenario.can.dbc!r} packs frames, which only the "
-                                "frame engine does; faults and ECU restarts run on the Python bus model, so use "
-                                "can.dbc = 'train.dbc' with them")
+            raise ScenarioError(f"scenario {scenario.name}: can.dbc = {scenario.can.dbc!r} packs frames, which the "
+                                "Python bus model does not: run it on the frame engine (network='engine')")
         self.net = engine.Network() if self.network == "engine" else None
         self.kernel = EngineKernel(self.net) if self.net is not None else Kernel()
         self.log = RunLog(self.layout)
