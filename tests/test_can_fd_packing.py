@@ -134,6 +134,8 @@ def test_can_analysis_of_the_packed_scenario_bounds_its_run(tmp_path, capsys):
     assert "train_fd.dbc" in out and "unschedulable frames: none" in out and "measured above bound: none" in out
     rows = [line.split() for line in out.splitlines() if line.startswith(("UnitFD_", "SensorFD_", "ReferenceFD"))]
     assert len(rows) == 8 and all(row[11] != "-" for row in rows)  # every container was measured
+    assert can_analysis([str(FD_DBC), "--bitrate", "1000000"]) == 2  # containers on classical CAN: said, not raised
+    assert "packs frames into CAN FD containers: analyse it on a CAN FD bus" in capsys.readouterr().err
 
 
 def test_packed_frames_go_into_the_can_log_and_decode_with_the_fd_dbc(tmp_path):

@@ -176,6 +176,9 @@ class TrainBusSetup:
     def messages(self, db: TrainDb, radio_jitter_s: float | tuple[float, float],
                  bus_index: int | None = None) -> list[CanMessage]:
         """The frame set of this setup's bus (or of ``bus_index``), forwarded frames with the given jitter."""
+        if db.containers and not self.fd:
+            raise CanAnalysisError(f"DBC {db.path.name} packs frames into CAN FD containers: analyse it on a CAN FD bus "
+                                   "(--scenario NAME --set can.fd=true --set can.data_bitrate=B)")
         ahead, behind = self.radio_sides(bus_index)
         return train_bus_messages(db, self.units, self.cycle_s, self.sensor_period_s, self.reference_period_s,
                                   ahead, behind, self.forward_aux, radio_jitter_s, self.extended)
