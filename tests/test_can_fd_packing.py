@@ -167,3 +167,16 @@ def test_a_packed_fd_run_in_real_time(rt, tmp_path):
     ids = Counter(m.arbitration_id for m in can.ASCReader(tmp_path / "rt" / "bus1.asc"))
     assert ids[0x0B8] >= 95 and all(ids[0x060 + u] >= 90 for u in range(4))
     assert not any(ids[i] for i in (0x0C0, 0x100, 0x120))
+
+
+def test_the_firmware_test_kit_sees_a_packed_message_inside_its_container():
+    """hil.testing's frame-period check counts a message that travelled in a container (the run's own DBC), and
+    names the containers too."""
+    from hil.testing import HilAssertionError, Rig, assert_frame_period
+
+    run = Rig("seed000", set=PACKED).run(0.5)
+    assert not len(run.frame_times(0x081, "bus1"))  # TractionCmd_U02 never travelled alone ...
+    assert_frame_period(run, "TractionCmd_U*", max_gap_ms=12.0, after=0.02)  # ... but arrived every cycle
+    assert_frame_period(run, "UnitFD_U02", max_gap_ms=12.0, after=0.02)
+    with pytest.raises(HilAssertionError, match=r"SensorFD_A \(0x0B8\)"):
+        assert_frame_period(run, "SensorFD_A", max_gap_ms=5.0)

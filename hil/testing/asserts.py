@@ -9,6 +9,7 @@ from __future__ import annotations
 import fnmatch
 import math
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -192,27 +193,39 @@ def assert_settles(run: HilRun, pattern: str, *, within: float, tol: float, targ
 # --------------------------------------------------------------------------- CAN checks
 
 
-@lru_cache(maxsize=1)
-def _db():
+@lru_cache(maxsize=4)
+def _db(path: Path):
     from ecu_sim.codec import TrainDb
 
-    return TrainDb.load()
+    return TrainDb.load(path)
 
 
-def _frames(frame: str | int) -> list[tuple[int, str, bool]]:
-    """(ID, name, explicit) of the frames meant: an ID, a DBC name, or a shell pattern over DBC names."""
-    db = _db()
+def _frames(run: HilRun, frame: str | int) -> list[tuple[int, str, bool]]:
+    """(ID, name, explicit) of the frames meant: an ID, a name in the run's DBC (a message or a CAN FD container),
+    or a shell pattern over those names."""
+    db = _db(run.scenario.can.dbc_path)
+    names = {**{n: c.frame_id for n, c in db.by_name.items()}, **{c.name: c.frame_id for c in db.containers}}
     if isinstance(frame, int):
-        codec = db.by_id.get(frame)
+        codec = db.by_id.get(frame) or db.container_by_id.get(frame)
         return [(frame, codec.name if codec else f"0x{frame:03X}", True)]
     if any(c in frame for c in "*?["):
-        found = [(c.frame_id, c.name, False) for c in db.by_name.values() if fnmatch.fnmatchcase(c.name, frame)]
+        found = [(fid, name, False) for name, fid in names.items() if fnmatch.fnmatchcase(name, frame)]
         if not found:
             raise KeyError(f"no DBC message matches {frame!r} (e.g. TractionCmd_U01, Sensor_U*, Reference)")
         return sorted(found)
-    if frame not in db.by_name:
+    if frame not in names:
         raise KeyError(f"no DBC message {frame!r} (e.g. TractionCmd_U01, AgentState_U02, Reference, RadioAheadState)")
-    return [(db.by_name[frame].frame_id, frame, True)]
+    return [(names[frame], frame, True)]
+
+
+def _arrivals(run: HilRun, frame_id: int, bus: str) -> np.ndarray:
+    """When a message reached the bus's receivers: as itself, or inside a CAN FD container that carries it."""
+    db = _db(run.scenario.can.dbc_path)
+    carriers = [c.frame_id for c in db.containers_for(run.log.layout.units_per_train)
+                if any(p.frame_id == frame_id for p in c.parts)]
+    if not carriers:
+        return run.frame_times(frame_id, bus)
+    return np.sort(np.concatenate([run.frame_times(i, bus) for i in (frame_id, *carriers)]))
 
 
 def _expected_on_every_bus(run: HilRun, name: str) -> bool:
@@ -235,9 +248,9 @@ def assert_frame_period(run: HilRun, frame: str | int, max_gap_ms: float, *, bus
     buses = [run._bus(bus).name] if bus is not None else [b.name for b in run.log.buses]
     limit = max_gap_ms * 1e-3
     failures, checked = [], 0
-    for frame_id, name, explicit in _frames(frame):
+    for frame_id, name, explicit in _frames(run, frame):
         for b in buses:
-            times = run.frame_times(frame_id, b)
+            times = _arrivals(run, frame_id, b)
             if not len(times) and not (explicit and bus is not None) and not _expected_on_every_bus(run, name):
                 continue  # e.g. RadioAheadState on the first train's bus: nobody sends it there
             checked += 1
