@@ -228,6 +228,12 @@ class TrainDb:
         containers = [_container(m, by_name, f"DBC {path}: container {n}") for n, m in every.items() if _contained(m)]
         return cls(path, database, codecs, max_units, containers)
 
+    def cycle_times(self) -> dict[int, float]:
+        """Frame ID -> DBC cycle time (s) of every message and container (a container's is its first part's)."""
+        out = {fid: codec.cycle_time_s for fid, codec in self.by_id.items()}
+        out.update({c.frame_id: out[c.parts[0].frame_id] for c in self.containers})
+        return out
+
     def containers_for(self, units: int | None = None) -> list[Container]:
         """This DBC's containers for a train of ``units`` unit slots (default: all): parts of slots beyond it are
         left out and each container is shortened to what is left (no sender would ever complete a container whose

@@ -22,6 +22,7 @@ from hil.record.metrics import run_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog
 from hil.runtime.ideal import IdealLoop
+from hil.runtime.train_db import load_train_db
 from hil.runtime.virtual import VirtualRig
 from hil.scenario.model import Scenario
 
@@ -101,6 +102,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     if live is not None:
         chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
     fmt = None if ideal else log_format(can_log)  # checked before anything is written
+    db = None if ideal else load_train_db(scenario)  # so is the scenario's DBC
     out_dir.mkdir(parents=True, exist_ok=True)
     duration = scenario.duration_s if duration_s is None else duration_s
     runtime = "ideal" if ideal else "virtual"
@@ -120,7 +122,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     rig, failure = None, None
     try:
         stop.arm()  # from here SIGTERM/SIGHUP stop the run like Ctrl-C (the run loop returns what it has)
-        rig = IdealLoop(scenario, seed) if ideal else VirtualRig(scenario, seed)
+        rig = IdealLoop(scenario, seed) if ideal else VirtualRig(scenario, seed, db=db)
         rig.log.summary(scenario.plant.coupler_band_m)  # the metrics' figures, kept as the samples come
         if not ideal:
             if recorder and scenario.recording.frames:

@@ -167,13 +167,14 @@ def test_fd_frames_go_into_the_can_logs_in_their_fd_form(tmp_path, fmt):
     assert db.decode_message(0x0C0, bytes(sensor.data))["Position"] > 400  # car 1 starts at 486.6 m
 
 
-def test_the_faults_scenario_on_fd_buses_confines_errors_as_on_classical_ones(tmp_path):
-    """The faults scenario's first 16 s (a crash, a babbling node, corruption) over CAN FD 500k/5M: every fault injected
-    and detected, corrupted FD frames rejected (none undetected), senders driven bus-off and back, as over classical
-    CAN."""
+@pytest.mark.parametrize("dbc", ["train.dbc", "train_fd.dbc"])
+def test_the_faults_scenario_on_fd_buses_confines_errors_as_on_classical_ones(tmp_path, dbc):
+    """The faults scenario's first 16 s (a crash, a babbling node, corruption) over CAN FD 500k/5M, its frames as
+    they are or packed (train_fd.dbc): every fault injected and detected, corrupted FD frames rejected (none
+    undetected), senders driven bus-off and back, as over classical CAN."""
     from hil.session import run_scenario
 
-    res = run_scenario(load_scenario("faults", FD_5M), tmp_path, duration_s=16.0, record=False)
+    res = run_scenario(load_scenario("faults", {**FD_5M, "can.dbc": dbc}), tmp_path, duration_s=16.0, record=False)
     f = res.metrics["faults"]
     assert f["injected"] == f["detected"] == 3
     errors = f["can_errors"]

@@ -7,7 +7,6 @@ import json
 import subprocess
 import sys
 from collections import Counter
-from pathlib import Path
 
 import cantools
 import numpy as np
@@ -107,17 +106,35 @@ def test_a_packed_run_sends_one_frame_per_sender_and_cycle_and_its_parts_arrive_
     assert packed_load < 0.75 * load
 
 
-def test_a_packed_dbc_needs_an_fd_bus_and_no_fault_schedule():
+def test_the_engine_and_the_python_bus_model_pack_alike():
+    """The same packed frame schedule, E2E verdicts and signals from both bus models (seed000 on FD 500k/2M, 3 s)."""
+    sc = load_scenario("seed000", PACKED)
+    runs = []
+    for network in ("python", "engine"):
+        rig = VirtualRig(sc, network=network)
+        rows: list[list] = [[] for _ in rig.buses]
+        for bus, out in zip(rig.buses, rows):
+            bus.frame_listeners.append(lambda tx, out=out: out.append((tx.frame_id, bytes(tx.data), tx.t_start, tx.t_end)))
+        log = rig.run(3.0)
+        runs.append((rows, log.signals.array, [e.e2e_summary() for e in rig.ecus]))
+    (py_rows, py_signals, py_e2e), (en_rows, en_signals, en_e2e) = runs
+    assert sum(map(len, en_rows)) > 7000 and py_rows == en_rows and py_e2e == en_e2e  # bus by bus, frame by frame
+    assert np.array_equal(py_signals, en_signals)
+    assert Counter(r[0] for r in en_rows[0])[0x060] == 300  # UnitFD_U01 every cycle: packed in both
+
+
+def test_a_packed_dbc_needs_an_fd_bus(tmp_path):
     with pytest.raises(ScenarioError, match=r"can.dbc = 'train_fd.dbc' packs frames into CAN FD containers.*set can.fd = true"):
         VirtualRig(load_scenario("seed000", {"can.dbc": "train_fd.dbc"}))
-    faults = load_scenario("faults", {"can.fd": True, "can.dbc": "train_fd.dbc"})
-    with pytest.raises(ScenarioError, match=r"faults and ECU restarts run on the Python bus model"):
-        load_train_db(faults)
+    with pytest.raises(ScenarioError, match=r"set can.fd = true"):
+        load_train_db(load_scenario("seed001", {"can.dbc": "train_fd.dbc"}))
     with pytest.raises(ScenarioError, match=r"can.dbc.*no DBC 'nope.dbc'"):
         load_scenario("seed000", {"can.dbc": "nope.dbc"})
+    out = tmp_path / "r"
     proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--set", "can.dbc=train_fd.dbc", "--duration",
-                           "1", "--no-record", "--quiet"], capture_output=True, text=True, timeout=120)
+                           "1", "--no-record", "--quiet", "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "set can.fd = true" in proc.stderr and "Traceback" not in proc.stderr
+    assert not any(out.iterdir())  # refused before anything was written: no stub in the way of the next run
 
 
 def test_can_analysis_of_the_packed_scenario_bounds_its_run(tmp_path, capsys):

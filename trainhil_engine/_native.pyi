@@ -81,6 +81,8 @@ class Packing:
         """The parts of a container frame that lie within ``data``; None when ``frame_id`` is not a container."""
     def containers_of(self, ids: Sequence[int]) -> list[int]:
         """The containers carrying any of ``ids``: a receiver of ``ids`` accepts these too."""
+    def parts(self, frame_id: int) -> list[tuple[int, int, int]] | None:
+        """[(part_id, byte_offset, byte_length)] of a container; None when ``frame_id`` is not one."""
 
 class Network:
     """Every train bus, the radio gateway and the mailboxes on one virtual-time event queue."""

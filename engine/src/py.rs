@@ -357,6 +357,9 @@ impl Packing {
 
     /// A sender's batch [(frame_id, data)] as it goes on the bus: complete containers replace their parts.
     fn pack<'py>(&self, py: Python<'py>, frames: Vec<(u32, PyBackedBytes)>) -> PyResult<Vec<(u32, Bound<'py, PyBytes>)>> {
+        if let Some((id, data)) = frames.iter().find(|(_, d)| d.len() > MAX_DATA) {
+            return Err(PyValueError::new_err(format!("frame {id:#x}: {} data bytes > {MAX_DATA}", data.len())));
+        }
         let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
         Ok(self.inner.pack(&batch).into_iter().map(|(id, data)| (id, PyBytes::new(py, data.as_slice()))).collect())
     }
@@ -370,6 +373,11 @@ impl Packing {
     /// The containers that carry any of `ids` (what a receiver of `ids` must also accept), sorted.
     fn containers_of(&self, ids: Vec<u32>) -> Vec<u32> {
         self.inner.containers_of(&ids)
+    }
+
+    /// The parts [(part_id, byte_offset, byte_length)] of container `frame_id`; None when it is not a container.
+    fn parts(&self, frame_id: u32) -> Option<Vec<(u32, usize, usize)>> {
+        self.inner.parts(frame_id).map(|parts| parts.iter().map(|p| (p.id, p.offset, p.len)).collect())
     }
 }
 

@@ -102,6 +102,7 @@ class CanBusModel:
         self._window_busy = 0
         self.frame_listeners: list[Callable[[Transmission], None]] = []  # e.g. CAN log writers
         self.errors = None  # hil.can.errors.BusErrors when faults or errors are modelled (None: error-free fast path)
+        self.packing = None  # trainhil_engine.Packing: CAN FD containers, unpacked at the receivers (set_packing)
 
     # ---- topology
     def attach(self, name: str, on_rx: RxCallback | None = None, rx_ids: set[int] | None = None,
@@ -124,10 +125,20 @@ class CanBusModel:
         self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
         return lost
 
+    def set_packing(self, packing) -> None:
+        """Unpack this CAN FD bus's container frames (a ``trainhil_engine.Packing``) at its receivers, which accept
+        a container when they accept any of its parts; the bus's driver packs what its nodes send."""
+        if not self.fd:
+            raise ValueError(f"{self.name}: frame packing needs a CAN FD bus (fd=True)")
+        self.packing = packing
+        self._listeners.clear()
+
     def _receivers(self, frame_id: int) -> list[CanNode]:
         found = self._listeners.get(frame_id)
         if found is None:
-            found = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is not None and frame_id in n.rx_ids
+            parts = self.packing.parts(frame_id) if self.packing is not None else None
+            ids = {frame_id, *(p[0] for p in parts or ())}
+            found = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is not None and not ids.isdisjoint(n.rx_ids)
                      and not n.bus_off]
             found += self._catch_all
             self._listeners[frame_id] = found
@@ -205,9 +216,17 @@ class CanBusModel:
         if self.errors is not None and not self.errors.on_complete(tx):
             return tx  # destroyed (tx.error): not delivered; hil.can.errors requeued it for retransmission
         self._account(tx)
-        for node in self._receivers(tx.frame_id):
-            if node is not tx.node or node.receive_own:
-                node.on_rx(tx.frame_id, tx.data, tx.t_end)  # type: ignore[misc]
+        parts = self.packing.unpack(tx.frame_id, tx.data) if self.packing is not None else None
+        if parts is None:
+            for node in self._receivers(tx.frame_id):
+                if node is not tx.node or node.receive_own:
+                    node.on_rx(tx.frame_id, tx.data, tx.t_end)  # type: ignore[misc]
+        else:  # a container: each receiver takes the parts its filter accepts, as the frames they were
+            receivers = self._receivers(tx.frame_id)
+            for part_id, part in parts:
+                for node in receivers:
+                    if (node is not tx.node or node.receive_own) and (node.rx_ids is None or part_id in node.rx_ids):
+                        node.on_rx(part_id, part, tx.t_end)  # type: ignore[misc]
         for listener in self.frame_listeners:
             listener(tx)
         return tx

@@ -20,11 +20,13 @@ BABBLE_BYTE = 0xA5
 class BusFaults:
     def __init__(self, bus: CanBusModel, index: int, seed: int, periods: dict[int, float], sink: EventSink,
                  guardian_sink: EventSink, send: Callable | None = None,
-                 e2e_ok: Callable[[int, bytes], bool | None] | None = None) -> None:
+                 e2e_ok: Callable[[int, bytes], bool | None] | None = None, packing=None) -> None:
         """``sink``/``guardian_sink(t_ns, level, text)`` take the error model's and the guardian's events (bus time);
         ``periods``: frame ID -> DBC cycle time (the guardian's allowance); ``e2e_ok(id, data)``: whether a frame
-        passes its E2E CRC (None: an ID the DBC does not know), to judge corruptions CAN let through."""
+        passes its E2E CRC (None: an ID the DBC does not know), to judge corruptions CAN let through; ``packing``
+        (CAN FD containers): a fault aimed at a message also hits the containers that carry it."""
         self.e2e_ok = e2e_ok
+        self.packing = packing
         self.bus = bus
         self.seed = seed
         self.errors = BusErrors(bus, sink, fault_rng(seed, 1000 + index))
@@ -43,6 +45,8 @@ class BusFaults:
             return
         rng = fault_rng(self.seed, index)
         ids = frozenset(spec.frame_ids) if spec.frame_ids else None
+        if ids is not None and self.packing is not None:
+            ids |= frozenset(self.packing.containers_of(list(ids)))
         if spec.kind == "bus_corruption":
             sel = Corruption(rng, spec.probability, ids, spec.count, bits=spec.bits)
             e.corruptions.append(sel)

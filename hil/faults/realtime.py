@@ -101,15 +101,16 @@ class RealtimeFaults:
         self.watchdog = Watchdog(scenario.ecu.restart_after_s)
         self.solo_units = {layout.index(s.train - 1, s.unit - 1) for s in self.specs if s.kind in ECU_KINDS}
         self.servers = servers
-        periods = {fid: codec.cycle_time_s for fid, codec in db.by_id.items()}
-        ok = e2e_checker(db)
+        periods = db.cycle_times()
+        ok, packing = e2e_checker(db), db.packing(scenario.trains.units)
         self.bus_events: list[list] = [[] for _ in servers]  # (model t_ns, level, source, text) per server
         self.buses: list[BusFaults] = []
         for i, server in enumerate(servers):
             def sink(what: str, i: int = i):
                 return lambda t_ns, level, text: self.bus_events[i].append((t_ns, level, f"bus{i + 1}/{what}", text))
             self.buses.append(server.apply(lambda model, now, i=i: BusFaults(model, i, seed, periods, sink("can"),
-                                                                               sink("guardian"), e2e_ok=ok)))
+                                                                               sink("guardian"), e2e_ok=ok,
+                                                                               packing=packing)))
         self.events: list[Event] = []
         self.nodes: list = []
         self.spawn = None

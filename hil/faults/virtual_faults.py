@@ -33,10 +33,10 @@ class VirtualFaults:
         self.ecus = EcuFaults(rig, sc.ecu.restart_after_s, log.event)
         self.sensors = SensorFaults(rig.plant, layout, fault_rng(seed, 2000))
         self.actuators = ActuatorFaults(rig.plant, layout)
-        periods = {fid: codec.cycle_time_s for fid, codec in rig.db.by_id.items()}
+        periods = rig.db.cycle_times()
         ok = e2e_checker(rig.db)
         self.buses = [BusFaults(bus, i, seed, periods, self._bus_sink(bus.name, "can"),
-                                self._bus_sink(bus.name, "guardian"), send=bus.send, e2e_ok=ok)
+                                self._bus_sink(bus.name, "guardian"), send=bus.send, e2e_ok=ok, packing=bus.packing)
                       for i, bus in enumerate(rig.buses)]
         self.radio = RadioFaults(rig.gateway.links, layout.n_trains, fault_rng(seed, 3000)) if rig.gateway else None
         k = rig.kernel

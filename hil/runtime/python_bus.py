@@ -26,8 +26,9 @@ class VirtualCanBus(CanBusModel):
         return ok
 
     def send_frames(self, node: CanNode, frames: list[tuple[int, bytes]]) -> None:
-        """Queue several frames of one node at the kernel's current time, in order."""
-        for frame_id, data in frames:
+        """Queue several frames of one node at the kernel's current time, in order; with frame packing, a batch
+        holding a container's parts goes as that container (as the engine does)."""
+        for frame_id, data in self.packing.pack(frames) if self.packing is not None else frames:
             self.send(node, frame_id, data)
 
     def _arbitrate_event(self, _: object = None) -> None:

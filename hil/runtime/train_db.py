@@ -5,7 +5,6 @@ from __future__ import annotations
 from trainhil_engine import Packing
 
 from ecu_sim.codec import DbcMismatchError, TrainDb
-from hil.faults.schedule import needs_fault_machinery
 from hil.scenario.loader import ScenarioError
 from hil.scenario.model import Scenario
 
@@ -21,15 +20,11 @@ def load_train_db(sc: Scenario) -> TrainDb:
 
 
 def check_train_db(sc: Scenario, db: TrainDb) -> None:
-    """A DBC with containers needs CAN FD buses and no fault schedule (the bus faults and error confinement are
-    the Python bus model's, which does not pack), and the trains must fit the DBC's unit slots."""
+    """A DBC with containers needs CAN FD buses, and the trains must fit the DBC's unit slots."""
     if db.containers and not sc.can.fd:
         names = ", ".join(c.name for c in db.containers[:3])
         raise ScenarioError(f"can.dbc = {sc.can.dbc!r} packs frames into CAN FD containers ({names}, ...): "
                             "set can.fd = true, or use train.dbc on classical CAN")
-    if db.containers and needs_fault_machinery(sc):
-        raise ScenarioError(f"can.dbc = {sc.can.dbc!r} packs frames, which the frame engine does, but faults and ECU "
-                            "restarts run on the Python bus model, which does not: use can.dbc = 'train.dbc' with them")
     if sc.trains.units > db.max_units:
         raise ScenarioError(f"trains.units = {sc.trains.units} exceeds the {db.max_units} unit slots of "
                             f"can.dbc = {sc.can.dbc!r}")

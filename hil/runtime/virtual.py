@@ -33,7 +33,6 @@ from hil.runtime.firmware import EcuFactory, build_ecu, refuse_external_units
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
 from hil.runtime.kernel import Kernel, to_ns
 from hil.runtime.train_db import bus_packing, check_train_db, load_train_db
-from hil.scenario.loader import ScenarioError
 from hil.scenario.model import Scenario
 
 NETWORK_MODELS = ("engine", "python")
@@ -67,9 +66,6 @@ class VirtualRig:
         self.db = db or load_train_db(scenario)
         check_train_db(scenario, self.db)
         packing = bus_packing(scenario, self.db)
-        if packing is not None and self.network == "python":
-            raise ScenarioError(f"scenario {scenario.name}: can.dbc = {scenario.can.dbc!r} packs frames, which the "
-                                "Python bus model does not: run it on the frame engine (network='engine')")
         self.net = engine.Network() if self.network == "engine" else None
         self.kernel = EngineKernel(self.net) if self.net is not None else Kernel()
         self.log = RunLog(self.layout)
@@ -77,7 +73,7 @@ class VirtualRig:
         self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
         if packing is not None:
             for bus in self.buses:
-                bus.set_packing(packing)  # type: ignore[union-attr]
+                bus.set_packing(packing)
         self.plant_io = PlantCanNode(self.db, self.layout, self.plant, self.parts.reference, self.log)
         self._command_train: dict[int, int] = {}  # the engine's command table -> train (bus) index
         self._plant_nodes = [self._attach_plant(i) for i in range(self.layout.n_trains)]
