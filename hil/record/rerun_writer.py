@@ -13,6 +13,7 @@ T0 + sim_time / pace (the mapping every real-time node uses), so the recording h
 from __future__ import annotations
 
 import os
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -37,6 +38,17 @@ SCALARS = rr.Scalars.descriptor_scalars()
 TRAIN_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194),
                 (127, 127, 127), (188, 189, 34), (23, 190, 207)]
 __all__ = ["APPLICATION_ID", "MPS_TO_KMH", "TIMELINE", "WALL_TIMELINE", "RerunWriter", "event_path"]
+
+
+def settle_file(path: Path, quiet_s: float = 0.2, limit_s: float = 2.0) -> None:
+    """Wait (at most ``limit_s``) until ``path`` has not grown for ``quiet_s``: its writer has stopped."""
+    start = time.monotonic()
+    size, quiet_since = path.stat().st_size, start
+    while (now := time.monotonic()) - quiet_since < quiet_s and now - start < limit_s:
+        time.sleep(0.02)
+        grown = path.stat().st_size
+        if grown != size:
+            size, quiet_since = grown, time.monotonic()
 
 
 class RerunWriter:
@@ -232,8 +244,12 @@ class RerunWriter:
 
     def _cut_to_last_flush(self) -> None:
         """Cut a half-written last message off the file (the disk filled during a flush): a reader then gets
-        everything up to the last flush that completed, instead of an error at the truncated message."""
+        everything up to the last flush that completed, instead of an error at the truncated message.
+
+        First wait for rerun's writer thread to stop writing (the file's size stays put): a write that lands
+        after the cut, in the space the cut freed, would leave a hole of zeros that no reader gets past."""
         try:
+            settle_file(self.path)
             if self.path.stat().st_size > self._flushed_size:
                 os.truncate(self.path, self._flushed_size)
         except OSError:
