@@ -18,7 +18,9 @@ Run it once the rig prints its channels::
     python examples/external_ecu.py --channel dut/bus2 --unit 3
 
 ``--unit`` is the unit's slot in its train (1-based: ``U03``); ``--channel`` the train's bus. With a SocketCAN
-board: ``--interface socketcan --channel can0``.
+board: ``--interface socketcan --channel can0``. On a packed CAN FD bus (a scenario with ``can.dbc =
+"train_fd.dbc"``), give ``--dbc dbc/train_fd.dbc``: the containers it names (``ContainedMessages``) are unpacked
+on receipt, and the three frames go as the unit's container, an FD frame.
 """
 from __future__ import annotations
 
@@ -68,6 +70,46 @@ class E2E:
         data = bytearray(msg.encode(clamped, scaling=True, strict=False))
         data[0] = self.crc(self.data_id(msg), data)
         return bytes(data)
+
+
+class Containers:
+    """The DBC's CAN FD containers: messages whose ``ContainedMessages`` attribute lists the messages they carry,
+    each at the byte offset where the previous one ends."""
+
+    def __init__(self, db: cantools.database.Database) -> None:
+        self.parts: dict[int, list[tuple[object, int]]] = {}  # container id -> [(part message, byte offset)]
+        for msg in db.messages:
+            attr = msg.dbc.attributes.get("ContainedMessages") if msg.dbc else None
+            if attr is None or not str(attr.value).strip():
+                continue
+            offset, parts = 0, []
+            for name in str(attr.value).split():
+                part = db.get_message_by_name(name)
+                parts.append((part, offset))
+                offset += part.length
+            self.parts[msg.frame_id] = parts
+        self.length = {m.frame_id: m.length for m in db.messages if m.frame_id in self.parts}
+
+    def carrying(self, ids: list[int]) -> list[int]:
+        """The containers that carry any of ``ids`` (a receiver of ``ids`` must accept them too)."""
+        return [c for c, parts in self.parts.items() if any(m.frame_id in ids for m, _ in parts)]
+
+    def unpack(self, frame_id: int, data: bytes) -> list[tuple[int, bytes]]:
+        """A container's parts that lie within ``data``; any other frame as it is."""
+        if frame_id not in self.parts:
+            return [(frame_id, data)]
+        return [(m.frame_id, data[o:o + m.length]) for m, o in self.parts[frame_id] if o + m.length <= len(data)]
+
+    def pack(self, frames: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
+        """The frames as one container when some container holds exactly these, in this order; else as they are."""
+        ids = [fid for fid, _ in frames]
+        for c, parts in self.parts.items():
+            if [m.frame_id for m, _ in parts] == ids:
+                data = bytearray(self.length[c])
+                for (m, o), (_, part) in zip(parts, frames):
+                    data[o:o + len(part)] = part
+                return [(c, bytes(data))]
+        return frames
 
 
 class PiSpeedEcu:
@@ -131,10 +173,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds (default: "
                    "when the bus goes away)")
     args = p.parse_args(argv)
-    ecu = PiSpeedEcu(cantools.database.load_file(args.dbc), args.unit, args.mass_kg, args.kp, args.ki)
-    filters = [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ecu.receive_ids()]
+    db = cantools.database.load_file(args.dbc)
+    ecu, containers = PiSpeedEcu(db, args.unit, args.mass_kg, args.kp, args.ki), Containers(db)
+    ids = ecu.receive_ids()
+    filters = [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ids + containers.carrying(ids)]
     end = None if args.duration is None else time.monotonic() + args.duration
-    with can.Bus(interface=args.interface, channel=args.channel, can_filters=filters) as bus:
+    fd = bool(containers.parts)  # a packed DBC is for CAN FD buses
+    with can.Bus(interface=args.interface, channel=args.channel, can_filters=filters, fd=fd) as bus:
         print(f"external ECU U{args.unit:02d} on {args.channel}", flush=True)
         while end is None or time.monotonic() < end:
             try:
@@ -143,9 +188,12 @@ def main(argv: list[str] | None = None) -> int:
                 break
             if msg is None or msg.is_error_frame or msg.is_remote_frame:
                 continue
-            for frame_id, data in ecu.on_frame(msg.arbitration_id, bytes(msg.data)):
-                bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
-                ecu.sent += 1
+            for part_id, part in containers.unpack(msg.arbitration_id, bytes(msg.data)):
+                out = ecu.on_frame(part_id, part)
+                for frame_id, data in containers.pack(out):
+                    bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=len(data) > 8,
+                                         bitrate_switch=len(data) > 8))
+                ecu.sent += len(out)
     print(f"sent {ecu.sent} frames, dropped {ecu.dropped} with a bad E2E CRC", flush=True)
     return 0
 

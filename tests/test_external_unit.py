@@ -39,13 +39,20 @@ def read_channels(rig: subprocess.Popen, n: int) -> dict[str, str]:
     raise AssertionError(f"the rig printed no channels; stderr: {rig.stderr.read()}")
 
 
+PACKED_FD = ("--set", "can.fd=true", "--set", "can.data_bitrate=2000000", "--set", "can.dbc=train_fd.dbc")
+
+
 @pytest.mark.slow  # about 15 s: node start-up, 6 s of real time, the merge
-def test_an_external_python_can_ecu_takes_the_place_of_one_unit(tmp_path):
+@pytest.mark.parametrize("bus", ["classical", "packed CAN FD"])
+def test_an_external_python_can_ecu_takes_the_place_of_one_unit(tmp_path, bus):
+    """Also on a packed CAN FD bus (train_fd.dbc): the example unpacks what it receives and sends its container."""
     run = f"dut{os.getpid()}"
-    rig = start_rig(tmp_path, run, "--external", "train2/unit3")
+    packed = bus == "packed CAN FD"
+    rig = start_rig(tmp_path, run, "--external", "train2/unit3", *(PACKED_FD if packed else ()))
     channels = read_channels(rig, 2)
     assert channels == {"bus1": f"{run}/bus1", "bus2": f"{run}/bus2"}
-    ecu = subprocess.Popen([sys.executable, str(EXAMPLE), "--channel", channels["bus2"], "--unit", "3"],
+    dbc = ("--dbc", str(ROOT / "dbc" / "train_fd.dbc")) if packed else ()
+    ecu = subprocess.Popen([sys.executable, str(EXAMPLE), "--channel", channels["bus2"], "--unit", "3", *dbc],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
     out, err = rig.communicate(timeout=180)
     ecu_out = ecu.communicate(timeout=30)[0]

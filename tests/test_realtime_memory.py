@@ -50,7 +50,8 @@ def test_a_real_time_run_merged_chunk_by_chunk_has_the_metrics_of_the_whole(rt, 
     res = run_realtime(sc, tmp_path / "rt", pace=1.0, duration_s=3.0, ecus_per_process=6, record=False,
                        keep_signals=False)
     assert len(res.log.signals) == 30 and len(res.log.signals.array) == 1  # streamed and let go
-    assert len(res.log.buses[0].frames.array) == 0 and res.log.buses[0].frames.summary()[0].n > 5000
+    # the rows were let go, their summary kept (about 6000 frames in 3 s; fewer when a loaded machine delays nodes)
+    assert len(res.log.buses[0].frames.array) == 0 and res.log.buses[0].frames.summary()[0].n > 1000
     nodes = tmp_path / "rt" / "nodes"
     layout = TrainLayout.from_config(sc.trains)
     servers = [SimpleNamespace(log=BusLog(f"bus{i + 1}", sc.can.bitrate), epoch0=0.0) for i in range(3)]
