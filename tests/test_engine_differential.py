@@ -70,8 +70,11 @@ def test_e2e_crc_equals_the_python_table(data_id, payload):
 
 # ---------------------------------------------------------------------------------------------- whole runs
 
-from hil.runtime.virtual import VirtualRig  # noqa: E402
+from hil.record.metrics import compute_metrics  # noqa: E402
+from hil.runtime.virtual import VirtualRig, network_model_for  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
+from hil.scenario.loader import scenario_from_dict  # noqa: E402
+from hil.scenario.model import Scenario  # noqa: E402
 
 LOSSY_RADIO = {"radio.loss": {"model": "gilbert_elliott", "p_good_to_bad": 0.1, "p_bad_to_good": 0.3, "loss_bad": 0.8},
                "radio.jitter_s": 0.01, "radio.latency_s": 0.05, "radio.rate_cap_hz": 150.0}
@@ -111,11 +114,42 @@ def test_engine_and_python_model_give_the_same_frames_and_signals(name, override
     assert [(e.t, e.source, e.text) for e in py_log.events] == [(e.t, e.source, e.text) for e in en_log.events]
 
 
-def test_a_fault_schedule_is_refused_by_the_engine_with_the_reason():
+def test_bus_and_radio_faults_are_refused_by_the_engine_with_the_reason():
     sc = load_scenario("faults")
     assert VirtualRig(sc).network == "python"
-    with pytest.raises(ValueError, match="faults and ECU restarts need the Python bus model"):
+    with pytest.raises(ValueError, match="bus and radio faults need the Python bus model"):
         VirtualRig(sc, network="engine")
+
+
+def _ecu_sensor_actuator_faults() -> Scenario:
+    """The faults scenario with its ECU crash (and restart policy) kept, its bus and radio faults swapped for an ECU
+    hang, a stuck sensor and a traction loss: nothing the engine lacks."""
+    data = load_scenario("faults").model_dump()
+    data["faults"] = [f for f in data["faults"] if f["kind"] == "ecu_crash"] + [
+        {"kind": "ecu_hang", "train": 1, "unit": 2, "at_s": 3.0, "duration_s": 2.5},
+        {"kind": "sensor_stuck", "train": 3, "unit": 1, "at_s": 4.0, "duration_s": 2.0},
+        {"kind": "traction_loss", "train": 1, "unit": 4, "at_s": 6.0, "duration_s": 2.0}]
+    return scenario_from_dict(data, "ecu-sensor-actuator-faults")
+
+
+def test_ecu_sensor_and_actuator_faults_run_on_the_engine_as_on_the_python_model():
+    """A crash and a watchdog restart (the ECU's node leaves the bus and a new one joins), a hang, a stuck sensor and
+    a traction loss: the same frames, signals, events and fault verdicts from both bus models (12 s); only the
+    Python model's CAN error counters (all zero here) are not in the engine's report."""
+    sc = _ecu_sensor_actuator_faults()
+    assert network_model_for(sc) == "engine"
+    runs = []
+    for network in ("python", "engine"):
+        frames, log = _schedule_and_log(network, sc, 12.0)
+        runs.append((frames, log, compute_metrics(log, sc.plant.coupler_band_m)))
+    (py_frames, py_log, py_m), (en_frames, en_log, en_m) = runs
+    assert sum(map(len, en_frames)) > 50_000 and py_frames == en_frames
+    assert np.array_equal(py_log.signals.array, en_log.signals.array)
+    assert [(e.t, e.source, e.text) for e in py_log.events] == [(e.t, e.source, e.text) for e in en_log.events]
+    assert any("restart" in e.text for e in en_log.events)  # the crashed ECU came back, on a new node
+    py_faults = {k: v for k, v in py_m["faults"].items() if k != "can_errors"}
+    assert py_faults == en_m["faults"] and en_m["faults"]["injected"] == 4
+    assert py_m["faults"]["can_errors"]["error_frames"] == 0
 
 
 def test_the_bus_model_is_a_leaf_and_node_processes_do_not_import_the_server():
@@ -146,3 +180,12 @@ def test_an_inbox_node_hands_over_its_frames_in_arrival_order():
     t = [t_end for _, _, _, t_end in frames]
     assert t[0] == engine.frame_bits(0x10, bytes(8)) * 2000 and t[1] > t[0]
     assert net.drain_inboxes() == []
+
+
+def test_only_bus_faults_and_virtual_radio_faults_need_the_python_bus_model():
+    from hil.faults.schedule import needs_python_bus_model
+
+    assert needs_python_bus_model(load_scenario("faults"), "realtime")  # a babbler and a corruption burst
+    assert not needs_python_bus_model(_ecu_sensor_actuator_faults(), "virtual")
+    radio = load_scenario("faults", {"faults": [{"kind": "radio_blackout", "pair": 1, "at_s": 1.0, "duration_s": 1.0}]})
+    assert needs_python_bus_model(radio, "virtual") and not needs_python_bus_model(radio, "realtime")

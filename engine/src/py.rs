@@ -644,6 +644,23 @@ impl Network {
         Ok(b.nodes.iter().map(|n| (n.name.clone(), n.sent, n.dropped, n.queued)).collect())
     }
 
+    /// Take a node off its bus (a crashed ECU): its queued frames are dropped and counted, how many is returned; a
+    /// frame of it already on the wire completes. Its index stays taken.
+    fn detach(&mut self, bus: usize, node: usize) -> PyResult<usize> {
+        self.check_node(bus, node)?;
+        let b = self.bus_mut(bus)?;
+        if !b.nodes[node].attached {
+            return Err(PyValueError::new_err(format!("bus {}: node {node} ({}) is not attached", b.name, b.nodes[node].name)));
+        }
+        Ok(b.detach(node))
+    }
+
+    /// Whether a node is on its bus (not detached).
+    fn attached(&self, bus: usize, node: usize) -> PyResult<bool> {
+        self.check_node(bus, node)?;
+        Ok(self.core.buses[bus].nodes[node].attached)
+    }
+
     /// The gateway's IDs on a bus.
     fn gateway_ids(&self, bus: usize) -> Vec<u32> {
         self.core.gateway.ids_for_bus(bus)

@@ -113,6 +113,10 @@ class CanBusModel:
         self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
         return node
 
+    def attached(self, node: CanNode) -> bool:
+        """Whether ``node`` is on this bus."""
+        return node in self.nodes
+
     def detach(self, node: CanNode) -> int:
         """Remove a node (it disconnected or crashed): its queued frames are dropped and counted, how many is
         returned; a frame of it already on the wire completes."""

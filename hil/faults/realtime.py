@@ -30,7 +30,7 @@ from hil.faults.actuator import ActuatorFaults
 from hil.faults.bus import BusFaults, e2e_checker
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
-from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, fault_rng
+from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, fault_rng, needs_python_bus_model
 from hil.faults.sensor import SensorFaults
 from hil.faults.watchdog import Watchdog
 from hil.record.runlog import Event, RunLog
@@ -105,7 +105,7 @@ class RealtimeFaults:
         ok, packing = e2e_checker(db), db.packing(scenario.trains.units)
         self.bus_events: list[list] = [[] for _ in servers]  # (model t_ns, level, source, text) per server
         self.buses: list[BusFaults] = []
-        for i, server in enumerate(servers):
+        for i, server in enumerate(servers if needs_python_bus_model(scenario, "realtime") else ()):
             def sink(what: str, i: int = i):
                 return lambda t_ns, level, text: self.bus_events[i].append((t_ns, level, f"bus{i + 1}/{what}", text))
             self.buses.append(server.apply(lambda model, now, i=i: BusFaults(model, i, seed, periods, sink("can"),

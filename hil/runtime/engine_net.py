@@ -64,6 +64,7 @@ class EngineBus:
     """One train bus in the engine: nodes are integer indices; statistics land in ``log`` at ``collect``."""
 
     errors = None  # CAN error confinement and bus faults run on the Python bus model (hil/can/errors.py)
+    packing = None  # set by set_packing
 
     def __init__(self, net: engine.Network, name: str, can: CanConfig, log: BusLog) -> None:
         self.net = net
@@ -83,6 +84,14 @@ class EngineBus:
         """A node delivering into the ECU's mailboxes, behind their IDs as acceptance filter."""
         return self.net.attach_mailbox(self.index, name, ecu.mailbox)
 
+    def attached(self, node: int) -> bool:
+        """Whether ``node`` is on this bus."""
+        return self.net.attached(self.index, node)
+
+    def detach(self, node: int) -> int:
+        """Take a node off the bus (a crashed ECU): its queued frames are dropped and counted, how many is returned."""
+        return self.net.detach(self.index, node)
+
     def send(self, node: int, frame_id: int, data: bytes) -> bool:
         """Queue a frame at the current time (False: the node's TX queue was full, counted)."""
         return self.net.send(self.index, node, frame_id, data)
@@ -101,6 +110,7 @@ class EngineBus:
     def set_packing(self, packing: engine.Packing) -> None:
         """Pack the batches sent on this (CAN FD) bus into containers, unpacked at the receivers."""
         self.net.set_packing(self.index, packing)
+        self.packing = packing
 
     def collect(self) -> None:
         """Move the statistics and the traced frames gathered since the last call into the log and the listeners."""

@@ -28,7 +28,7 @@ from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.record.safety import record_violations
 from hil.runtime.assembly import Assembly, assemble
-from hil.faults.schedule import needs_fault_machinery
+from hil.faults.schedule import needs_fault_machinery, needs_python_bus_model
 from hil.runtime.firmware import EcuFactory, build_ecu, refuse_external_units
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
 from hil.runtime.kernel import Kernel, to_ns
@@ -39,8 +39,9 @@ NETWORK_MODELS = ("engine", "python")
 
 
 def network_model_for(scenario: Scenario) -> str:
-    """The engine, unless the scenario needs what only the Python bus model has: faults, error confinement, restarts."""
-    return "python" if needs_fault_machinery(scenario) else "engine"
+    """The engine, unless the scenario needs what only the Python bus model has: bus faults and error confinement,
+    or radio faults (hil.faults.schedule.needs_python_bus_model)."""
+    return "python" if needs_python_bus_model(scenario) else "engine"
 
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
 
@@ -58,7 +59,7 @@ class VirtualRig:
         if self.network not in NETWORK_MODELS:
             raise ValueError(f"network model must be one of {NETWORK_MODELS}, got {self.network!r}")
         if self.network == "engine" and needed == "python":
-            raise ValueError(f"scenario {scenario.name}: faults and ECU restarts need the Python bus model (network='python')")
+            raise ValueError(f"scenario {scenario.name}: bus and radio faults need the Python bus model (network='python')")
         self.sc = scenario
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout
@@ -134,7 +135,7 @@ class VirtualRig:
     def disconnect_ecu(self, u: int) -> None:
         """Unit u's ECU leaves its bus (a crash): its queued frames are dropped and counted."""
         node, bus = self._ecu_nodes[u], self.buses[self._train_of[u]]
-        if node in bus.nodes:
+        if bus.attached(node):
             bus.detach(node)
 
     def reconnect_ecu(self, u: int) -> None:

@@ -43,7 +43,7 @@ from typing import Any, Callable
 
 
 from hil.layout import TrainLayout
-from hil.faults.schedule import needs_fault_machinery
+from hil.faults.schedule import needs_fault_machinery, needs_python_bus_model
 from hil.runtime.realtime.busserver import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
@@ -339,8 +339,8 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 
 def _server_class(scenario: Scenario):
     """The engine's native bus server (its own thread, outside the interpreter lock), unless the scenario injects
-    faults, which act on the Python bus model under the server's lock (hil/faults/realtime.py)."""
-    return BusServer if needs_fault_machinery(scenario) else NativeBusServer
+    bus faults, which act on the Python bus model under the server's lock (hil/faults/realtime.py)."""
+    return BusServer if needs_python_bus_model(scenario, "realtime") else NativeBusServer
 
 
 # --------------------------------------------------------------------------- processes
