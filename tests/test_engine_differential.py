@@ -117,26 +117,31 @@ def test_engine_and_python_model_give_the_same_frames_and_signals(name, override
 def test_bus_and_radio_faults_are_refused_by_the_engine_with_the_reason():
     sc = load_scenario("faults")
     assert VirtualRig(sc).network == "python"
-    with pytest.raises(ValueError, match="bus and radio faults need the Python bus model"):
+    with pytest.raises(ValueError, match="bus faults need the Python bus model"):
         VirtualRig(sc, network="engine")
 
 
-def _ecu_sensor_actuator_faults() -> Scenario:
-    """The faults scenario with its ECU crash (and restart policy) kept, its bus and radio faults swapped for an ECU
-    hang, a stuck sensor and a traction loss: nothing the engine lacks."""
+def _faults_without_bus_faults() -> Scenario:
+    """The faults scenario with its ECU crash (and restart policy) kept, its bus faults and its late tunnel swapped
+    for an ECU hang, a stuck sensor, a traction loss and three radio faults: nothing the engine lacks."""
     data = load_scenario("faults").model_dump()
     data["faults"] = [f for f in data["faults"] if f["kind"] == "ecu_crash"] + [
         {"kind": "ecu_hang", "train": 1, "unit": 2, "at_s": 3.0, "duration_s": 2.5},
         {"kind": "sensor_stuck", "train": 3, "unit": 1, "at_s": 4.0, "duration_s": 2.0},
-        {"kind": "traction_loss", "train": 1, "unit": 4, "at_s": 6.0, "duration_s": 2.0}]
-    return scenario_from_dict(data, "ecu-sensor-actuator-faults")
+        {"kind": "traction_loss", "train": 1, "unit": 4, "at_s": 6.0, "duration_s": 2.0},
+        {"kind": "radio_burst_loss", "pair": 1, "at_s": 2.0, "duration_s": 3.0, "probability": 0.5},
+        {"kind": "radio_burst_loss", "pair": 1, "at_s": 3.0, "duration_s": 3.0, "probability": 0.3},
+        {"kind": "radio_latency", "pair": 2, "at_s": 4.0, "duration_s": 3.0, "latency_s": 0.05},
+        {"kind": "radio_blackout", "pair": 1, "at_s": 7.0, "duration_s": 2.0}]
+    return scenario_from_dict(data, "faults-without-bus-faults")
 
 
-def test_ecu_sensor_and_actuator_faults_run_on_the_engine_as_on_the_python_model():
-    """A crash and a watchdog restart (the ECU's node leaves the bus and a new one joins), a hang, a stuck sensor and
-    a traction loss: the same frames, signals, events and fault verdicts from both bus models (12 s); only the
-    Python model's CAN error counters (all zero here) are not in the engine's report."""
-    sc = _ecu_sensor_actuator_faults()
+def test_ecu_sensor_actuator_and_radio_faults_run_on_the_engine_as_on_the_python_model():
+    """A crash and a watchdog restart (the ECU's node leaves the bus and a new one joins), a hang, a stuck sensor, a
+    traction loss, overlapping radio burst losses, a radio latency and a radio blackout: the same frames, signals,
+    events, radio counters and fault verdicts from both bus models (12 s); only the Python model's CAN error
+    counters (all zero here) are not in the engine's report."""
+    sc = _faults_without_bus_faults()
     assert network_model_for(sc) == "engine"
     runs = []
     for network in ("python", "engine"):
@@ -148,8 +153,9 @@ def test_ecu_sensor_and_actuator_faults_run_on_the_engine_as_on_the_python_model
     assert [(e.t, e.source, e.text) for e in py_log.events] == [(e.t, e.source, e.text) for e in en_log.events]
     assert any("restart" in e.text for e in en_log.events)  # the crashed ECU came back, on a new node
     py_faults = {k: v for k, v in py_m["faults"].items() if k != "can_errors"}
-    assert py_faults == en_m["faults"] and en_m["faults"]["injected"] == 4
+    assert py_faults == en_m["faults"] and en_m["faults"]["injected"] == 8
     assert py_m["faults"]["can_errors"]["error_frames"] == 0
+    assert py_log.radio_stats == en_log.radio_stats and en_log.radio_stats["1>2"]["fault"] > 100
 
 
 def test_the_bus_model_is_a_leaf_and_node_processes_do_not_import_the_server():
@@ -182,10 +188,8 @@ def test_an_inbox_node_hands_over_its_frames_in_arrival_order():
     assert net.drain_inboxes() == []
 
 
-def test_only_bus_faults_and_virtual_radio_faults_need_the_python_bus_model():
+def test_only_bus_faults_need_the_python_bus_model():
     from hil.faults.schedule import needs_python_bus_model
 
-    assert needs_python_bus_model(load_scenario("faults"), "realtime")  # a babbler and a corruption burst
-    assert not needs_python_bus_model(_ecu_sensor_actuator_faults(), "virtual")
-    radio = load_scenario("faults", {"faults": [{"kind": "radio_blackout", "pair": 1, "at_s": 1.0, "duration_s": 1.0}]})
-    assert needs_python_bus_model(radio, "virtual") and not needs_python_bus_model(radio, "realtime")
+    assert needs_python_bus_model(load_scenario("faults"))  # a babbler and a corruption burst
+    assert not needs_python_bus_model(_faults_without_bus_faults())

@@ -24,6 +24,10 @@ pub enum Event {
     External { token: u64, period: u64 },
 }
 
+/// The `refill` argument that asks for a block of the injected radio faults' draws (in `Draws::u_loss`) instead of
+/// a link's: one stream for every impaired link, taken in the order of the offers.
+pub const FAULT_DRAWS: usize = usize::MAX;
+
 /// A frame delivered into an inbox: (inbox, frame id, payload, end of transmission in ns).
 pub type InboxFrame = (usize, u32, Payload, u64);
 
@@ -240,7 +244,13 @@ impl Network {
             if self.gateway.links[hop.link].needs_draws() {
                 self.gateway.links[hop.link].draws = refill(hop.link)?;
             }
-            if let Some(deliver) = self.gateway.links[hop.link].offer(t as i64, sender, receiver) {
+            let need = self.gateway.links[hop.link].impairment.as_ref().map_or(0, |imp| imp.losses.len());
+            while self.gateway.fault_draws.left() < need {
+                let block = refill(FAULT_DRAWS)?;
+                self.gateway.fault_draws.extend(&block.u_loss);
+            }
+            let (links, faults) = (&mut self.gateway.links, &mut self.gateway.fault_draws);
+            if let Some(deliver) = links[hop.link].offer(t as i64, sender, receiver, faults) {
                 let at = (deliver.max(0) as u64).max(self.queue.now);
                 self.queue.at(at, Event::RadioSend { bus: hop.dst_bus, frame_id: hop.dst_id, data });
             }

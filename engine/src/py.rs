@@ -14,9 +14,9 @@ use crate::codec::{CodecError, MessageLayout, SignalSpec};
 use crate::e2e::{self, STATUS_NAMES};
 use crate::frame::{self, BitTiming, FrameError, MAX_DATA};
 use crate::mailbox;
-use crate::network::Network as CoreNetwork;
+use crate::network::{Network as CoreNetwork, FAULT_DRAWS};
 use crate::packing::{Container, Packing as CorePacking, Part};
-use crate::radio::{Draws, Hop, Link, Loss};
+use crate::radio::{Draws, Hop, Impairment, Link, Loss};
 
 fn frame_err(e: FrameError) -> PyErr {
     PyValueError::new_err(e.to_string())
@@ -385,6 +385,8 @@ impl Packing {
 pub struct Network {
     core: CoreNetwork,
     refills: Vec<Py<PyAny>>,
+    /// Blocks of the injected radio faults' draws (`set_impairment`).
+    fault_refill: Option<Py<PyAny>>,
     /// Wall time spent inside `advance` and `send` (the engine's own cost, for the benchmarks).
     busy: std::time::Duration,
 }
@@ -401,7 +403,7 @@ fn policy(name: &str) -> PyResult<Policy> {
 impl Network {
     #[new]
     fn new() -> Self {
-        Network { core: CoreNetwork::default(), refills: Vec::new(), busy: std::time::Duration::ZERO }
+        Network { core: CoreNetwork::default(), refills: Vec::new(), fault_refill: None, busy: std::time::Duration::ZERO }
     }
 
     /// Add a bus; returns its index. With `fd` its nodes send CAN FD frames, switching to `data_bitrate`
@@ -526,8 +528,17 @@ impl Network {
     /// Run every frame event before `until_ns`; the token of a task that is due (the clock at its time), or None.
     fn advance(&mut self, py: Python<'_>, until_ns: u64) -> PyResult<Option<u64>> {
         let started = std::time::Instant::now();
-        let refills = &self.refills;
+        let (refills, fault_refill) = (&self.refills, &self.fault_refill);
         let mut refill = |link: usize| -> Result<Draws, EngineError> {
+            if link == FAULT_DRAWS {
+                let refill = fault_refill.as_ref()
+                    .ok_or_else(|| EngineError(PyValueError::new_err("a radio link is impaired but no fault refill is set")))?;
+                let u_loss: Vec<f64> = refill.call0(py).and_then(|b| b.extract(py)).map_err(EngineError)?;
+                if u_loss.is_empty() {
+                    return Err(EngineError(PyValueError::new_err("the fault refill must return a non-empty list")));
+                }
+                return Ok(Draws { u_loss, ..Draws::default() });
+            }
             let block = refills[link].call0(py).map_err(EngineError)?;
             let (u_step, u_loss, jitter_ns): (Vec<f64>, Vec<f64>, Vec<i64>) = block.extract(py).map_err(EngineError)?;
             if u_step.is_empty() || u_loss.len() != u_step.len() || jitter_ns.len() != u_step.len() {
@@ -635,7 +646,23 @@ impl Network {
                        ("blackout", s.blackout), ("lost", s.lost), ("rate_capped", s.rate_capped)] {
             d.set_item(k, v)?;
         }
+        if s.fault > 0 {
+            d.set_item("fault", s.fault)?; // as the Python links count it: only once a fault dropped a frame
+        }
         Ok(d)
+    }
+
+    /// Injected faults on radio link `link`: a blackout, burst losses (probabilities, one draw each in order), an
+    /// extra latency; all off: no impairment. `refill()` returns a block of uniform draws (the faults' one stream).
+    fn set_impairment(&mut self, link: usize, blackout: bool, losses: Vec<f64>, extra_ns: i64, refill: Py<PyAny>) -> PyResult<()> {
+        let l = self.core.gateway.links.get_mut(link).ok_or_else(|| PyIndexError::new_err(format!("no radio link {link}")))?;
+        if let Some(p) = losses.iter().find(|p| !(0.0..=1.0).contains(*p)) {
+            return Err(PyValueError::new_err(format!("radio link {}: loss probability {p} is not in [0, 1]", l.name)));
+        }
+        let on = blackout || !losses.is_empty() || extra_ns != 0;
+        l.impairment = on.then_some(Impairment { blackout, losses, extra_ns });
+        self.fault_refill = Some(refill);
+        Ok(())
     }
 
     /// (name, sent, dropped, queued) of every node of a bus, in attach order.

@@ -39,6 +39,59 @@ pub struct LinkStats {
     pub blackout: u64,
     pub lost: u64,
     pub rate_capped: u64,
+    /// Dropped by an injected fault (`Impairment`).
+    pub fault: u64,
+}
+
+/// The injected radio faults of one link direction (hil/faults/radio.py): a blackout drops every frame, each burst
+/// loss drops a frame with its probability (one draw each, in order, until one hits), latency adds up.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Impairment {
+    pub blackout: bool,
+    pub losses: Vec<f64>,
+    pub extra_ns: i64,
+}
+
+/// The fault draws every impaired link takes from, in the order of the offers (one stream, as in Python).
+#[derive(Debug, Clone, Default)]
+pub struct FaultDraws {
+    pub u: Vec<f64>,
+    pub next: usize,
+}
+
+impl FaultDraws {
+    /// How many draws are left.
+    pub fn left(&self) -> usize {
+        self.u.len() - self.next
+    }
+
+    /// Append a block, dropping the ones already taken.
+    pub fn extend(&mut self, block: &[f64]) {
+        self.u.drain(..self.next);
+        self.next = 0;
+        self.u.extend_from_slice(block);
+    }
+
+    fn take(&mut self) -> f64 {
+        let u = self.u[self.next];
+        self.next += 1;
+        u
+    }
+}
+
+impl Impairment {
+    /// None: drop the frame; else the extra delay (ns). Needs `losses.len()` draws left in `draws`.
+    fn apply(&self, draws: &mut FaultDraws) -> Option<i64> {
+        if self.blackout {
+            return None;
+        }
+        for &p in &self.losses {
+            if draws.take() < p {
+                return None;
+            }
+        }
+        Some(self.extra_ns)
+    }
 }
 
 /// One direction of a radio link.
@@ -53,6 +106,8 @@ pub struct Link {
     pub bad: bool,
     pub stats: LinkStats,
     pub draws: Draws,
+    /// Injected faults (after range and tunnels, which are the physics; before the rate cap and the loss model).
+    pub impairment: Option<Impairment>,
     next_token_ns: Option<i64>,
     last_offer_ns: Option<i64>,
     last_delivery_ns: i64,
@@ -62,7 +117,7 @@ impl Link {
     pub fn new(name: &str, range_m: f64, blackouts: Vec<(f64, f64)>, latency_ns: i64, period_ns: Option<i64>, loss: Loss,
                initially_bad: bool) -> Link {
         Link { name: name.into(), range_m, blackouts, latency_ns, period_ns, loss, bad: initially_bad,
-               stats: LinkStats::default(), draws: Draws::default(), next_token_ns: None, last_offer_ns: None,
+               stats: LinkStats::default(), draws: Draws::default(), impairment: None, next_token_ns: None, last_offer_ns: None,
                last_delivery_ns: -(1i64 << 62) }
     }
 
@@ -103,7 +158,7 @@ impl Link {
 
     /// Delivery time of a frame handed to the radio at `t_ns`, or None if it is dropped. The caller refills
     /// `draws` first when `needs_draws()`. Checks run range -> blackout -> rate cap -> loss; no overtaking.
-    pub fn offer(&mut self, t_ns: i64, sender_pos: Option<f64>, receiver_pos: Option<f64>) -> Option<i64> {
+    pub fn offer(&mut self, t_ns: i64, sender_pos: Option<f64>, receiver_pos: Option<f64>, faults: &mut FaultDraws) -> Option<i64> {
         self.last_offer_ns = Some(t_ns);
         self.stats.offered += 1;
         let k = self.draws.next;
@@ -119,6 +174,16 @@ impl Link {
             self.stats.blackout += 1;
             return None;
         }
+        let mut extra = 0;
+        if let Some(imp) = &self.impairment {
+            match imp.apply(faults) {
+                Some(ns) => extra = ns,
+                None => {
+                    self.stats.fault += 1;
+                    return None;
+                }
+            }
+        }
         if !self.take_token(t_ns) {
             self.stats.rate_capped += 1;
             return None;
@@ -127,7 +192,7 @@ impl Link {
             self.stats.lost += 1;
             return None;
         }
-        let deliver = (t_ns + self.latency_ns + self.draws.jitter_ns[k]).max(self.last_delivery_ns);
+        let deliver = (t_ns + self.latency_ns + self.draws.jitter_ns[k] + extra).max(self.last_delivery_ns);
         self.last_delivery_ns = deliver;
         self.stats.delivered += 1;
         Some(deliver)
@@ -147,6 +212,8 @@ pub struct Hop {
 #[derive(Debug, Default, Clone)]
 pub struct Gateway {
     pub links: Vec<Link>,
+    /// The draws of the injected burst losses (shared by every link, as the Python faults' one stream).
+    pub fault_draws: FaultDraws,
     pub table: HashMap<(usize, u32), Vec<Hop>>,
     /// Last position carried by a frame forwarded over each link (its sender end).
     pub positions: Vec<Option<f64>>,
@@ -183,8 +250,9 @@ mod tests {
     fn latency_jitter_and_no_overtaking() {
         let mut l = Link::new("1>2", 1e4, vec![], 1_000, None, Loss::None, false);
         l.draws = Draws { u_step: vec![0.5; 2], u_loss: vec![0.5; 2], jitter_ns: vec![500, 0], next: 0 };
-        assert_eq!(l.offer(0, None, None), Some(1_500));
-        assert_eq!(l.offer(100, None, None), Some(1_500)); // would be 1100: waits behind the first
+        let f = &mut FaultDraws::default();
+        assert_eq!(l.offer(0, None, None, f), Some(1_500));
+        assert_eq!(l.offer(100, None, None, f), Some(1_500)); // would be 1100: waits behind the first
         assert!(l.needs_draws());
     }
 
@@ -192,15 +260,16 @@ mod tests {
     fn range_blackout_rate_cap_and_loss_in_order() {
         let mut l = Link::new("1>2", 100.0, vec![(50.0, 60.0)], 0, Some(1_000), Loss::Bernoulli { p: 0.3 }, false);
         l.draws = draws(8, 0.5, 0);
-        assert_eq!(l.offer(0, Some(0.0), Some(200.0)), None);
+        let f = &mut FaultDraws::default();
+        assert_eq!(l.offer(0, Some(0.0), Some(200.0), f), None);
         assert_eq!(l.stats.out_of_range, 1);
-        assert_eq!(l.offer(1, Some(55.0), Some(0.0)), None);
+        assert_eq!(l.offer(1, Some(55.0), Some(0.0), f), None);
         assert_eq!(l.stats.blackout, 1);
-        assert_eq!(l.offer(2, Some(0.0), Some(0.0)), Some(2));
-        assert_eq!(l.offer(3, Some(0.0), Some(0.0)), None); // within the rate-cap period
+        assert_eq!(l.offer(2, Some(0.0), Some(0.0), f), Some(2));
+        assert_eq!(l.offer(3, Some(0.0), Some(0.0), f), None); // within the rate-cap period
         assert_eq!(l.stats.rate_capped, 1);
         l.draws.u_loss[4] = 0.1;
-        assert_eq!(l.offer(2_000, None, None), None);
+        assert_eq!(l.offer(2_000, None, None, f), None);
         assert_eq!(l.stats.lost, 1);
         assert_eq!(l.stats.offered, 5);
     }
@@ -210,8 +279,24 @@ mod tests {
         let ge = Loss::GilbertElliott { p_gb: 0.5, p_bg: 0.1, loss_good: 0.0, loss_bad: 1.0 };
         let mut l = Link::new("1>2", 1e9, vec![], 0, None, ge, false);
         l.draws = Draws { u_step: vec![0.4, 0.9, 0.05], u_loss: vec![0.5; 3], jitter_ns: vec![0; 3], next: 0 };
-        assert_eq!(l.offer(0, None, None), None); // good -> bad (0.4 < 0.5), then lost
-        assert_eq!(l.offer(1, None, None), None); // stays bad
-        assert_eq!(l.offer(2, None, None), Some(2)); // bad -> good (0.05 < 0.1)
+        let f = &mut FaultDraws::default();
+        assert_eq!(l.offer(0, None, None, f), None); // good -> bad (0.4 < 0.5), then lost
+        assert_eq!(l.offer(1, None, None, f), None); // stays bad
+        assert_eq!(l.offer(2, None, None, f), Some(2)); // bad -> good (0.05 < 0.1)
+    }
+
+    #[test]
+    fn an_impairment_drops_or_delays_after_the_physics_and_before_the_rate_cap() {
+        let mut l = Link::new("1>2", 1e9, vec![], 1_000, Some(1_000), Loss::None, false);
+        l.draws = draws(8, 0.5, 0);
+        let f = &mut FaultDraws { u: vec![0.9, 0.1, 0.9], next: 0 };
+        l.impairment = Some(Impairment { blackout: false, losses: vec![0.5], extra_ns: 250 });
+        assert_eq!(l.offer(0, None, None, f), Some(1_250)); // draw 0.9 >= 0.5: kept, 250 ns later
+        assert_eq!(l.offer(5_000, None, None, f), None); // draw 0.1 < 0.5: dropped by the fault ...
+        assert_eq!((l.stats.fault, l.stats.rate_capped), (1, 0)); // ... before it took a rate-cap token
+        assert_eq!(l.offer(5_001, None, None, f), Some(6_251));
+        l.impairment = Some(Impairment { blackout: true, losses: vec![], extra_ns: 0 });
+        assert_eq!(l.offer(9_000, None, None, f), None);
+        assert_eq!((l.stats.fault, f.left()), (2, 0)); // a blackout takes no draw
     }
 }

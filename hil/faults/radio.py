@@ -7,6 +7,8 @@ from the link's, so the link's common random numbers stay as they were.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 
@@ -37,15 +39,23 @@ def pair_links(pair: int | None, n_trains: int) -> list[str]:
     return [name for p in pairs for name in (f"{p}>{p + 1}", f"{p + 1}>{p}")]
 
 
-class RadioFaults:
-    """Radio faults on a gateway's links (``links``: name -> RadioLink)."""
+ImpairmentSetter = Callable[[str, RadioImpairment], None]  # (link name, its impairments now)
 
-    def __init__(self, links: dict, n_trains: int, rng: np.random.Generator) -> None:
+
+class RadioFaults:
+    """Radio faults on a gateway's links (``links``: name -> RadioLink). ``apply(name, impairment)`` puts a link's
+    impairments into effect (default: on the Python link; the engine's links: ``engine_net.engine_impairments``)."""
+
+    def __init__(self, links: dict, n_trains: int, rng: np.random.Generator, apply: ImpairmentSetter | None = None) -> None:
         self._n = n_trains
         self._imp = {name: RadioImpairment(rng) for name in links}
         for name, link in links.items():
             link.impairment = None
         self._links = links
+        self._set = apply or self._on_python_link
+
+    def _on_python_link(self, name: str, imp: RadioImpairment) -> None:
+        self._links[name].impairment = imp if imp else None
 
     def _apply(self, spec, index: int, on: bool) -> None:
         for name in pair_links(spec.pair, self._n):
@@ -56,7 +66,7 @@ class RadioFaults:
                 _toggle(imp.losses, index, spec.probability, on)
             else:
                 _toggle(imp.latency_ns, index, round(spec.latency_s * 1e9), on)
-            self._links[name].impairment = imp if imp else None
+            self._set(name, imp)
 
     def start(self, spec, index: int) -> None:
         self._apply(spec, index, True)

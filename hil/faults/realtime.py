@@ -105,7 +105,7 @@ class RealtimeFaults:
         ok, packing = e2e_checker(db), db.packing(scenario.trains.units)
         self.bus_events: list[list] = [[] for _ in servers]  # (model t_ns, level, source, text) per server
         self.buses: list[BusFaults] = []
-        for i, server in enumerate(servers if needs_python_bus_model(scenario, "realtime") else ()):
+        for i, server in enumerate(servers if needs_python_bus_model(scenario) else ()):
             def sink(what: str, i: int = i):
                 return lambda t_ns, level, text: self.bus_events[i].append((t_ns, level, f"bus{i + 1}/{what}", text))
             self.buses.append(server.apply(lambda model, now, i=i: BusFaults(model, i, seed, periods, sink("can"),

@@ -17,6 +17,7 @@ from hil.faults.report import fault_report
 from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, ScheduledFault, fault_rng
 from hil.faults.sensor import SensorFaults
 from hil.record.runlog import RunLog
+from hil.runtime.engine_net import engine_impairments
 from hil.runtime.kernel import to_ns
 
 
@@ -40,7 +41,11 @@ class VirtualFaults:
         self.buses = [BusFaults(bus, i, seed, periods, self._bus_sink(bus.name, "can"),
                                 self._bus_sink(bus.name, "guardian"), send=bus.send, e2e_ok=ok, packing=bus.packing)
                       for i, bus in enumerate(rig.buses)] if rig.net is None else []
-        self.radio = RadioFaults(rig.gateway.links, layout.n_trains, fault_rng(seed, 3000)) if rig.gateway else None
+        self.radio = None
+        if rig.gateway:
+            rng = fault_rng(seed, 3000)
+            on_engine = engine_impairments(rig.net, list(rig.gateway.links), rng) if rig.net is not None else None
+            self.radio = RadioFaults(rig.gateway.links, layout.n_trains, rng, on_engine)
         k = rig.kernel
         for f in self.schedule.faults:
             if f.spec.at_s is not None:

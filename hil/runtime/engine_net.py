@@ -156,6 +156,23 @@ def _refill(link: RadioLink) -> Callable[[], tuple[list[float], list[float], lis
     return refill
 
 
+FAULT_DRAWS_BLOCK = 1024
+
+
+def engine_impairments(net: engine.Network, names: list[str], rng) -> Callable:
+    """``RadioFaults``' setter for the engine's links (named in their order in the engine): the burst losses draw
+    from ``rng`` in blocks, one stream for every link, as the Python links draw from it one at a time."""
+    index = {name: i for i, name in enumerate(names)}
+
+    def refill() -> list[float]:
+        return rng.random(FAULT_DRAWS_BLOCK).tolist()
+
+    def apply(name: str, imp) -> None:
+        net.set_impairment(index[name], imp.blackouts > 0, list(imp.losses.values()), sum(imp.latency_ns.values()), refill)
+
+    return apply
+
+
 def copy_link_stats(net: engine.Network, links: dict[str, RadioLink]) -> None:
     """The engine's link counters into the Python links (what the run log reports)."""
     for i, link in enumerate(links.values()):

@@ -39,8 +39,8 @@ NETWORK_MODELS = ("engine", "python")
 
 
 def network_model_for(scenario: Scenario) -> str:
-    """The engine, unless the scenario needs what only the Python bus model has: bus faults and error confinement,
-    or radio faults (hil.faults.schedule.needs_python_bus_model)."""
+    """The engine, unless the scenario needs what only the Python bus model has: bus faults and error confinement
+    (hil.faults.schedule.needs_python_bus_model)."""
     return "python" if needs_python_bus_model(scenario) else "engine"
 
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
@@ -59,7 +59,7 @@ class VirtualRig:
         if self.network not in NETWORK_MODELS:
             raise ValueError(f"network model must be one of {NETWORK_MODELS}, got {self.network!r}")
         if self.network == "engine" and needed == "python":
-            raise ValueError(f"scenario {scenario.name}: bus and radio faults need the Python bus model (network='python')")
+            raise ValueError(f"scenario {scenario.name}: bus faults need the Python bus model (network='python')")
         self.sc = scenario
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout

@@ -340,7 +340,7 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 def _server_class(scenario: Scenario):
     """The engine's native bus server (its own thread, outside the interpreter lock), unless the scenario injects
     bus faults, which act on the Python bus model under the server's lock (hil/faults/realtime.py)."""
-    return BusServer if needs_python_bus_model(scenario, "realtime") else NativeBusServer
+    return BusServer if needs_python_bus_model(scenario) else NativeBusServer
 
 
 # --------------------------------------------------------------------------- processes
