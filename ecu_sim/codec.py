@@ -238,9 +238,8 @@ class TrainDb:
         """This DBC's containers for a train of ``units`` unit slots (default: all): parts of slots beyond it are
         left out and each container is shortened to what is left (no sender would ever complete a container whose
         parts no one sends)."""
-        out = []
+        out, slots = [], self.max_units if units is None else units
         for c in self.containers:
-            slots = self.max_units if units is None else units
             parts = tuple(p for p in c.parts if (_unit_slot(p.name) or 0) < slots)
             if parts:
                 length = fd_length(max(p.offset + p.length for p in parts))
