@@ -7,7 +7,7 @@ Nothing crosses between these nodes except encoded CAN frames. Same seed, same r
 
 Two models of the network give the same frame schedule: the compiled frame engine (``trainhil_engine``, the
 default: no Python runs per frame) and the Python bus model (``hil/can``), which still carries CAN error
-confinement and the fault injectors, so a scenario with a fault schedule runs on it.
+confinement and the bus fault injectors, so a scenario with a bus fault runs on it.
 """
 from __future__ import annotations
 
