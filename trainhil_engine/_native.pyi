@@ -106,6 +106,10 @@ class Network:
                  refill: Callable[[], tuple[list[float], list[float], list[int]]]) -> int: ...
     def add_route(self, src_bus: int, src_id: int, dst_bus: int, dst_id: int, link: int, reverse: int | None) -> None: ...
     def set_position_codec(self, codec: MessageCodec) -> None: ...
+    def set_impairment(self, link: int, blackout: bool, losses: Sequence[float], extra_ns: int,
+                       refill: Callable[[], list[float]]) -> None:
+        """Injected faults on a radio link: a blackout, burst losses (one draw each, in order, from the one stream
+        ``refill`` supplies in blocks), extra latency; all off: none."""
     def every(self, first_ns: int, period_ns: int) -> int:
         """A task due at first_ns and every period_ns after (0: once); returns the token ``advance`` reports."""
     def advance(self, until_ns: int) -> int | None:
