@@ -2,11 +2,13 @@
 first, and sweep plots label values that differ by little, and bit rates, readably."""
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
 
+from ecu_sim.codec import default_dbc_path
 from hil.cli import main
 from hil.record.provenance import scenario_hash
 from hil.scenario import load_scenario
@@ -28,6 +30,7 @@ def test_metrics_say_what_produced_the_run(tmp_path):
     assert prov["seed"] == 3 and prov["overrides"] == {"radio.latency_s": 0.2, "seed": 3, "duration_s": 0.5}
     assert prov["runtime"] == "virtual" and prov["pace"] is None and prov["ecu_program"] == "standard"
     assert prov["version"] and prov["frame_engine"] and prov["rerun_sdk"].startswith("0.41")
+    assert prov["dbc"] == "train.dbc" and prov["dbc_sha256"] == hashlib.sha256(default_dbc_path().read_bytes()).hexdigest()
 
 
 def test_the_same_scenario_spelled_another_way_has_the_same_hash(tmp_path):

@@ -1,5 +1,6 @@
 """What produced a run, for its metrics.json: the scenario (name, source, a hash of its resolved content), the law
-and its resolved parameters, the ECU programs, the seed, every override, the versions, the runtime and the pace.
+and its resolved parameters, the ECU programs, the train DBC (as named, and a hash of the file), the seed, every
+override, the versions, the runtime and the pace.
 
 The hash is over the validated scenario as JSON (every default filled in), so two runs with the same hash ran the
 same scenario whatever files and ``--set`` options produced it.
@@ -18,6 +19,15 @@ def scenario_hash(sc: Scenario) -> str:
     """sha256 (hex) of the resolved scenario as canonical JSON: keys sorted, so the order in which a file lists a
     table's keys (or the one an ``extends`` merge leaves) does not change it."""
     return hashlib.sha256(json.dumps(sc.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
+
+
+def file_hash(path) -> str | None:
+    """sha256 (hex) of a file's bytes; None when it cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError:
+        return None
 
 
 def provenance(sc: Scenario, runtime: str, seed: int, *, pace: float | None = None,
@@ -39,6 +49,8 @@ def provenance(sc: Scenario, runtime: str, seed: int, *, pace: float | None = No
         "ecu_program": sc.ecu.program,
         "ecu_units": [o.model_dump(mode="json", exclude_none=True) for o in sc.ecu.units],
         "external_units": list(sc.ecu.external),
+        "dbc": sc.can.dbc,
+        "dbc_sha256": file_hash(sc.can.dbc_path),  # a DBC of the user's own may change under the same name
         "seed": int(seed),
         "overrides": dict(overrides or {}),
         "runtime": runtime,
