@@ -197,3 +197,22 @@ def test_the_firmware_test_kit_sees_a_packed_message_inside_its_container():
     assert_frame_period(run, "UnitFD_U02", max_gap_ms=12.0, after=0.02)
     with pytest.raises(HilAssertionError, match=r"SensorFD_A \(0x0B8\)"):
         assert_frame_period(run, "SensorFD_A", max_gap_ms=5.0)
+
+
+def test_the_kn_pid_at_1_4_ms_holds_over_packed_fd_when_each_ecu_runs_right_after_its_sample():
+    """seed004-kn-pid-fd-packed (3 s): with the reference at the ECU period and every ECU 0.2 ms after the sample, no
+    force saturates and the speed error is the ideal loop's within 50 %; with the rig's default phase (0.6-1.3 ms
+    after the sample) cars 5 and 7, near their sampled loop's margin, saturate at the Force signal's limit."""
+    from hil.runtime.ideal import IdealLoop
+
+    sc = load_scenario("seed004-kn-pid-fd-packed")
+    on_time = VirtualRig(sc).run(3.0)
+    late = VirtualRig(load_scenario("seed004-kn-pid-fd-packed", {"ecu.phase_s": 0.002, "ecu.stagger_s": 0.0001})).run(3.0)
+    ideal = IdealLoop(sc).run(3.0)
+
+    def worst_speed_error(log) -> float:
+        return float(np.abs(log.speed_error[log.t > 1.0]).max())
+
+    assert not on_time.codec_saturations and worst_speed_error(on_time) < 1.5 * worst_speed_error(ideal)
+    assert {"TractionCmd_U05.Force", "TractionCmd_U07.Force"} <= set(late.codec_saturations)
+    assert worst_speed_error(late) > 10 * worst_speed_error(ideal)
