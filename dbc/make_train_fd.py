@@ -19,13 +19,14 @@ from pathlib import Path
 
 import cantools
 
+from ecu_sim.codec import fd_length
+
 HERE = Path(__file__).resolve().parent
 SOURCE, TARGET = HERE / "train.dbc", HERE / "train_fd.dbc"
 FD_FORMAT = 14  # VFrameFormat StandardCAN_FD
 VFRAMEFORMAT = ('BA_DEF_ BO_  "VFrameFormat" ENUM  "StandardCAN","ExtendedCAN","reserved","J1939PG","reserved",'
                 '"reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved",'
                 '"StandardCAN_FD","ExtendedCAN_FD";')
-FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
 
 def containers(db: cantools.database.can.Database) -> list[tuple[int, str, str, list[str]]]:
@@ -39,10 +40,6 @@ def containers(db: cantools.database.can.Database) -> list[tuple[int, str, str, 
         out.append((0x0B8 + k, f"SensorFD_{'AB'[k]}", "Plant", parts))
     out.append((0x0A8, "ReferenceFD", "Wayside", ["Reference", "ReferenceAux"]))
     return out
-
-
-def fd_length(n: int) -> int:
-    return next(length for length in FD_LENGTHS if length >= n)
 
 
 def signal_line(part: cantools.database.can.Message, sig, offset: int) -> str:

@@ -182,11 +182,8 @@ impl Network {
         let parts = packing.as_deref().and_then(|p| p.unpack(tx.frame_id, tx.data.as_slice()));
         let delivered = match parts {
             // a container: each receiver takes the parts its filter accepts, as the frames they were
-            Some(parts) => parts.collect::<Vec<_>>().into_iter().try_for_each(|(id, data)| {
-                let takers: Vec<usize> = receivers.iter().copied().filter(|&n| self.buses[bus].nodes[n].accepts(id)).collect();
-                self.deliver(bus, &takers, &tx, id, Payload::new(data), refill)
-            }),
-            None => self.deliver(bus, &receivers, &tx, tx.frame_id, tx.data, refill),
+            Some(mut parts) => parts.try_for_each(|(id, data)| self.deliver(bus, &receivers, &tx, id, Payload::new(data), true, refill)),
+            None => self.deliver(bus, &receivers, &tx, tx.frame_id, tx.data, false, refill),
         };
         self.buses[bus].put_receivers(tx.frame_id, receivers);
         delivered?;
@@ -203,12 +200,14 @@ impl Network {
         }
     }
 
-    /// Hand frame `frame_id` (a transmission, or one part of a container) to each of `receivers`' sinks.
-    fn deliver<E>(&mut self, bus: usize, receivers: &[usize], tx: &Transmission, frame_id: u32, data: Payload,
+    /// Hand frame `frame_id` (a transmission, or with `part` one part of a container: only to the receivers whose
+    /// filter accepts it) to each of `receivers`' sinks.
+    #[allow(clippy::too_many_arguments)]
+    fn deliver<E>(&mut self, bus: usize, receivers: &[usize], tx: &Transmission, frame_id: u32, data: Payload, part: bool,
                   refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
         for &node in receivers {
             let n = &self.buses[bus].nodes[node];
-            if node == tx.node && !n.receive_own {
+            if (node == tx.node && !n.receive_own) || (part && !n.accepts(frame_id)) {
                 continue;
             }
             match n.sink {

@@ -20,6 +20,7 @@ from ecu_sim.codec import DbcMismatchError, TrainDb, default_dbc_path
 from hil.can.analysis import CanAnalysisError, TrainBusSetup, analyse_train_bus, forwarded_jitter, format_table
 from hil.scenario import ScenarioError, load_scenario
 from hil.scenario.loader import parse_assignment
+from hil.scenario.model import Scenario
 
 MEASURED_KEY = "latency_max_by_id"
 DESCRIPTION = ("Every frame of a train bus: worst-case length, WCRT (Davis et al. 2007) and bus utilisation; "
@@ -115,12 +116,16 @@ def read_measured(run_dir: Path, bus: str) -> tuple[dict[int, float], dict]:
     return out, metrics
 
 
-def _setup(args: argparse.Namespace, bus_index: int, db: TrainDb) -> tuple[TrainBusSetup, str]:
-    """The bus to analyse, and a one-line description of where it came from."""
+def _scenario(args: argparse.Namespace) -> Scenario | None:
+    """The scenario given with --scenario, with its --set overrides (None without one)."""
     if args.set and not args.scenario:
         raise CanAnalysisError("--set overrides a scenario's fields: give the scenario with --scenario")
-    if args.scenario:
-        sc = load_scenario(args.scenario, dict(parse_assignment(a) for a in args.set))
+    return load_scenario(args.scenario, dict(parse_assignment(a) for a in args.set)) if args.scenario else None
+
+
+def _setup(args: argparse.Namespace, bus_index: int, db: TrainDb, sc: Scenario | None) -> tuple[TrainBusSetup, str]:
+    """The bus to analyse, and a one-line description of where it came from."""
+    if sc is not None:
         setup = TrainBusSetup.from_scenario(sc, bus_index)
         where = f"bus{bus_index + 1} of scenario {sc.name} ({sc.trains.count} trains)"
     else:
@@ -142,20 +147,14 @@ def _period(value: float | None) -> str:
     return "DBC" if value is None else f"{value * 1e3:g} ms"
 
 
-def _scenario_dbc(args: argparse.Namespace) -> Path:
-    """The DBC of the scenario given with --scenario (its can.dbc), else the packaged train.dbc."""
-    if not args.scenario:
-        return default_dbc_path()
-    return load_scenario(args.scenario, dict(parse_assignment(a) for a in args.set)).can.dbc_path
-
-
 def _analyse(args: argparse.Namespace) -> None:
     if args.dbc and Path(args.dbc).suffix.lower() == ".toml":
         raise CanAnalysisError(f"{args.dbc} looks like a scenario file; the positional argument is a DBC file. "
                                f"Analyse a scenario's bus with --scenario {args.dbc}")
-    db = TrainDb.load(Path(args.dbc) if args.dbc else _scenario_dbc(args))
+    sc = _scenario(args)
+    db = TrainDb.load(Path(args.dbc) if args.dbc else sc.can.dbc_path if sc is not None else default_dbc_path())
     bus_index = parse_bus(args.bus)
-    setup, where = _setup(args, bus_index, db)
+    setup, where = _setup(args, bus_index, db, sc)
     measured, metrics = read_measured(Path(args.measured), f"bus{bus_index + 1}") if args.measured else ({}, {})
     timings = analyse_train_bus(db, setup, measured)
     ahead, behind = forwarded_jitter(db, setup)

@@ -34,6 +34,7 @@ from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, f
 from hil.faults.sensor import SensorFaults
 from hil.faults.watchdog import Watchdog
 from hil.record.runlog import Event, RunLog
+from hil.runtime.train_db import bus_packing
 
 ECU_KINDS = ("ecu_crash", "ecu_hang")
 PLANT_KINDS = ("sensor_stuck", "sensor_noise", "actuator_degradation", "traction_loss")
@@ -102,7 +103,7 @@ class RealtimeFaults:
         self.solo_units = {layout.index(s.train - 1, s.unit - 1) for s in self.specs if s.kind in ECU_KINDS}
         self.servers = servers
         periods = db.cycle_times()
-        ok, packing = e2e_checker(db), db.packing(scenario.trains.units)
+        ok, packing = e2e_checker(db), bus_packing(scenario, db)
         self.bus_events: list[list] = [[] for _ in servers]  # (model t_ns, level, source, text) per server
         self.buses: list[BusFaults] = []
         for i, server in enumerate(servers if needs_python_bus_model(scenario) else ()):

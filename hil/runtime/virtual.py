@@ -64,8 +64,11 @@ class VirtualRig:
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout
         self.plant = self.parts.plant
-        self.db = db or load_train_db(scenario)
-        check_train_db(scenario, self.db)
+        if db is None:
+            db = load_train_db(scenario)  # checked against the scenario as it loads
+        else:
+            check_train_db(scenario, db)
+        self.db = db
         packing = bus_packing(scenario, self.db)
         self.net = engine.Network() if self.network == "engine" else None
         self.kernel = EngineKernel(self.net) if self.net is not None else Kernel()
