@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-
+from ecu_sim.codec import TrainDb
 from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery, needs_python_bus_model
 from hil.runtime.realtime.busserver import BusServer
@@ -169,7 +169,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
     socketcan = scenario.can.transport == "socketcan"
     fmt = log_format(can_log)
-    load_train_db(scenario)  # the DBC fits the scenario, before any process starts
+    db = load_train_db(scenario)  # the DBC fits the scenario, before any process starts
     if socketcan:  # configuration only: every node opens the host's interfaces; no bus servers
         check_channels(scenario.can.socketcan_channels, scenario.trains.count)
         if fmt is not None:
@@ -212,7 +212,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 if fmt is not None:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
                 servers.append(server.start())
-            faults = _faults(scenario, layout, servers, seed)
+            faults = _faults(scenario, layout, servers, seed, db)
             spool = BusSpool(servers, nodes_dir)  # the servers' frame rows to files as the run goes
             if on_channels is not None:
                 on_channels(channels(run, scenario))
@@ -346,7 +346,7 @@ def _server_class(scenario: Scenario):
 # --------------------------------------------------------------------------- processes
 
 
-def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int):
+def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int, db: TrainDb):
     """The run's fault machinery (hil/faults/realtime.py), or None without faults and restart policy."""
     from hil.faults.realtime import RealtimeFaults
     from hil.faults.schedule import BUS_KINDS
@@ -356,7 +356,7 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
     if not servers and any(f.train for f in scenario.faults if f.kind in BUS_KINDS):
         raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
 
-    return RealtimeFaults(scenario, layout, servers, seed, load_train_db(scenario))
+    return RealtimeFaults(scenario, layout, servers, seed, db)
 
 
 def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout):
