@@ -246,6 +246,10 @@ class TrainDb:
                 out.append(Container(c.name, c.frame_id, length, parts))  # type: ignore[arg-type]
         return out
 
+    def carriers(self, frame_id: int, units: int | None = None) -> list[Container]:
+        """The containers (:meth:`containers_for` ``units``) that carry message ``frame_id``."""
+        return [c for c in self.containers_for(units) if any(p.frame_id == frame_id for p in c.parts)]
+
     def packing(self, units: int | None = None) -> Packing | None:
         """The engine's frame packing of :meth:`containers_for` ``units``; None when the DBC has no containers."""
         spec = [(c.frame_id, c.length, [(p.frame_id, p.offset, p.length) for p in c.parts])

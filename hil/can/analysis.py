@@ -106,12 +106,12 @@ def pack_messages(msgs: list[CanMessage], db: TrainDb, units: int) -> list[CanMe
     return list(by_name.values())
 
 
-def carrier(db: TrainDb, units: int, name: str, msgs: Sequence[CanMessage]) -> str:
-    """The frame of ``msgs`` that carries message ``name``: itself, or the container it is packed in."""
+def carrier(db: TrainDb, units: int, codec: MessageCodec, msgs: Sequence[CanMessage]) -> str:
+    """The frame of ``msgs`` that carries ``codec``'s message: itself, or the container it is packed in."""
     names = {m.name for m in msgs}
-    if name in names:
-        return name
-    return next((c.name for c in db.containers_for(units) if c.name in names and any(p.name == name for p in c.parts)), name)
+    if codec.name in names:
+        return codec.name
+    return next((c.name for c in db.carriers(codec.frame_id, units) if c.name in names), codec.name)
 
 
 # --------------------------------------------------------------------------- one train's buses
@@ -202,7 +202,7 @@ def _source_bounds(db: TrainDb, setup: TrainBusSetup, jitter: tuple[float, float
         for side, unit, feeds in ((0, tail, behind), (1, head, ahead)):
             if feeds:
                 codecs = [db.agent_state(unit)] + ([db.agent_aux(unit)] if setup.forward_aux else [])
-                frames = [by_name[carrier(db, setup.units, c.name, msgs)] for c in codecs]
+                frames = [by_name[carrier(db, setup.units, c, msgs)] for c in codecs]
                 spread = (bounds[m.name].r_s - rates.best_case_ns(m.dlc, setup.extended) * 1e-9 for m in frames)
                 worst[side] = max(worst[side], *spread)
     return worst[0], worst[1]

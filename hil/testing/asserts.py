@@ -220,9 +220,7 @@ def _frames(run: HilRun, frame: str | int) -> list[tuple[int, str, bool]]:
 
 def _arrivals(run: HilRun, frame_id: int, bus: str) -> np.ndarray:
     """When a message reached the bus's receivers: as itself, or inside a CAN FD container that carries it."""
-    db = _db(run.scenario.can.dbc_path)
-    carriers = [c.frame_id for c in db.containers_for(run.log.layout.units_per_train)
-                if any(p.frame_id == frame_id for p in c.parts)]
+    carriers = [c.frame_id for c in _db(run.scenario.can.dbc_path).carriers(frame_id, run.log.layout.units_per_train)]
     if not carriers:
         return run.frame_times(frame_id, bus)
     return np.sort(np.concatenate([run.frame_times(i, bus) for i in (frame_id, *carriers)]))
