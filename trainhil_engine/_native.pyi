@@ -20,6 +20,22 @@ def fd_frame_bits(can_id: int, data: bytes | bytearray, extended: bool = False, 
 def e2e_crc(data_id: int, payload: bytes | bytearray) -> int:
     """CRC-8 SAE J1850 over [data_id] + payload[1:]."""
 
+def wire_bits(can_id: int, data: bytes | bytearray, extended: bool = False) -> bytes:
+    """A classical data frame on the wire, SOF through EOF, one byte per bit (0 = dominant), as the error model
+    corrupts it."""
+
+def receive_wire(wire: Sequence[int] | bytes) -> tuple[str | None, int, int, bool, bytes]:
+    """What CAN receivers make of ``wire``: (error "stuff"/"form"/"crc" or None, the bit it was found at, and for an
+    accepted frame its ID, extended flag and data)."""
+
+RngState = tuple[int, int]  # (state, inc) of a numpy PCG64 stream (``bit_generator.state["state"]``), continued here
+# A bus event's kind and fields (hil.can.errors.event_text and hil.faults.guardian.guardian_text word them):
+#   error_passive / error_active: node, tec, rec;  bus_off: node, tec, lost;  recovered: node, after_ns;
+#   error_frame: error ("stuff", "form", "crc", "error flag"), frame_id, node (the first of an episode);
+#   episode: start_ns, last_ns, by_error {kind: n};  babbling: frame_id, frames, busy_ns, allowance | None;  cleared: frame_id
+BusEvent = tuple[int, str, dict]  # (t_ns, kind, fields)
+BusFaultKind = str  # "corruption", "error_flags" or "drops"
+
 SignalSpec = tuple[str, int, int, bool, float, float, int, int]  # name, start, length, signed, scale, offset, raw_min, raw_max
 
 class MessageCodec:
@@ -133,7 +149,25 @@ class Network:
     def set_trace(self, bus: int, on: bool) -> None: ...
     def take_trace(self, bus: int) -> list[tuple[int, bytes, bool, int, int, int, int, bool, bool]]:
         """(frame_id, data, extended, t_enqueue, t_start, t_end, sender node, fd, brs) of each completed frame."""
-    def finish(self, t_ns: int) -> None: ...
+    def finish(self, t_ns: int) -> None:
+        """Close every bus's load windows and error model at ``t_ns`` (the end of a run)."""
+    def enable_bus_errors(self, bus: int, rng_state: RngState) -> None:
+        """CAN error confinement on a bus (engine/src/errors.rs); ``rng_state`` draws error flag and corruption bits."""
+    def set_guardian(self, bus: int, allowances: dict[int, int], window_ns: int, share_ns: float) -> None:
+        """Watch a bus for a babbling idiot: frames per window by ID (others 2), above which and above
+        ``share_ns`` of bus time an ID is flagged."""
+    def add_bus_fault(self, bus: int, fault: int, kind: BusFaultKind, rng_state: RngState, probability: float,
+                      frame_ids: Sequence[int] | None, count: int | None, bits: int = 1) -> None:
+        """Start fault ``fault``'s effect on the frames it selects (``probability`` each, ``frame_ids``, ``count``)."""
+    def start_babbler(self, bus: int, fault: int, name: str, frame_id: int, data: bytes, extended: bool) -> int:
+        """A babbling node joins the bus and queues its first frame now; returns its node."""
+    def end_bus_fault(self, bus: int, fault: int) -> None: ...
+    has_bus_events: bool
+    def take_bus_events(self) -> list[tuple[int, int, str, dict]]:
+        """(bus, t_ns, kind, fields) of every error-model and guardian event since the last call, in order."""
+    def bus_errors(self, bus: int) -> dict | None:
+        """The error model's counts, ``by_error``, ``nodes``, ``undetected_frames`` (t_ns, sent id, delivered id,
+        delivered data, sent data, flipped bits) and ``babbling_detections``; None without an error model."""
     def link_stats(self, link: int) -> dict[str, int]: ...
     def nodes(self, bus: int) -> list[tuple[str, int, int, int]]: ...
     def detach(self, bus: int, node: int) -> int:
@@ -168,6 +202,15 @@ class BusServerCore:
     def take_trace(self) -> list[tuple[int, bytes, bool, int, int, int, bool, bool]]:
         """(frame_id, data, extended, t_enqueue, t_start, t_end, fd, brs) of each frame completed since the last call."""
     def take_messages(self) -> list[tuple[str, str]]: ...
+    def enable_bus_errors(self, rng_state: RngState) -> None: ...
+    def set_guardian(self, allowances: dict[int, int], window_ns: int, share_ns: float) -> None: ...
+    def add_bus_fault(self, fault: int, kind: BusFaultKind, rng_state: RngState, probability: float,
+                      frame_ids: Sequence[int] | None, count: int | None, bits: int = 1) -> None: ...
+    def start_babbler(self, fault: int, name: str, frame_id: int, data: bytes, extended: bool) -> int: ...
+    def end_bus_fault(self, fault: int) -> None: ...
+    def take_bus_events(self) -> list[BusEvent]:
+        """(t_ns, kind, fields) of every error-model and guardian event since the last call (model time)."""
+    def bus_errors(self) -> dict | None: ...
     def current(self) -> tuple[int, int] | None: ...
     def shutdown(self) -> None: ...
 

@@ -9,7 +9,9 @@ use std::cmp::{Ordering, Reverse};
 use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::sync::Arc;
 
+use crate::errors::{BusErrors, BusEvent, ErrorKind};
 use crate::frame::{fd_padded_len, BitTiming, FrameError, MAX_CLASSIC_DATA, MAX_DATA};
+use crate::guardian::Guardian;
 use crate::packing::Packing;
 
 /// Where a node's received frames go (resolved by the driver).
@@ -144,6 +146,8 @@ pub struct Node {
     pub dropped: u64,
     /// False once the node left the bus (its index stays taken; it neither sends nor receives).
     pub attached: bool,
+    /// Bus-off (fault confinement, `errors`): the node neither sends nor receives until it recovers.
+    pub bus_off: bool,
 }
 
 impl Node {
@@ -164,6 +168,8 @@ pub struct Transmission {
     pub t_enqueue: u64,
     pub t_start: u64,
     pub t_end: u64,
+    /// Set when the frame was destroyed (`errors`): not delivered, retransmitted.
+    pub error: Option<ErrorKind>,
 }
 
 /// Statistics the run log takes over: one row per frame and one per load window.
@@ -196,12 +202,18 @@ pub struct Bus {
     pub current: Option<Transmission>,
     window_ns: u64,
     window_end: u64,
-    window_busy: u64,
+    pub(crate) window_busy: u64,
     pub stats: BusStats,
     /// When set, every completed transmission is also kept here for the driver (CAN logs, frame rows).
     pub trace: Option<Vec<Transmission>>,
     /// Container frames on this bus (CAN FD frame packing): a node accepting a part also receives its container.
     pub packing: Option<Arc<Packing>>,
+    /// CAN error confinement and the bus fault injectors (None: the error-free fast path).
+    pub errors: Option<Box<BusErrors>>,
+    /// The babbling-idiot monitor, fed every delivered frame.
+    pub guardian: Option<Guardian>,
+    /// What the error model and the guardian reported, in order, for the driver to take.
+    pub events: Vec<BusEvent>,
 }
 
 impl Bus {
@@ -210,25 +222,32 @@ impl Bus {
             name: name.to_string(), timing, policy, depth, extended, format: Format::Classical, nodes: Vec::new(), heap: BinaryHeap::new(), seq: 0,
             receivers_std: vec![None; 1 << 11], receivers_ext: HashMap::new(), busy_until: 0, current: None, window_ns: load_window_ns,
             window_end: load_window_ns, window_busy: 0, stats: BusStats::default(), trace: None, packing: None,
+            errors: None, guardian: None, events: Vec::new(),
         }
     }
 
     /// Attach a node; returns its index on this bus.
     pub fn attach(&mut self, name: &str, sink: Sink, rx_ids: Option<Vec<u32>>, receive_own: bool) -> usize {
         self.nodes.push(Node { name: name.to_string(), sink, rx_ids, receive_own, queued: 0, fifo: VecDeque::new(), sent: 0,
-                               dropped: 0, attached: true });
+                               dropped: 0, attached: true, bus_off: false });
+        self.refresh_receivers();
+        self.nodes.len() - 1
+    }
+
+    /// Forget the receiver lists (a node joined, left, went bus-off or recovered): they are built again.
+    pub fn refresh_receivers(&mut self) {
         self.receivers_std.iter_mut().for_each(|r| *r = None);
         self.receivers_ext.clear();
-        self.nodes.len() - 1
     }
 
     fn find_receivers(nodes: &[Node], frame_id: u32, packing: Option<&Packing>) -> Vec<usize> {
         let parts = packing.and_then(|p| p.parts(frame_id)).unwrap_or(&[]);
         let wants = |ids: &Vec<u32>| ids.contains(&frame_id) || parts.iter().any(|p| ids.contains(&p.id));
+        let listens = |n: &Node| n.sink != Sink::None && !n.bus_off;
         let mut found: Vec<usize> = (0..nodes.len())
-            .filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.as_ref().is_some_and(wants))
+            .filter(|&i| listens(&nodes[i]) && nodes[i].rx_ids.as_ref().is_some_and(wants))
             .collect();
-        found.extend((0..nodes.len()).filter(|&i| nodes[i].sink != Sink::None && nodes[i].rx_ids.is_none()));
+        found.extend((0..nodes.len()).filter(|&i| listens(&nodes[i]) && nodes[i].rx_ids.is_none()));
         found
     }
 
@@ -244,8 +263,7 @@ impl Bus {
     /// Pack the frames of this bus's containers (see `packing`); the receiver lists are built again.
     pub fn set_packing(&mut self, packing: Option<Arc<Packing>>) {
         self.packing = packing;
-        self.receivers_std.iter_mut().for_each(|r| *r = None);
-        self.receivers_ext.clear();
+        self.refresh_receivers();
     }
 
     /// Move the receiver list of `frame_id` out of the cache (no copy per frame); give it back with `put_receivers`.
@@ -280,11 +298,12 @@ impl Bus {
     /// Queue a frame of the given format. A CAN FD payload whose length no DLC gives is padded with zeros up to
     /// the next one (12, 16, 20, 24, 32, 48, 64), as FD controllers do; what cannot be sent fails in `arbitrate`.
     pub fn enqueue_as(&mut self, node: usize, frame_id: u32, data: &[u8], t: u64, extended: Option<bool>, format: Format) -> bool {
-        let n = &mut self.nodes[node];
-        if n.queued >= self.depth || !n.attached {
-            n.dropped += 1;
+        let n = &self.nodes[node];
+        if n.queued >= self.depth || !n.attached || (n.bus_off && !self.admits(node, t)) {
+            self.nodes[node].dropped += 1;
             return false;
         }
+        let n = &mut self.nodes[node];
         n.queued += 1;
         self.seq += 1;
         let ext = extended.unwrap_or(self.extended);
@@ -301,7 +320,7 @@ impl Bus {
         true
     }
 
-    fn pop_winner(&mut self) -> Option<Item> {
+    pub(crate) fn pop_winner(&mut self) -> Option<Item> {
         match self.policy {
             Policy::Priority => self.heap.pop().map(|Reverse(item)| item),
             Policy::Fifo => {
@@ -331,19 +350,34 @@ impl Bus {
         if self.current.is_some() || t < self.busy_until {
             return Ok(None);
         }
-        let Some(won) = self.pop_winner() else { return Ok(None) };
+        let errors = self.errors.is_some();
+        if errors {
+            self.before_arbitrate(t);
+        }
+        let mut won = self.pop_winner();
+        if errors {
+            won = self.filter_winner(won);
+        }
+        let Some(won) = won else { return Ok(None) };
         self.nodes[won.node].queued -= 1;
         let f = won.format;
         let t_end = t + self.timing.frame_ns(won.frame_id, won.data.as_slice(), won.extended, f.is_fd(), f.brs())?;
         self.current = Some(Transmission { node: won.node, frame_id: won.frame_id, extended: won.extended, format: f,
-                                           data: won.data, t_enqueue: won.t_enqueue, t_start: t, t_end });
+                                           data: won.data, t_enqueue: won.t_enqueue, t_start: t, t_end, error: None });
         self.busy_until = t_end;
-        Ok(Some(t_end))
+        if errors {
+            self.on_start(won); // may destroy the frame: it then ends with its error frame
+        }
+        Ok(self.current.map(|tx| tx.t_end))
     }
 
-    /// End the current transmission and account for it; the driver delivers it to `receivers(frame_id)`.
+    /// End the current transmission and account for it; the driver delivers it to `receivers(frame_id)` unless
+    /// it was destroyed (`error` set: the error model put it back in its sender's queue).
     pub fn complete(&mut self) -> Transmission {
         let tx = self.current.take().expect("complete() without a transmission");
+        if self.errors.is_some() && !self.on_complete(&tx) {
+            return tx;
+        }
         self.nodes[tx.node].sent += 1;
         self.stats.frames_sent += 1;
         self.stats.frames.extend_from_slice(&[
@@ -354,7 +388,33 @@ impl Bus {
         if let Some(trace) = self.trace.as_mut() {
             trace.push(tx);
         }
+        if let Some(g) = self.guardian.as_mut() {
+            g.observe(&tx, &mut self.events);
+        }
         tx
+    }
+
+    /// Put a destroyed frame back at its place in its node's queue (automatic retransmission).
+    pub(crate) fn requeue(&mut self, item: Item) {
+        self.nodes[item.node].queued += 1;
+        match self.policy {
+            Policy::Priority => self.heap.push(Reverse(item)),
+            Policy::Fifo => self.nodes[item.node].fifo.push_front(item),
+        }
+    }
+
+    /// Drop (and count) every frame a node has queued (it left the bus, or went bus-off); returns how many.
+    pub(crate) fn drop_queued(&mut self, node: usize) -> usize {
+        let lost = self.nodes[node].queued;
+        if lost > 0 && self.policy == Policy::Priority {
+            let items: Vec<Reverse<Item>> = std::mem::take(&mut self.heap).into_vec();
+            self.heap = items.into_iter().filter(|Reverse(item)| item.node != node).collect();
+        }
+        let n = &mut self.nodes[node];
+        n.fifo.clear();
+        n.queued = 0;
+        n.dropped += lost as u64;
+        lost
     }
 
     /// Book a transmission's bus time in the load windows it spans, each its own part (a frame that straddles a
@@ -373,7 +433,7 @@ impl Bus {
     }
 
     /// Emit a load sample for every window that ended before t (at or before t if inclusive).
-    fn close_windows(&mut self, t: u64, inclusive: bool) {
+    pub(crate) fn close_windows(&mut self, t: u64, inclusive: bool) {
         while t > self.window_end || (inclusive && t == self.window_end) {
             self.stats.load.push(self.window_end as f64 * 1e-9);
             self.stats.load.push(self.window_busy as f64 / self.window_ns as f64);
@@ -384,26 +444,21 @@ impl Bus {
 
     /// Close the load windows up to t (the end of a run).
     pub fn finish(&mut self, t: u64) {
+        if self.errors.is_some() {
+            self.finish_errors(t);
+        }
         self.close_windows(t, true);
     }
 
     /// Remove a node (it disconnected): its queued frames are dropped and counted, how many is returned; a frame
     /// of it already on the wire completes.
     pub fn detach(&mut self, node: usize) -> usize {
-        let lost = self.nodes[node].queued;
-        if lost > 0 && self.policy == Policy::Priority {
-            let items: Vec<Reverse<Item>> = std::mem::take(&mut self.heap).into_vec();
-            self.heap = items.into_iter().filter(|Reverse(item)| item.node != node).collect();
-        }
+        let lost = self.drop_queued(node);
         let n = &mut self.nodes[node];
-        n.fifo.clear();
-        n.queued = 0;
-        n.dropped += lost as u64;
         n.attached = false;
         n.sink = Sink::None;
         n.rx_ids = Some(Vec::new());
-        self.receivers_std.iter_mut().for_each(|r| *r = None);
-        self.receivers_ext.clear();
+        self.refresh_receivers();
         lost
     }
 

@@ -267,7 +267,7 @@ const FD_CRC17_FIELD: u32 = 4 + 17 + 6;
 /// Stuff count, CRC-21 and their 7 fixed stuff bits: payloads above 16 bytes.
 const FD_CRC21_FIELD: u32 = 4 + 21 + 7;
 /// Nominal-rate bits after the data phase: ACK slot, ACK delimiter, EOF (7), IFS (3).
-const FD_TAIL_BITS: u32 = 1 + 1 + 7 + 3;
+pub const FD_TAIL_BITS: u32 = 1 + 1 + 7 + 3;
 
 /// The DLC code of a CAN FD payload length, or None if no DLC gives exactly that length (pad it first).
 pub fn fd_dlc(len: usize) -> Option<u8> {

@@ -5,6 +5,8 @@
 //! * `codec`: the DBC message layouts compiled from cantools (saturate and count, never wrap);
 //! * `mailbox`: an ECU's input mailboxes, read once per cycle;
 //! * `bus`: the CAN bus model (TX queues, arbitration, filters, statistics);
+//! * `errors`: CAN error confinement, corruption with a bit-level receiver, error frames and retransmission, and
+//!   the bus fault injectors; `guardian`: the babbling-idiot monitor; `rng`: numpy's PCG64, to continue its streams;
 //! * `packing`: CAN FD frame packing (several messages in one container frame, unpacked at the receivers);
 //! * `radio`: the train-to-train links and the routing gateway;
 //! * `kernel` and `network`: the virtual-time event queue and the network it drives;
@@ -15,12 +17,15 @@
 pub mod bus;
 pub mod codec;
 pub mod e2e;
+pub mod errors;
 pub mod frame;
+pub mod guardian;
 pub mod kernel;
 pub mod mailbox;
 pub mod network;
 pub mod packing;
 pub mod radio;
+pub mod rng;
 pub mod server;
 
 #[cfg(feature = "python")]

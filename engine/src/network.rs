@@ -10,6 +10,7 @@ use std::rc::Rc;
 use std::sync::Arc;
 
 use crate::bus::{Bus, Payload, Sink, Transmission};
+use crate::errors::BusEvent;
 use crate::codec::MessageLayout;
 use crate::frame::{self, FrameError};
 use crate::kernel::EventQueue;
@@ -78,6 +79,8 @@ pub struct Network {
     position_layouts: HashMap<u32, Arc<MessageLayout>>,
     reschedule: Option<(u64, u64, u64)>,
     next_token: u64,
+    /// What the buses' error models and guardians reported, as (bus, event), in the order it happened.
+    pub events: Vec<(usize, BusEvent)>,
 }
 
 impl Network {
@@ -141,7 +144,23 @@ impl Network {
             let t = now.max(b.busy_until);
             self.queue.at(t, Event::Arbitrate(bus));
         }
+        self.collect_events(bus);
         Ok(ok)
+    }
+
+    /// Move a bus's error and guardian events to the network's list, keeping the order they happened in.
+    fn collect_events(&mut self, bus: usize) {
+        if !self.buses[bus].events.is_empty() {
+            self.events.extend(self.buses[bus].events.drain(..).map(|e| (bus, e)));
+        }
+    }
+
+    /// Close every bus's load windows (and error model) at `t` ns: the end of a run.
+    pub fn finish(&mut self, t: u64) {
+        for bus in 0..self.buses.len() {
+            self.buses[bus].finish(t);
+            self.collect_events(bus);
+        }
     }
 
     /// Queue a node's batch of frames at the current time: on a bus with frame packing, the batch goes as its
@@ -169,7 +188,9 @@ impl Network {
 
     fn arbitrate(&mut self, bus: usize) -> Result<(), FrameError> {
         self.arbitration_pending[bus] = false;
-        if let Some(end) = self.buses[bus].arbitrate(self.queue.now)? {
+        let started = self.buses[bus].arbitrate(self.queue.now);
+        self.collect_events(bus);
+        if let Some(end) = started? {
             self.queue.at(end, Event::End(bus));
         }
         Ok(())
@@ -177,16 +198,20 @@ impl Network {
 
     fn end<E: From<FrameError>>(&mut self, bus: usize, refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
         let tx = self.buses[bus].complete();
-        let receivers = self.buses[bus].take_receivers(tx.frame_id);
-        let packing = self.buses[bus].packing.clone();
-        let parts = packing.as_deref().and_then(|p| p.unpack(tx.frame_id, tx.data.as_slice()));
-        let delivered = match parts {
-            // a container: each receiver takes the parts its filter accepts, as the frames they were
-            Some(mut parts) => parts.try_for_each(|(id, data)| self.deliver(bus, &receivers, &tx, id, Payload::new(data), true, refill)),
-            None => self.deliver(bus, &receivers, &tx, tx.frame_id, tx.data, false, refill),
-        };
-        self.buses[bus].put_receivers(tx.frame_id, receivers);
-        delivered?;
+        self.collect_events(bus);
+        if tx.error.is_none() {
+            // destroyed frames (`error`) are not delivered: their sender retransmits them
+            let receivers = self.buses[bus].take_receivers(tx.frame_id);
+            let packing = self.buses[bus].packing.clone();
+            let parts = packing.as_deref().and_then(|p| p.unpack(tx.frame_id, tx.data.as_slice()));
+            let delivered = match parts {
+                // a container: each receiver takes the parts its filter accepts, as the frames they were
+                Some(mut parts) => parts.try_for_each(|(id, data)| self.deliver(bus, &receivers, &tx, id, Payload::new(data), true, refill)),
+                None => self.deliver(bus, &receivers, &tx, tx.frame_id, tx.data, false, refill),
+            };
+            self.buses[bus].put_receivers(tx.frame_id, receivers);
+            delivered?;
+        }
         if self.arbitration_pending[bus] || !self.buses[bus].pending() {
             return Ok(());
         }

@@ -12,6 +12,9 @@ use pyo3::types::{PyBytes, PyDict, PyList, PyTuple};
 use crate::bus::{Bus, Format, Policy, Sink};
 use crate::codec::{CodecError, MessageLayout, SignalSpec};
 use crate::e2e::{self, STATUS_NAMES};
+use crate::errors::{BusEvent, Effect, EventKind, Selection};
+use crate::guardian::Guardian;
+use crate::rng::Pcg64;
 use crate::frame::{self, BitTiming, FrameError, MAX_DATA};
 use crate::mailbox;
 use crate::network::{Network as CoreNetwork, FAULT_DRAWS};
@@ -68,6 +71,25 @@ fn fd_frame_bits(can_id: i64, data: PyBackedBytes, extended: bool, brs: bool, es
 #[pyfunction]
 fn e2e_crc(data_id: u8, payload: PyBackedBytes) -> u8 {
     e2e::e2e_crc(data_id, &payload)
+}
+
+/// A classical data frame on the wire, SOF through EOF, as the error model sees it (0 = dominant).
+#[pyfunction]
+#[pyo3(signature = (can_id, data, extended = false))]
+fn wire_bits(can_id: u32, data: PyBackedBytes, extended: bool) -> PyResult<Vec<u8>> {
+    frame::validate(can_id, data.len(), extended).map_err(frame_err)?;
+    Ok(crate::errors::wire_bits(can_id, &data, extended))
+}
+
+/// What CAN receivers make of `wire` (bits, e.g. `wire_bits` with some flipped): (error or None, the bit it was
+/// found at, and for an accepted frame its ID, extended flag and data).
+#[pyfunction]
+fn receive_wire<'py>(py: Python<'py>, wire: Vec<u8>) -> PyResult<(Option<&'static str>, u32, u32, bool, Bound<'py, PyBytes>)> {
+    if wire.iter().any(|&b| b > 1) {
+        return Err(PyValueError::new_err("wire bits must be 0 or 1"));
+    }
+    let r = crate::errors::receive(&wire);
+    Ok((r.error.map(|e| e.name()), r.at, r.can_id, r.extended, PyBytes::new(py, &r.data)))
 }
 
 fn timing(nominal: u64, data: u64) -> PyResult<BitTiming> {
@@ -630,11 +652,72 @@ impl Network {
         PyList::new(py, items)
     }
 
-    /// Close the load windows of every bus up to `t_ns` (the end of a run).
+    /// Close the load windows (and the error models) of every bus up to `t_ns` (the end of a run).
     fn finish(&mut self, t_ns: u64) {
-        for b in &mut self.core.buses {
-            b.finish(t_ns);
-        }
+        self.core.finish(t_ns);
+    }
+
+    /// Model CAN errors and fault confinement on a bus; `rng_state`: (state, inc) of a numpy PCG64 stream, which
+    /// the error model continues (error flag and corruption positions).
+    fn enable_bus_errors(&mut self, bus: usize, rng_state: (u128, u128)) -> PyResult<()> {
+        self.bus_mut(bus)?.enable_errors(Pcg64::from_state(rng_state.0, rng_state.1));
+        Ok(())
+    }
+
+    /// Watch a bus for a babbling idiot: `allowances` frames per window by ID (others: 2), flagged above them
+    /// when they also hold more than `share_ns` of a `window_ns` window.
+    fn set_guardian(&mut self, bus: usize, allowances: std::collections::HashMap<u32, u32>, window_ns: u64, share_ns: f64) -> PyResult<()> {
+        check_window(window_ns)?;
+        self.bus_mut(bus)?.guardian = Some(Guardian::new(allowances, window_ns, share_ns));
+        Ok(())
+    }
+
+    /// Start fault `fault`'s effect on a bus: `kind` "corruption", "error_flags" or "drops" of the frames it
+    /// selects (`probability` each, only `frame_ids` if given, at most `count`), drawing from its own stream.
+    #[pyo3(signature = (bus, fault, kind, rng_state, probability, frame_ids, count, bits = 1))]
+    #[allow(clippy::too_many_arguments)]
+    fn add_bus_fault(&mut self, bus: usize, fault: u64, kind: &str, rng_state: (u128, u128), probability: f64,
+                     frame_ids: Option<Vec<u32>>, count: Option<u64>, bits: u32) -> PyResult<()> {
+        add_bus_fault(self.bus_mut(bus)?, fault, kind, rng_state, probability, frame_ids, count, bits)
+    }
+
+    /// A babbling node for fault `fault` joins a bus and queues its first frame now; returns its node.
+    fn start_babbler(&mut self, bus: usize, fault: u64, name: &str, frame_id: u32, data: PyBackedBytes, extended: bool) -> PyResult<usize> {
+        let node = self.bus_mut(bus)?.start_babbler(fault, name, frame_id, &data, extended)
+            .ok_or_else(|| PyValueError::new_err("a babbling node needs the bus's error model (enable_bus_errors)"))?;
+        let b = &self.core.buses[bus];
+        frame::validate_as(frame_id, data.len(), extended, b.format.is_fd()).map_err(frame_err)?;
+        self.core.send(bus, node, frame_id, &data).map_err(frame_err)?;
+        Ok(node)
+    }
+
+    /// End fault `fault`'s effect on a bus (a babbler leaves it).
+    fn end_bus_fault(&mut self, bus: usize, fault: u64) -> PyResult<()> {
+        self.bus_mut(bus)?.end_fault(fault);
+        Ok(())
+    }
+
+    /// Whether error or guardian events wait for `take_bus_events`.
+    #[getter]
+    fn has_bus_events(&self) -> bool {
+        !self.core.events.is_empty()
+    }
+
+    /// Take the buses' error-model and guardian events since the last call, in the order they happened:
+    /// [(bus, t_ns, kind, fields)] (see `trainhil_engine._native.pyi` for the kinds and their fields).
+    fn take_bus_events<'py>(&mut self, py: Python<'py>) -> PyResult<Vec<(usize, i64, &'static str, Bound<'py, PyDict>)>> {
+        let events = std::mem::take(&mut self.core.events);
+        events.iter().map(|(bus, e)| {
+            let (kind, fields) = event_fields(py, &self.core.buses[*bus], e)?;
+            Ok((*bus, e.t_ns, kind, fields))
+        }).collect()
+    }
+
+    /// A bus's error model summary (None without one): counts, error frames by kind, nodes whose counters moved,
+    /// the corruptions CAN did not detect, and the guardian's detections.
+    fn bus_errors<'py>(&self, py: Python<'py>, bus: usize) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let b = self.core.buses.get(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))?;
+        errors_summary(py, b)
     }
 
     /// Counters of a radio link: offered, delivered, out_of_range, blackout, lost, rate_capped.
@@ -694,6 +777,119 @@ impl Network {
     }
 }
 
+fn check_window(window_ns: u64) -> PyResult<()> {
+    if window_ns == 0 {
+        return Err(PyValueError::new_err("the guardian's window_ns must be positive"));
+    }
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn add_bus_fault(bus: &mut Bus, fault: u64, kind: &str, rng_state: (u128, u128), probability: f64, frame_ids: Option<Vec<u32>>,
+                 count: Option<u64>, bits: u32) -> PyResult<()> {
+    let effect = match kind {
+        "corruption" => Effect::Corruption,
+        "error_flags" => Effect::ErrorFlags,
+        "drops" => Effect::Drops,
+        _ => return Err(PyValueError::new_err(format!("bus fault kind must be corruption, error_flags or drops, got '{kind}'"))),
+    };
+    if !(0.0..=1.0).contains(&probability) {
+        return Err(PyValueError::new_err(format!("bus fault {fault}: probability {probability} is not in [0, 1]")));
+    }
+    if bus.errors.is_none() {
+        return Err(PyValueError::new_err(format!("{}: bus faults need the bus's error model (enable_bus_errors)", bus.name)));
+    }
+    let rng = Pcg64::from_state(rng_state.0, rng_state.1);
+    bus.add_effect(effect, Selection { fault, rng, probability, frame_ids, count, hits: 0, bits: bits.max(1) });
+    Ok(())
+}
+
+/// An event as (kind, fields) for Python (`hil.can.errors.event_text` and the guardian word them).
+fn event_fields<'py>(py: Python<'py>, bus: &Bus, e: &BusEvent) -> PyResult<(&'static str, Bound<'py, PyDict>)> {
+    let d = PyDict::new(py);
+    let name = |node: usize| bus.nodes[node].name.clone();
+    let kind = match &e.kind {
+        EventKind::State { node, state, tec, rec } => {
+            d.set_item("node", name(*node))?;
+            d.set_item("tec", tec)?;
+            d.set_item("rec", rec)?;
+            state.name()
+        }
+        EventKind::BusOff { node, tec, lost } => {
+            d.set_item("node", name(*node))?;
+            d.set_item("tec", tec)?;
+            d.set_item("lost", lost)?;
+            "bus_off"
+        }
+        EventKind::Recovered { node, after_ns } => {
+            d.set_item("node", name(*node))?;
+            d.set_item("after_ns", after_ns)?;
+            "recovered"
+        }
+        EventKind::ErrorFrame { error, frame_id, node } => {
+            d.set_item("error", error.name())?;
+            d.set_item("frame_id", frame_id)?;
+            d.set_item("node", name(*node))?;
+            "error_frame"
+        }
+        EventKind::Episode { start_ns, last_ns, by_error } => {
+            d.set_item("start_ns", start_ns)?;
+            d.set_item("last_ns", last_ns)?;
+            let kinds = PyDict::new(py);
+            for (k, n) in by_error {
+                kinds.set_item(k.name(), n)?;
+            }
+            d.set_item("by_error", kinds)?;
+            "episode"
+        }
+        EventKind::Babbling { frame_id, frames, busy_ns, allowance } => {
+            d.set_item("frame_id", frame_id)?;
+            d.set_item("frames", frames)?;
+            d.set_item("busy_ns", busy_ns)?;
+            d.set_item("allowance", allowance)?;
+            "babbling"
+        }
+        EventKind::Cleared { frame_id } => {
+            d.set_item("frame_id", frame_id)?;
+            "cleared"
+        }
+    };
+    Ok((kind, d))
+}
+
+/// The error model's summary of a bus for Python (see `Network.bus_errors`).
+fn errors_summary<'py>(py: Python<'py>, bus: &Bus) -> PyResult<Option<Bound<'py, PyDict>>> {
+    let Some(e) = bus.errors.as_deref() else { return Ok(None) };
+    let d = PyDict::new(py);
+    for (k, v) in e.stats.items() {
+        d.set_item(k, v)?;
+    }
+    let by_error = PyDict::new(py);
+    for (k, n) in &e.by_error {
+        by_error.set_item(k.name(), n)?;
+    }
+    d.set_item("by_error", by_error)?;
+    let nodes = PyDict::new(py);
+    for (node, c, bus_off_ns) in e.nodes() {
+        let n = PyDict::new(py);
+        n.set_item("tec_max", c.tec_max)?;
+        n.set_item("rec_max", c.rec_max)?;
+        n.set_item("error_passive", c.passive_count)?;
+        n.set_item("bus_off", c.bus_off_count)?;
+        n.set_item("bus_off_s", bus_off_ns as f64 * 1e-9)?;
+        n.set_item("state", &c.state.name()[..])?;
+        nodes.set_item(&bus.nodes[node].name, n)?;
+    }
+    d.set_item("nodes", nodes)?;
+    let undetected: Vec<Bound<'py, PyTuple>> = e.undetected.iter()
+        .map(|u| (u.t_ns, u.sent_id, u.delivered_id, PyBytes::new(py, u.delivered.as_slice()), PyBytes::new(py, u.sent.as_slice()),
+                  u.flipped.clone()).into_pyobject(py))
+        .collect::<PyResult<_>>()?;
+    d.set_item("undetected_frames", undetected)?;
+    d.set_item("babbling_detections", bus.guardian.as_ref().map_or(0, |g| g.detections))?;
+    Ok(Some(d))
+}
+
 impl Network {
     fn bus_mut(&mut self, bus: usize) -> PyResult<&mut Bus> {
         self.core.buses.get_mut(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))
@@ -728,6 +924,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(frame_duration_ns, m)?)?;
     m.add_function(wrap_pyfunction!(fd_frame_bits, m)?)?;
     m.add_function(wrap_pyfunction!(e2e_crc, m)?)?;
+    m.add_function(wrap_pyfunction!(wire_bits, m)?)?;
+    m.add_function(wrap_pyfunction!(receive_wire, m)?)?;
     m.add_function(wrap_pyfunction!(wait_readable, m)?)?;
     m.add_class::<MessageCodec>()?;
     m.add_class::<Mailbox>()?;
@@ -735,7 +933,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Packing>()?;
     m.add_class::<BusServerCore>()?;
     m.add_class::<FrameLink>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "MessageCodec", "Mailbox", "Network", "Packing",
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing",
                           "BusServerCore", "FrameLink", "wait_readable"])?;
     Ok(())
 }
@@ -877,6 +1075,69 @@ impl BusServerCore {
         s.bus.current.map(|tx| (tx.frame_id, tx.t_end))
     }
 
+    /// Model CAN errors and fault confinement on this bus (see `Network.enable_bus_errors`).
+    fn enable_bus_errors(&self, rng_state: (u128, u128)) -> PyResult<()> {
+        self.with_bus(|bus, _| {
+            bus.enable_errors(Pcg64::from_state(rng_state.0, rng_state.1));
+            Ok(())
+        })
+    }
+
+    /// Watch this bus for a babbling idiot (see `Network.set_guardian`).
+    fn set_guardian(&self, allowances: std::collections::HashMap<u32, u32>, window_ns: u64, share_ns: f64) -> PyResult<()> {
+        check_window(window_ns)?;
+        self.with_bus(|bus, _| {
+            bus.guardian = Some(Guardian::new(allowances, window_ns, share_ns));
+            Ok(())
+        })
+    }
+
+    /// Start fault `fault`'s effect on this bus (see `Network.add_bus_fault`).
+    #[pyo3(signature = (fault, kind, rng_state, probability, frame_ids, count, bits = 1))]
+    #[allow(clippy::too_many_arguments)]
+    fn add_bus_fault(&self, fault: u64, kind: &str, rng_state: (u128, u128), probability: f64, frame_ids: Option<Vec<u32>>,
+                     count: Option<u64>, bits: u32) -> PyResult<()> {
+        self.with_bus(|bus, _| add_bus_fault(bus, fault, kind, rng_state, probability, frame_ids, count, bits))
+    }
+
+    /// A babbling node for fault `fault` joins this bus and queues its first frame now; returns its node.
+    fn start_babbler(&self, fault: u64, name: &str, frame_id: u32, data: PyBackedBytes, extended: bool) -> PyResult<usize> {
+        self.with_bus(|bus, now| {
+            frame::validate_as(frame_id, data.len(), extended, bus.format.is_fd()).map_err(frame_err)?;
+            let node = bus.start_babbler(fault, name, frame_id, &data, extended)
+                .ok_or_else(|| PyValueError::new_err("a babbling node needs the bus's error model (enable_bus_errors)"))?;
+            let format = bus.format;
+            bus.enqueue_as(node, frame_id, &data, now, Some(extended), format);
+            Ok(node)
+        })
+    }
+
+    /// End fault `fault`'s effect on this bus (a babbler leaves it).
+    fn end_bus_fault(&self, fault: u64) -> PyResult<()> {
+        self.with_bus(|bus, _| {
+            bus.end_fault(fault);
+            Ok(())
+        })
+    }
+
+    /// Take this bus's error-model and guardian events since the last call: [(t_ns, kind, fields)] in model time.
+    fn take_bus_events<'py>(&self, py: Python<'py>) -> PyResult<Vec<(i64, &'static str, Bound<'py, PyDict>)>> {
+        let h = self.handle.as_ref().ok_or_else(|| PyValueError::new_err("bus server is closed"))?;
+        let s = &mut *h.shared.lock().unwrap();
+        let events = std::mem::take(&mut s.bus.events);
+        events.iter().map(|e| {
+            let (kind, fields) = event_fields(py, &s.bus, e)?;
+            Ok((e.t_ns, kind, fields))
+        }).collect()
+    }
+
+    /// This bus's error model summary (see `Network.bus_errors`).
+    fn bus_errors<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let h = self.handle.as_ref().ok_or_else(|| PyValueError::new_err("bus server is closed"))?;
+        let s = h.shared.lock().unwrap();
+        errors_summary(py, &s.bus)
+    }
+
     /// Log lines since the last call: [(level, text)].
     fn take_messages(&self) -> Vec<(String, String)> {
         self.handle.as_ref().map_or_else(Vec::new, |h| std::mem::take(&mut h.shared.lock().unwrap().messages))
@@ -887,6 +1148,20 @@ impl BusServerCore {
         if let Some(h) = self.handle.as_mut() {
             py.allow_threads(|| h.shutdown());
         }
+    }
+}
+
+impl BusServerCore {
+    /// Run `f(bus, now_ns)` under the server's lock, then wake its loop.
+    fn with_bus<R>(&self, f: impl FnOnce(&mut Bus, u64) -> PyResult<R>) -> PyResult<R> {
+        let h = self.handle.as_ref().ok_or_else(|| PyValueError::new_err("bus server is closed"))?;
+        let out = {
+            let now = h.now_ns();
+            let mut s = h.shared.lock().unwrap();
+            f(&mut s.bus, now)
+        };
+        h.wake();
+        out
     }
 }
 

@@ -377,6 +377,11 @@ impl ServerHandle {
         self.thread.as_ref().is_some_and(|t| !t.is_finished())
     }
 
+    /// Wake the serving loop (something changed under the lock that it must act on now).
+    pub fn wake(&self) {
+        let _ = (&self.wake).write(b"x");
+    }
+
     /// Stop the loop and wait for its thread.
     pub fn shutdown(&mut self) {
         self.stop.store(true, Ordering::SeqCst);
@@ -530,8 +535,10 @@ impl Server {
             if tx.t_end > now {
                 break;
             }
-            shared.bus.complete();
-            self.deliver(shared, &tx);
+            let done = shared.bus.complete();
+            if done.error.is_none() {
+                self.deliver(shared, &done); // a frame destroyed by an error frame (errors.rs) is not delivered
+            }
             let _ = shared.bus.arbitrate(tx.t_end);
         }
     }

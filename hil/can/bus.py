@@ -94,7 +94,7 @@ class CanBusModel:
         self._seq = 0
         self._listeners: dict[int, list[CanNode]] = {}  # frame id -> filtered receivers (built lazily)
         self._catch_all: list[CanNode] = []
-        self._detached_dropped = 0  # drops of nodes that left the bus
+        self._detached: list[CanNode] = []  # nodes that left the bus (their drops still count)
         self.busy_until = 0
         self.current: Transmission | None = None
         self._window_ns = int(load_window_s * 1e9)
@@ -123,7 +123,7 @@ class CanBusModel:
         if node not in self.nodes:
             raise ValueError(f"node {node.name!r} is not attached to bus {self.name}")
         lost = self.drop_queued(node)
-        self._detached_dropped += node.dropped
+        self._detached.append(node)
         self.nodes.remove(node)
         self._listeners.clear()
         self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
@@ -293,4 +293,4 @@ class CanBusModel:
         if self.errors is not None:
             self.errors.finish(t)
         self._close_windows(t, inclusive=True)
-        self.log.frames_dropped = sum(n.dropped for n in self.nodes) + self._detached_dropped
+        self.log.frames_dropped = sum(n.dropped for n in self.nodes) + sum(n.dropped for n in self._detached)

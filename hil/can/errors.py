@@ -34,6 +34,11 @@ error-active one always does), and REC rule 2 (+8 for a dominant bit after its o
 The fault injectors that need the wire also live here: a babbling node (one frame ID back to back), frame drops
 (gone from the sender's TX queue) and error flags from a faulty transceiver. ``BusErrors`` is attached to a
 ``CanBusModel`` (``bus.errors``) by ``hil.faults``; a bus without it runs the error-free fast path.
+
+The compiled engine has the same model (engine/src/errors.rs), decision for decision: every random draw is one
+``Generator.random()`` (a hit ``u < p``, a position ``floor(u * n)``, corrupted bits by a partial Fisher-Yates
+shuffle), so the engine continues the same numpy streams and both give the same frames
+(tests/test_engine_differential.py). Both report their events as (kind, fields); ``event_text`` words them.
 """
 from __future__ import annotations
 
@@ -58,6 +63,41 @@ FD_EOF_IFS_BITS = 7 + 3  # the end of FD_TAIL_BITS: after the ACK delimiter
 EPISODE_GAP_S = 0.1  # error frames less than this apart are one episode (one summary event)
 
 EventSink = Callable[[int, str, str], None]  # (t_ns, level, text)
+
+
+def event_text(kind: str, f: dict) -> tuple[str, str]:
+    """(level, text) of an error-model event of ``kind`` with its fields (from this model or the engine's)."""
+    if kind == "bus_off":
+        return "ERROR", (f"{f['node']}: bus-off (TEC = {f['tec']} > {BUS_OFF_ABOVE}); {f['lost']} queued frames dropped; "
+                         f"recovers after {RECOVERY_SEQUENCES} x {RECESSIVE_SEQUENCE_BITS} recessive bits")
+    if kind == "error_passive":
+        return "WARN", f"{f['node']}: error passive (TEC = {f['tec']}, REC = {f['rec']})"
+    if kind == "error_active":
+        return "INFO", f"{f['node']}: error active again (TEC = {f['tec']}, REC = {f['rec']})"
+    if kind == "recovered":
+        return "INFO", (f"{f['node']}: recovered from bus-off after {f['after_ns'] * 1e-6:.3f} ms "
+                        f"({RECOVERY_SEQUENCES} x {RECESSIVE_SEQUENCE_BITS} recessive bits), error active")
+    if kind == "error_frame":
+        what = "an error flag destroyed" if f["error"] == "error flag" else f"{f['error']} error in"
+        return "WARN", (f"error frame: {what} 0x{f['frame_id']:03X} from {f['node']}; the receivers reject it, "
+                        "the sender retransmits")
+    if kind == "episode":
+        by_error = f["by_error"]
+        kinds = ", ".join(f"{k} {v}" for k, v in sorted(by_error.items()))
+        return "INFO", (f"{sum(by_error.values())} error frames from t = {f['start_ns'] * 1e-9:.4f} s to "
+                        f"{f['last_ns'] * 1e-9:.4f} s (bus time): {kinds}")
+    raise ValueError(f"unknown CAN error event kind {kind!r}")
+
+
+def pick_positions(rng: np.random.Generator, span: int, k: int) -> list[int]:
+    """``k`` distinct positions of 1..span, sorted: a partial Fisher-Yates shuffle, one ``random()`` each (the
+    engine's ``pick_positions`` draws alike)."""
+    pool = list(range(1, span + 1))
+    k = min(k, span)
+    for i in range(k):
+        j = i + int(rng.random() * (span - i))
+        pool[i], pool[j] = pool[j], pool[i]
+    return sorted(pool[:k])
 
 
 class ErrorState(IntEnum):
@@ -130,7 +170,7 @@ class ErrorCounters:
 
 def wire_bits(can_id: int, data: bytes, extended: bool = False) -> list[int]:
     """A data frame as sent, SOF to the end of EOF: stuffed SOF..CRC, CRC delimiter, ACK slot (dominant, as the
-    receivers drive it), ACK delimiter, 7 EOF bits. ``len - 10`` is the index of the ACK delimiter."""
+    receivers drive it), ACK delimiter, 7 EOF bits. ``len - 10`` is the index of the CRC delimiter."""
     return stuffed_bits(can_id, data, extended) + [1, 0, 1] + [1] * 7
 
 
@@ -284,7 +324,7 @@ class BusErrors:
         self.drops: list[FrameSelection] = []
         self.babblers: list[Babbler] = []
         self.counters: dict[CanNode, ErrorCounters] = {}
-        self._receiving: set[CanNode] = set()  # nodes with REC > 0 (a success lowers only theirs)
+        self._receiving: dict[CanNode, None] = {}  # nodes with REC > 0, in the order they got there
         self.stats = {"corrupted": 0, "rejected": 0, "undetected": 0, "error_frames": 0, "injected_error_flags": 0,
                       "retransmissions": 0, "dropped_by_fault": 0, "dropped_bus_off": 0, "babbled": 0}
         self.by_error: dict[str, int] = {}
@@ -307,9 +347,9 @@ class BusErrors:
             c = self.counters[node] = ErrorCounters()
         return c
 
-    def _emit(self, t_ns: int, level: str, text: str) -> None:
+    def _emit(self, t_ns: int, kind: str, **fields) -> None:
         if self.sink is not None:
-            self.sink(t_ns, level, text)
+            self.sink(t_ns, *event_text(kind, fields))
 
     def sequences(self, t_ns: int) -> int:
         """11-bit recessive sequences seen on the bus up to t (the run in progress counts if the bus is idle)."""
@@ -353,7 +393,7 @@ class BusErrors:
         for sel in self.error_flags:
             if sel.hit(tx.frame_id):
                 n_bits = len(wire_bits(tx.frame_id, tx.data, tx.extended)) if not tx.fd else sum(self._fd_phases(tx)) - 3
-                at = int(self.rng.integers(1, n_bits - 7))  # after SOF .. the ACK delimiter
+                at = 1 + int(self.rng.random() * (n_bits - 8))  # after SOF .. the ACK delimiter
                 self.stats["injected_error_flags"] += 1
                 self._fail(tx, "error flag", at)
                 return
@@ -372,8 +412,7 @@ class BusErrors:
             return
         wire = wire_bits(tx.frame_id, tx.data, tx.extended)
         span = len(wire) - 10  # bits after SOF up to and including the CRC delimiter
-        positions = self.rng.choice(np.arange(1, span + 1), size=min(bits, span), replace=False)
-        flips = sorted(positions.tolist())
+        flips = pick_positions(self.rng, span, bits)
         seen = receive(corrupt(wire, flips))
         self.stats["corrupted"] += 1
         if seen.error is not None:
@@ -418,7 +457,7 @@ class BusErrors:
         self._log_error(tx)
         for node in self.bus.nodes:
             if node is not tx.node and not node.bus_off:
-                self._receiving.add(node)
+                self._receiving[node] = None
                 self._changed(node, self.counters_of(node).rx_error(), tx.t_end)
         self._changed(tx.node, self.counters_of(tx.node).tx_error(), tx.t_end)
         bus = self.bus
@@ -441,7 +480,7 @@ class BusErrors:
                     c = self.counters[node]
                     self._changed(node, c.rx_ok(), tx.t_end)
                     if not c.rec:
-                        self._receiving.discard(node)
+                        del self._receiving[node]
 
     def _bus_busy(self, tx: Transmission) -> None:
         """A destroyed frame and its error frame occupy the bus: they count in the load."""
@@ -460,12 +499,9 @@ class BusErrors:
             self.stats["dropped_bus_off"] += lost
             self._bus_off[node] = (self._sequences, t_ns)
             self.bus.refresh_receivers()
-            self._emit(t_ns, "ERROR", f"{node.name}: bus-off (TEC = {c.tec} > {BUS_OFF_ABOVE}); {lost} queued frames "
-                       f"dropped; recovers after {RECOVERY_SEQUENCES} x {RECESSIVE_SEQUENCE_BITS} recessive bits")
-        elif new == ErrorState.ERROR_PASSIVE:
-            self._emit(t_ns, "WARN", f"{node.name}: error passive (TEC = {c.tec}, REC = {c.rec})")
+            self._emit(t_ns, "bus_off", node=node.name, tec=c.tec, lost=lost)
         else:
-            self._emit(t_ns, "INFO", f"{node.name}: error active again (TEC = {c.tec}, REC = {c.rec})")
+            self._emit(t_ns, new.name.lower(), node=node.name, tec=c.tec, rec=c.rec)
 
     def _recoveries(self, t_ns: int) -> None:
         """Bring back every bus-off node that has seen 128 recessive sequences by t (at the exact time it did)."""
@@ -485,8 +521,7 @@ class BusErrors:
             self._bus_off_ns[node] = self._bus_off_ns.get(node, 0) + t_rec - t_off
             self.counters_of(node).recover()
             self.bus.refresh_receivers()
-            self._emit(t_rec, "INFO", f"{node.name}: recovered from bus-off after {(t_rec - t_off) * 1e-6:.3f} ms "
-                       f"({RECOVERY_SEQUENCES} x {RECESSIVE_SEQUENCE_BITS} recessive bits), error active")
+            self._emit(t_rec, "recovered", node=node.name, after_ns=t_rec - t_off)
 
     # ---- events
     def _log_error(self, tx: Transmission) -> None:
@@ -496,9 +531,7 @@ class BusErrors:
             ep = None
         if ep is None:
             self._episode = ep = _Episode(tx.t_end, tx.t_end)
-            what = "an error flag destroyed" if tx.error == "error flag" else f"{tx.error} error in"
-            self._emit(tx.t_end, "WARN", f"error frame: {what} 0x{tx.frame_id:03X} from {tx.node.name}; the receivers "
-                       "reject it, the sender retransmits")
+            self._emit(tx.t_end, "error_frame", error=tx.error, frame_id=tx.frame_id, node=tx.node.name)
         ep.last_ns = tx.t_end
         ep.by_error[tx.error] = ep.by_error.get(tx.error, 0) + 1  # type: ignore[index]
 
@@ -506,10 +539,7 @@ class BusErrors:
         ep, self._episode = self._episode, None
         if ep is None:
             return
-        n = sum(ep.by_error.values())
-        kinds = ", ".join(f"{k} {v}" for k, v in sorted(ep.by_error.items()))
-        self._emit(ep.last_ns, "INFO", f"{n} error frames from t = {ep.start_ns * 1e-9:.4f} s to "
-                   f"{ep.last_ns * 1e-9:.4f} s (bus time): {kinds}")
+        self._emit(ep.last_ns, "episode", start_ns=ep.start_ns, last_ns=ep.last_ns, by_error=dict(ep.by_error))
 
     # ---- effects
     def start_babbler(self, frame_id: int, data: bytes, t_ns: int, extended: bool = False,

@@ -8,6 +8,8 @@ retransmissions stay below that); an ID the DBC does not know may send two. The 
 empties a backlog (after a starvation, 64 queued frames go out back to back) from reading as a babbler: a
 babbling idiot is a node that monopolises the bus. It listens like a CAN logger (``frame_listeners``), so
 it sees every frame of the bus, whatever the acceptance filters; in the real-time rig it runs in the bus server.
+The compiled engine runs the same monitor (engine/src/guardian.rs) with ``allowances`` from here; both report
+(kind, fields) events that ``guardian_text`` words.
 """
 from __future__ import annotations
 
@@ -17,16 +19,35 @@ from collections.abc import Callable
 from hil.can.bus import Transmission
 
 WINDOW_S = 0.1
+WINDOW_NS = round(WINDOW_S * 1e9)
 BABBLE_SHARE = 0.3
+SHARE_NS = BABBLE_SHARE * WINDOW_NS  # bus time an ID must exceed in a window
+UNKNOWN_ALLOWANCE = 2  # frames per window of an ID the DBC does not know
 EventSink = Callable[[int, str, str], None]  # (t_ns, level, text), bus time
+
+
+def allowances(periods: dict[int, float]) -> dict[int, int]:
+    """Frames per window each ID with a DBC cycle time may send: twice its cycle's worth plus two."""
+    return {fid: 2 * math.ceil(WINDOW_S / p) + 2 for fid, p in periods.items() if p > 0}
+
+
+def guardian_text(kind: str, f: dict) -> tuple[str, str]:
+    """(level, text) of a guardian event: ``babbling`` (frame_id, frames, busy_ns, allowance) or ``cleared``."""
+    if kind == "babbling":
+        known = f"its DBC cycle allows {f['allowance']}" if f["allowance"] is not None else "not in the DBC"
+        return "ERROR", (f"babbling node: ID 0x{f['frame_id']:03X} sent {f['frames']} frames in {WINDOW_S * 1e3:.0f} ms, "
+                         f"{f['busy_ns'] / WINDOW_NS:.0%} of the bus ({known})")
+    if kind == "cleared":
+        return "INFO", f"cleared: babbling ID 0x{f['frame_id']:03X}"
+    raise ValueError(f"unknown guardian event kind {kind!r}")
 
 
 class BusGuardian:
     def __init__(self, bus_name: str, periods: dict[int, float], sink: EventSink) -> None:
         self.name = bus_name
-        self._allow = {fid: 2 * math.ceil(WINDOW_S / p) + 2 for fid, p in periods.items() if p > 0}
+        self._allow = allowances(periods)
         self._sink = sink
-        self._window_ns = round(WINDOW_S * 1e9)
+        self._window_ns = WINDOW_NS
         self._end = self._window_ns
         self._counts: dict[int, int] = {}
         self._busy: dict[int, int] = {}  # bus time (ns) per ID in the window
@@ -43,18 +64,17 @@ class BusGuardian:
     def _judge(self, t_ns: int) -> None:
         """Close the window ending at self._end (and any empty ones after it)."""
         t_window = self._end
-        share = BABBLE_SHARE * self._window_ns
-        over = {fid: n for fid, n in self._counts.items() if n > self._allow.get(fid, 2) and self._busy[fid] > share}
+        over = {fid: n for fid, n in self._counts.items()
+                if n > self._allow.get(fid, UNKNOWN_ALLOWANCE) and self._busy[fid] > SHARE_NS}
         for fid, n in sorted(over.items()):
             if fid not in self._flagged:
                 self._flagged.add(fid)
                 self.detections += 1
-                known = f"its DBC cycle allows {self._allow[fid]}" if fid in self._allow else "not in the DBC"
-                self._sink(t_window, "ERROR", f"babbling node: ID 0x{fid:03X} sent {n} frames in "
-                                              f"{WINDOW_S * 1e3:.0f} ms, {self._busy[fid] / self._window_ns:.0%} of the bus ({known})")
+                self._sink(t_window, *guardian_text("babbling", {"frame_id": fid, "frames": n, "busy_ns": self._busy[fid],
+                                                                 "allowance": self._allow.get(fid)}))
         for fid in sorted(self._flagged - set(over)):
             self._flagged.discard(fid)
-            self._sink(t_window, "INFO", f"cleared: babbling ID 0x{fid:03X}")
+            self._sink(t_window, *guardian_text("cleared", {"frame_id": fid}))
         self._counts.clear()
         self._busy.clear()
         self._end += self._window_ns * max(1, (t_ns - self._end) // self._window_ns + 1)

@@ -27,10 +27,10 @@ import sys
 from pathlib import Path
 
 from hil.faults.actuator import ActuatorFaults
-from hil.faults.bus import BusFaults, e2e_checker
+from hil.faults.bus import BusFaults, EngineBusFaults, describe_bus_event, e2e_checker
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
-from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, fault_rng, needs_python_bus_model
+from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, fault_rng
 from hil.faults.sensor import SensorFaults
 from hil.faults.watchdog import Watchdog
 from hil.record.runlog import Event, RunLog
@@ -105,8 +105,12 @@ class RealtimeFaults:
         periods = db.cycle_times()
         ok, packing = e2e_checker(db), bus_packing(scenario, db)
         self.bus_events: list[list] = [[] for _ in servers]  # (model t_ns, level, source, text) per server
-        self.buses: list[BusFaults] = []
-        for i, server in enumerate(servers if needs_python_bus_model(scenario) else ()):
+        # error confinement and the guardian on every bus: in the engine's server, or on the Python server's model
+        self.buses: list[BusFaults | EngineBusFaults] = []
+        for i, server in enumerate(servers):
+            if hasattr(server, "enable_bus_errors"):  # the engine's NativeBusServer
+                self.buses.append(EngineBusFaults(server, i, seed, periods, e2e_ok=ok, packing=packing))
+                continue
             def sink(what: str, i: int = i):
                 return lambda t_ns, level, text: self.bus_events[i].append((t_ns, level, f"bus{i + 1}/{what}", text))
             self.buses.append(server.apply(lambda model, now, i=i: BusFaults(model, i, seed, periods, sink("can"),
@@ -171,7 +175,9 @@ class RealtimeFaults:
                     self._continue(u, sim_now)
         elif kind in BUS_KINDS:
             server, bf = self.servers[spec.train - 1], self.buses[spec.train - 1]
-            if what == "start":
+            if isinstance(bf, EngineBusFaults):  # the engine takes its lock itself
+                bf.start(spec, k) if what == "start" else bf.end(spec, k)
+            elif what == "start":
                 server.apply(lambda model, now: bf.start(spec, k, now))
             else:
                 server.apply(lambda model, now: bf.end(spec, k))
@@ -229,7 +235,11 @@ class RealtimeFaults:
     # ---- the end
     def finish(self, log: RunLog, t0: float | None, pace: float) -> None:
         """Bus events in simulated time, detections matched, ``log.fault_report``."""
-        for server, events in zip(self.servers, self.bus_events):
+        for i, (server, events, bf) in enumerate(zip(self.servers, self.bus_events, self.buses)):
+            if isinstance(bf, EngineBusFaults):
+                for t_ns, kind, fields in server.take_bus_events():
+                    what, level, text = describe_bus_event(kind, fields)
+                    events.append((t_ns, level, f"bus{i + 1}/{what}", text))
             shift = 0.0 if t0 is None else (t0 - server.epoch0) * pace
             log.events.extend(Event(t_ns * 1e-9 - shift, level, source, text) for t_ns, level, source, text in events)
         log.events.extend(self.events)

@@ -24,12 +24,6 @@ def needs_fault_machinery(scenario: Scenario) -> bool:
     return bool(scenario.faults) or scenario.ecu.restart_after_s is not None
 
 
-def needs_python_bus_model(scenario: Scenario) -> bool:
-    """Whether a run's buses must be the Python bus model, which carries CAN error confinement and the bus fault
-    injectors: a bus fault in the schedule (in real time: the Python ``BusServer``). ECU, sensor, actuator and
-    radio faults and the restart policy run on the compiled engine."""
-    return any(f.kind in BUS_KINDS for f in scenario.faults)
-
 SOURCE = "faults"
 BUS_KINDS = ("babbling_node", "bus_corruption", "bus_error_frames", "frame_drop")  # faults on a train's CAN bus
 RADIO_KINDS = ("radio_blackout", "radio_burst_loss", "radio_latency")  # faults on the train-to-train radio

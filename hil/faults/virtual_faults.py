@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from ecu_sim.diagnostics import EcuDiagnostics, neighbour_names
 from hil.faults.actuator import ActuatorFaults
-from hil.faults.bus import BusFaults, e2e_checker
+from hil.faults.bus import BusFaults, EngineBusFaults, describe_bus_event, e2e_checker
 from hil.faults.ecu import EcuFaults
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
@@ -36,11 +36,17 @@ class VirtualFaults:
         self.actuators = ActuatorFaults(rig.plant, layout)
         periods = rig.db.cycle_times()
         ok = e2e_checker(rig.db)
-        # error confinement and the guardian on every bus of the Python bus model (the engine has neither: it runs
-        # the schedules without bus faults, whose frames are never corrupted)
-        self.buses = [BusFaults(bus, i, seed, periods, self._bus_sink(bus.name, "can"),
-                                self._bus_sink(bus.name, "guardian"), send=bus.send, e2e_ok=ok, packing=bus.packing)
-                      for i, bus in enumerate(rig.buses)] if rig.net is None else []
+        # error confinement and the guardian on every bus: in the engine, or on the Python bus model (the oracle)
+        if rig.net is not None:
+            self.buses = [EngineBusFaults(bus, i, seed, periods, e2e_ok=ok, packing=bus.packing)
+                          for i, bus in enumerate(rig.buses)]
+            rig.kernel.after_advance = self._take_bus_events
+            for bus in rig.buses:
+                bus.after_send = self._take_bus_events
+        else:
+            self.buses = [BusFaults(bus, i, seed, periods, self._bus_sink(bus.name, "can"),
+                                    self._bus_sink(bus.name, "guardian"), send=bus.send, e2e_ok=ok, packing=bus.packing)
+                          for i, bus in enumerate(rig.buses)]
         self.radio = None
         if rig.gateway:
             rng = fault_rng(seed, 3000)
@@ -52,6 +58,15 @@ class VirtualFaults:
                 k.at(to_ns(f.spec.at_s), self._start, f)
         if any(f.spec.at_position_m is not None for f in self.schedule.faults):
             k.every(0, to_ns(sc.can.sensor_period_s), self._poll)
+
+    def _take_bus_events(self) -> None:
+        """The engine's bus error and guardian events since the last call, onto the timeline in their order."""
+        net = self.rig.net
+        if net.has_bus_events:
+            log, buses = self.rig.log, self.rig.buses
+            for bus, t_ns, kind, fields in net.take_bus_events():
+                what, level, text = describe_bus_event(kind, fields)
+                log.event(t_ns * 1e-9, level, f"{buses[bus].name}/{what}", text)
 
     def _bus_sink(self, bus: str, what: str):
         log = self.rig.log
@@ -101,6 +116,8 @@ class VirtualFaults:
     def finish(self, log: RunLog) -> None:
         """Detections matched to faults and ``log.fault_report`` for the metrics."""
         sc = self.rig.sc
+        if self.rig.net is not None:
+            self._take_bus_events()  # those of the buses' finish
         can = {bus.name: bf.summary() for bus, bf in zip(self.rig.buses, self.buses)}
         log.fault_report = fault_report(list(sc.faults), self.rig.layout, log, can,
                                         {"ecu_restarts": self.ecus.restarts})

@@ -33,6 +33,9 @@ class EngineKernel:
         self.net = net
         self._handlers: dict[int, Callable[[int], None]] = {}  # token -> fn(t_ns)
         self._once: set[int] = set()  # tokens of one-shot events (forgotten after they ran)
+        # called whenever the engine hands back control, before any task runs (the fault machinery takes the
+        # buses' error events there, so the log keeps the order they happened in)
+        self.after_advance: Callable[[], None] | None = None
 
     @property
     def now(self) -> int:
@@ -52,19 +55,24 @@ class EngineKernel:
 
     def run(self, until_ns: int) -> None:
         """Process every event with time < until_ns (frames in the engine, tasks here), then set the clock to it."""
-        advance, handlers, once = self.net.advance, self._handlers, self._once
+        advance, handlers, once, after = self.net.advance, self._handlers, self._once, self.after_advance
         while (token := advance(until_ns)) is not None:
+            if after is not None:
+                after()
             handlers[token](self.net.now)
             if once and token in once:
                 once.discard(token)
                 del handlers[token]
+        if after is not None:
+            after()
 
 
 class EngineBus:
-    """One train bus in the engine: nodes are integer indices; statistics land in ``log`` at ``collect``."""
+    """One train bus in the engine: nodes are integer indices; statistics land in ``log`` at ``collect``. Its error
+    model and guardian (``enable_bus_errors`` ...) are driven by ``hil.faults.bus.EngineBusFaults``."""
 
-    errors = None  # CAN error confinement and bus faults run on the Python bus model (hil/can/errors.py)
     packing = None  # set by set_packing
+    after_send: Callable[[], None] | None = None  # called after each send (the fault machinery takes error events)
 
     def __init__(self, net: engine.Network, name: str, can: CanConfig, log: BusLog) -> None:
         self.net = net
@@ -94,7 +102,10 @@ class EngineBus:
 
     def send(self, node: int, frame_id: int, data: bytes) -> bool:
         """Queue a frame at the current time (False: the node's TX queue was full, counted)."""
-        return self.net.send(self.index, node, frame_id, data)
+        ok = self.net.send(self.index, node, frame_id, data)
+        if self.after_send is not None:
+            self.after_send()
+        return ok
 
     def trace_if_listened(self) -> None:
         """Keep the completed frames in the engine when someone listens (called before the run goes on)."""
@@ -106,6 +117,28 @@ class EngineBus:
         """Queue several frames of one node at the current time (one call for an ECU's outputs); with frame
         packing, a batch holding a container's parts goes as that container."""
         self.net.send_frames(self.index, node, frames)
+        if self.after_send is not None:
+            self.after_send()
+
+    # ---- the error model and the guardian (engine/src/errors.rs, guardian.rs), for hil.faults.bus.EngineBusFaults
+    def enable_bus_errors(self, rng_state: tuple[int, int]) -> None:
+        self.net.enable_bus_errors(self.index, rng_state)
+
+    def set_guardian(self, allowances: dict[int, int], window_ns: int, share_ns: float) -> None:
+        self.net.set_guardian(self.index, allowances, window_ns, share_ns)
+
+    def add_bus_fault(self, fault: int, kind: str, rng_state: tuple[int, int], probability: float,
+                      frame_ids: list[int] | None, count: int | None, bits: int = 1) -> None:
+        self.net.add_bus_fault(self.index, fault, kind, rng_state, probability, frame_ids, count, bits)
+
+    def start_babbler(self, fault: int, name: str, frame_id: int, data: bytes, extended: bool) -> int:
+        return self.net.start_babbler(self.index, fault, name, frame_id, data, extended)
+
+    def end_bus_fault(self, fault: int) -> None:
+        self.net.end_bus_fault(self.index, fault)
+
+    def bus_errors(self) -> dict | None:
+        return self.net.bus_errors(self.index)
 
     def set_packing(self, packing: engine.Packing) -> None:
         """Pack the batches sent on this (CAN FD) bus into containers, unpacked at the receivers."""

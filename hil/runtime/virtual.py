@@ -6,8 +6,8 @@ next train's bus and the head's state back; the wayside sends Reference frames t
 Nothing crosses between these nodes except encoded CAN frames. Same seed, same run, bit for bit.
 
 Two models of the network give the same frame schedule: the compiled frame engine (``trainhil_engine``, the
-default: no Python runs per frame) and the Python bus model (``hil/can``), which still carries CAN error
-confinement and the bus fault injectors, so a scenario with a bus fault runs on it.
+default: no Python runs per frame, CAN error confinement and the bus faults included) and the Python bus model
+(``hil/can``, ``network="python"``), the oracle the engine is checked against (tests/test_engine_differential.py).
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.record.safety import record_violations
 from hil.runtime.assembly import Assembly, assemble
-from hil.faults.schedule import needs_fault_machinery, needs_python_bus_model
+from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.firmware import EcuFactory, build_ecu, refuse_external_units
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
 from hil.runtime.kernel import Kernel, to_ns
@@ -36,12 +36,6 @@ from hil.runtime.train_db import bus_packing, check_train_db, load_train_db
 from hil.scenario.model import Scenario
 
 NETWORK_MODELS = ("engine", "python")
-
-
-def network_model_for(scenario: Scenario) -> str:
-    """The engine, unless the scenario needs what only the Python bus model has: bus faults and error confinement
-    (hil.faults.schedule.needs_python_bus_model)."""
-    return "python" if needs_python_bus_model(scenario) else "engine"
 
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
 
@@ -51,15 +45,12 @@ class VirtualRig:
 
     def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None,
                  network: str | None = None, ecu_factory: EcuFactory = build_ecu) -> None:
-        """``network``: "engine" or "python" (default: :func:`network_model_for` the scenario). ``ecu_factory``
+        """``network``: "engine" (the default) or "python" (the Python bus model, the oracle). ``ecu_factory``
         builds each unit's ECU (default: the program the scenario names, :func:`hil.runtime.firmware.build_ecu`)."""
         refuse_external_units(scenario, "virtual time")
-        needed = network_model_for(scenario)
-        self.network = needed if network is None else network
+        self.network = "engine" if network is None else network
         if self.network not in NETWORK_MODELS:
             raise ValueError(f"network model must be one of {NETWORK_MODELS}, got {self.network!r}")
-        if self.network == "engine" and needed == "python":
-            raise ValueError(f"scenario {scenario.name}: bus faults need the Python bus model (network='python')")
         self.sc = scenario
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout

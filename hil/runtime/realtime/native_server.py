@@ -4,8 +4,9 @@ native thread outside the interpreter lock (``trainhil_engine.BusServerCore``, e
 This side makes the sockets exactly as ``BusServer`` does (owner-only run directory, the socket bound under a
 temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file) and hands
 their file descriptors to the engine. A small Python thread wakes a few times a second to report the engine's log
-lines through ``logging`` and to feed ``frame_listeners`` (CAN logs). Fault injection (``apply``) needs the Python
-server: a run with a fault schedule uses ``BusServer``.
+lines through ``logging`` and to feed ``frame_listeners`` (CAN logs). CAN error confinement, the bus fault
+injectors and the guardian run in the engine's bus (``enable_bus_errors`` ..., driven by
+``hil.faults.bus.EngineBusFaults``); ``apply`` (a function on the Python bus model) is the Python server's only.
 """
 from __future__ import annotations
 
@@ -153,7 +154,32 @@ class NativeBusServer:
             tcp_port=self.tcp_address[1] if self._tcp else None)
 
     def apply(self, fn):
-        raise NotImplementedError("fault injection needs the Python bus server (hil.runtime.realtime.busserver.BusServer)")
+        raise NotImplementedError("apply runs a function on the Python bus model (BusServer); the engine's bus takes "
+                                  "its faults through enable_bus_errors, add_bus_fault, start_babbler, end_bus_fault")
+
+    # ---- the error model and the guardian (engine/src/errors.rs, guardian.rs), for hil.faults.bus.EngineBusFaults
+    def enable_bus_errors(self, rng_state: tuple[int, int]) -> None:
+        self._core.enable_bus_errors(rng_state)
+
+    def set_guardian(self, allowances: dict[int, int], window_ns: int, share_ns: float) -> None:
+        self._core.set_guardian(allowances, window_ns, share_ns)
+
+    def add_bus_fault(self, fault: int, kind: str, rng_state: tuple[int, int], probability: float,
+                      frame_ids: list[int] | None, count: int | None, bits: int = 1) -> None:
+        self._core.add_bus_fault(fault, kind, rng_state, probability, frame_ids, count, bits)
+
+    def start_babbler(self, fault: int, name: str, frame_id: int, data: bytes, extended: bool) -> int:
+        return self._core.start_babbler(fault, name, frame_id, data, extended)
+
+    def end_bus_fault(self, fault: int) -> None:
+        self._core.end_bus_fault(fault)
+
+    def take_bus_events(self) -> list[tuple[int, str, dict]]:
+        """The error model's and the guardian's events since the last call: (model t_ns, kind, fields)."""
+        return self._core.take_bus_events()
+
+    def bus_errors(self) -> dict | None:
+        return self._core.bus_errors()
 
     # ---- the pump
     def _pump_loop(self) -> None:

@@ -5,7 +5,7 @@ the same ``run.rrd`` and ``metrics.json`` (same keys, ``runtime = "realtime"``) 
 real-time rig. Steps:
 
 1. One bus server per train bus, paced by ``pace``: the engine's ``NativeBusServer`` (a native thread each,
-   outside the interpreter lock), or the Python ``BusServer`` when the scenario injects faults. Sleep-only
+   outside the interpreter lock, CAN errors and bus faults included). Sleep-only
    (``spin_us = 0``), so the plant stays the rig's only spinner.
 2. Node processes (same Python): the radio bridge, the plant + wayside, and the ECUs (``ecus_per_process``
    units per process). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
@@ -43,7 +43,7 @@ from typing import Any, Callable
 
 from ecu_sim.codec import TrainDb
 from hil.layout import TrainLayout
-from hil.faults.schedule import needs_fault_machinery, needs_python_bus_model
+from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.busserver import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
@@ -204,9 +204,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     asc: list = []
     try:
         with _StopRequest() as stop:
-            server_cls = _server_class(scenario)
             for i in range(0 if socketcan else layout.n_trains):
-                server = server_cls(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
+                server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
                                     fd=sc_.fd, data_bitrate=sc_.data_rate if sc_.fd else None)
                 if fmt is not None:
@@ -335,12 +334,6 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
     writer = open_can_log(out_dir, f"bus{i + 1}", i, "real time", fmt)
     server.frame_listeners.append(frame_listener(writer, i, to_seconds))
     return writer
-
-
-def _server_class(scenario: Scenario):
-    """The engine's native bus server (its own thread, outside the interpreter lock), unless the scenario injects
-    bus faults, which act on the Python bus model under the server's lock (hil/faults/realtime.py)."""
-    return BusServer if needs_python_bus_model(scenario) else NativeBusServer
 
 
 # --------------------------------------------------------------------------- processes
