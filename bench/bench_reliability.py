@@ -237,6 +237,9 @@ def _print_packaged(r: dict) -> None:
     print(f"\nfaults scenario, {r['runtime']}, {r['sim_s']:g} simulated s ({r['wall_s']} s wall): "
           f"detected {r['detected']} of {r['injected']} injected faults, {r['ecu_restarts']} ECU restart(s)")
     for f in r["faults"]:
+        if f["start_s"] is None:  # a run shorter than the schedule
+            print(f"  {f['kind']:16s} {f['target']:18s} not started")
+            continue
         lat = "-" if f["detection_latency_s"] is None else f"{f['detection_latency_s']:.3f} s"
         print(f"  {f['kind']:16s} {f['target']:18s} start {f['start_s']:8.3f} s  detected after {lat:>9s} by "
               f"{f['detected_by']}")

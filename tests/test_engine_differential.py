@@ -221,7 +221,7 @@ def test_an_inbox_node_hands_over_its_frames_in_arrival_order():
 
 # ---------------------------------------------------------------------------------------------- the CAN receiver
 
-from hil.can.errors import corrupt, pick_positions, receive, wire_bits  # noqa: E402
+from hil.can.errors import corrupt, receive, wire_bits  # noqa: E402
 
 
 def _engine_reception(wire: list[int]) -> tuple:

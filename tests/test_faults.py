@@ -263,7 +263,7 @@ def test_a_position_trigger_fires_when_the_head_passes():
 def test_runs_without_faults_are_untouched():
     sc = small([])
     rig, log = run(sc, 1.0)
-    assert rig.faults is None and rig.buses[0].errors is None and log.fault_report is None
+    assert rig.faults is None and rig.net.bus_errors(0) is None and log.fault_report is None  # no error model
 
 
 # --------------------------------------------------------------------------- the packaged scenario

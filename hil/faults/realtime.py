@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 from hil.faults.actuator import ActuatorFaults
-from hil.faults.bus import BusFaults, EngineBusFaults, describe_bus_event, e2e_checker
+from hil.faults.bus import EngineBusFaults, describe_bus_event, e2e_checker
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
 from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, fault_rng
@@ -104,18 +104,9 @@ class RealtimeFaults:
         self.servers = servers
         periods = db.cycle_times()
         ok, packing = e2e_checker(db), bus_packing(scenario, db)
-        self.bus_events: list[list] = [[] for _ in servers]  # (model t_ns, level, source, text) per server
-        # error confinement and the guardian on every bus: in the engine's server, or on the Python server's model
-        self.buses: list[BusFaults | EngineBusFaults] = []
-        for i, server in enumerate(servers):
-            if hasattr(server, "enable_bus_errors"):  # the engine's NativeBusServer
-                self.buses.append(EngineBusFaults(server, i, seed, periods, e2e_ok=ok, packing=packing))
-                continue
-            def sink(what: str, i: int = i):
-                return lambda t_ns, level, text: self.bus_events[i].append((t_ns, level, f"bus{i + 1}/{what}", text))
-            self.buses.append(server.apply(lambda model, now, i=i: BusFaults(model, i, seed, periods, sink("can"),
-                                                                               sink("guardian"), e2e_ok=ok,
-                                                                               packing=packing)))
+        # error confinement and the guardian on every bus, in the engine's native bus servers
+        self.buses = [EngineBusFaults(server, i, seed, periods, e2e_ok=ok, packing=packing)
+                      for i, server in enumerate(servers)]
         self.events: list[Event] = []
         self.nodes: list = []
         self.spawn = None
@@ -174,13 +165,8 @@ class RealtimeFaults:
                 else:
                     self._continue(u, sim_now)
         elif kind in BUS_KINDS:
-            server, bf = self.servers[spec.train - 1], self.buses[spec.train - 1]
-            if isinstance(bf, EngineBusFaults):  # the engine takes its lock itself
-                bf.start(spec, k) if what == "start" else bf.end(spec, k)
-            elif what == "start":
-                server.apply(lambda model, now: bf.start(spec, k, now))
-            else:
-                server.apply(lambda model, now: bf.end(spec, k))
+            bf = self.buses[spec.train - 1]  # the engine's server takes its lock itself
+            bf.start(spec, k) if what == "start" else bf.end(spec, k)
         elif kind in RADIO_KINDS:
             radio = self._node("radio")
             if radio is not None:
@@ -235,13 +221,11 @@ class RealtimeFaults:
     # ---- the end
     def finish(self, log: RunLog, t0: float | None, pace: float) -> None:
         """Bus events in simulated time, detections matched, ``log.fault_report``."""
-        for i, (server, events, bf) in enumerate(zip(self.servers, self.bus_events, self.buses)):
-            if isinstance(bf, EngineBusFaults):
-                for t_ns, kind, fields in server.take_bus_events():
-                    what, level, text = describe_bus_event(kind, fields)
-                    events.append((t_ns, level, f"bus{i + 1}/{what}", text))
+        for i, server in enumerate(self.servers):
             shift = 0.0 if t0 is None else (t0 - server.epoch0) * pace
-            log.events.extend(Event(t_ns * 1e-9 - shift, level, source, text) for t_ns, level, source, text in events)
+            for t_ns, kind, fields in server.take_bus_events():
+                what, level, text = describe_bus_event(kind, fields)
+                log.events.append(Event(t_ns * 1e-9 - shift, level, f"bus{i + 1}/{what}", text))
         log.events.extend(self.events)
         log.events.sort(key=lambda e: e.t)
         can = {f"bus{i + 1}": bf.summary() for i, bf in enumerate(self.buses)}

@@ -1,4 +1,5 @@
-"""The Python bus model driven by the Python event kernel: the virtual-time network of runs with bus faults.
+"""The Python bus model driven by the Python event kernel: the oracle the engine's virtual-time network is checked
+against (``VirtualRig(..., network="python")``).
 
 The default network is the compiled engine (``hil/runtime/engine_net.py``); both give the same frame schedule
 (``tests/test_engine_differential.py``).

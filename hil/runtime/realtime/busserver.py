@@ -768,16 +768,6 @@ class BusServer:
             LOG.info("bus %s: node %s (#%d) left (%s); %d queued frames dropped",
                      self.channel, c.name, c.cid, why, lost)
 
-    def apply(self, fn):
-        """Run ``fn(model, now_ns)`` under the server's lock and wake the loop (fault injection, hil/faults)."""
-        with self._lock:
-            result = fn(self.model, self._now())
-        try:
-            self._wake_w.send(b"x")
-        except OSError:
-            pass
-        return result
-
     # ---- statistics
     @property
     def stats(self) -> BusServerStats:

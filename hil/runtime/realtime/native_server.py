@@ -6,7 +6,7 @@ temporary name, chmod 0o600 and linked into place; optional loopback TCP with a 
 their file descriptors to the engine. A small Python thread wakes a few times a second to report the engine's log
 lines through ``logging`` and to feed ``frame_listeners`` (CAN logs). CAN error confinement, the bus fault
 injectors and the guardian run in the engine's bus (``enable_bus_errors`` ..., driven by
-``hil.faults.bus.EngineBusFaults``); ``apply`` (a function on the Python bus model) is the Python server's only.
+``hil.faults.bus.EngineBusFaults``).
 """
 from __future__ import annotations
 
@@ -152,10 +152,6 @@ class NativeBusServer:
             s["lateness_max_s"], protocol_errors=s["protocol_errors"], truncated_records=s["truncated_records"],
             auth_failures=s["auth_failures"], clients_refused=s["clients_refused"],
             tcp_port=self.tcp_address[1] if self._tcp else None)
-
-    def apply(self, fn):
-        raise NotImplementedError("apply runs a function on the Python bus model (BusServer); the engine's bus takes "
-                                  "its faults through enable_bus_errors, add_bus_fault, start_babbler, end_bus_fault")
 
     # ---- the error model and the guardian (engine/src/errors.rs, guardian.rs), for hil.faults.bus.EngineBusFaults
     def enable_bus_errors(self, rng_state: tuple[int, int]) -> None:
