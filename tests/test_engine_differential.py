@@ -301,3 +301,20 @@ def test_the_engine_continues_a_numpy_stream_and_draws_corrupted_bits_alike():
     summary = net.bus_errors(nb)
     assert errors.stats["rejected"] > 10 and summary["by_error"] == errors.by_error
     assert {k: summary[k] for k in errors.stats} == errors.stats
+
+
+def test_bad_bus_fault_arguments_are_refused_and_leave_the_bus_as_it_was():
+    from hil.faults.bus import rng_state
+
+    net = engine.Network()
+    bus = net.add_bus("b", 500_000)
+    net.enable_bus_errors(bus, rng_state(np.random.default_rng(1)))
+    with pytest.raises(ValueError, match="at least 1 bit"):
+        net.add_bus_fault(bus, 0, "corruption", rng_state(np.random.default_rng(2)), 1.0, None, None, 0)
+    with pytest.raises(ValueError, match="probability 1.5"):
+        net.add_bus_fault(bus, 0, "drops", rng_state(np.random.default_rng(2)), 1.5, None, None)
+    with pytest.raises(ValueError, match="corruption, error_flags or drops"):
+        net.add_bus_fault(bus, 0, "smoke", rng_state(np.random.default_rng(2)), 1.0, None, None)
+    with pytest.raises(ValueError, match="can_id"):
+        net.start_babbler(bus, 1, "Babbler#1", 0x800, bytes(8), False)  # not an 11-bit ID
+    assert net.nodes(bus) == []  # the refused babbler did not join

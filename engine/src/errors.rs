@@ -551,8 +551,7 @@ impl Bus {
             }
         }
         let mut tx = tx;
-        if let Some(k) = e.error_flags.iter_mut().position(|s| s.hit(tx.frame_id)) {
-            let _ = k;
+        if e.error_flags.iter_mut().any(|s| s.hit(tx.frame_id)) {
             let n_bits = if tx.format.is_fd() {
                 let b = self.fd_phases(&tx);
                 b.0 + b.1 - 3

@@ -683,10 +683,10 @@ impl Network {
 
     /// A babbling node for fault `fault` joins a bus and queues its first frame now; returns its node.
     fn start_babbler(&mut self, bus: usize, fault: u64, name: &str, frame_id: u32, data: PyBackedBytes, extended: bool) -> PyResult<usize> {
-        let node = self.bus_mut(bus)?.start_babbler(fault, name, frame_id, &data, extended)
-            .ok_or_else(|| PyValueError::new_err("a babbling node needs the bus's error model (enable_bus_errors)"))?;
-        let b = &self.core.buses[bus];
+        let b = self.bus_mut(bus)?;
         frame::validate_as(frame_id, data.len(), extended, b.format.is_fd()).map_err(frame_err)?;
+        let node = b.start_babbler(fault, name, frame_id, &data, extended)
+            .ok_or_else(|| PyValueError::new_err("a babbling node needs the bus's error model (enable_bus_errors)"))?;
         self.core.send(bus, node, frame_id, &data).map_err(frame_err)?;
         Ok(node)
     }
@@ -793,6 +793,9 @@ fn add_bus_fault(bus: &mut Bus, fault: u64, kind: &str, rng_state: (u128, u128),
         "drops" => Effect::Drops,
         _ => return Err(PyValueError::new_err(format!("bus fault kind must be corruption, error_flags or drops, got '{kind}'"))),
     };
+    if bits == 0 {
+        return Err(PyValueError::new_err(format!("bus fault {fault}: a corruption flips at least 1 bit")));
+    }
     if !(0.0..=1.0).contains(&probability) {
         return Err(PyValueError::new_err(format!("bus fault {fault}: probability {probability} is not in [0, 1]")));
     }
@@ -800,7 +803,7 @@ fn add_bus_fault(bus: &mut Bus, fault: u64, kind: &str, rng_state: (u128, u128),
         return Err(PyValueError::new_err(format!("{}: bus faults need the bus's error model (enable_bus_errors)", bus.name)));
     }
     let rng = Pcg64::from_state(rng_state.0, rng_state.1);
-    bus.add_effect(effect, Selection { fault, rng, probability, frame_ids, count, hits: 0, bits: bits.max(1) });
+    bus.add_effect(effect, Selection { fault, rng, probability, frame_ids, count, hits: 0, bits });
     Ok(())
 }
 
@@ -877,7 +880,7 @@ fn errors_summary<'py>(py: Python<'py>, bus: &Bus) -> PyResult<Option<Bound<'py,
         n.set_item("error_passive", c.passive_count)?;
         n.set_item("bus_off", c.bus_off_count)?;
         n.set_item("bus_off_s", bus_off_ns as f64 * 1e-9)?;
-        n.set_item("state", &c.state.name()[..])?;
+        n.set_item("state", c.state.name())?;
         nodes.set_item(&bus.nodes[node].name, n)?;
     }
     d.set_item("nodes", nodes)?;

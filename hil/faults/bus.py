@@ -32,7 +32,7 @@ def describe_bus_event(kind: str, fields: dict) -> tuple[str, str, str]:
 def rng_state(rng: np.random.Generator) -> tuple[int, int]:
     """(state, inc) of a numpy PCG64 stream: what the engine needs to continue it draw for draw."""
     bits = rng.bit_generator
-    if type(bits).__name__ != "PCG64":
+    if not isinstance(bits, np.random.PCG64):
         raise TypeError(f"the engine continues PCG64 streams only, not {type(bits).__name__}")
     state = bits.state["state"]
     return state["state"], state["inc"]
@@ -90,8 +90,11 @@ class EngineBusFaults:
 
 
 class BusFaults:
+    """Bus faults on the Python bus model (the engine's oracle), driven by the virtual rig: ``send(node, id, data)``
+    queues a frame now and starts an arbitration on an idle bus (``VirtualCanBus.send``)."""
+
     def __init__(self, bus: CanBusModel, index: int, seed: int, periods: dict[int, float], sink: EventSink,
-                 guardian_sink: EventSink, send: Callable | None = None,
+                 guardian_sink: EventSink, send: Callable[[object, int, bytes], bool],
                  e2e_ok: Callable[[int, bytes], bool | None] | None = None, packing=None) -> None:
         """``sink``/``guardian_sink(t_ns, level, text)`` take the error model's and the guardian's events (bus time);
         ``periods``: frame ID -> DBC cycle time (the guardian's allowance); ``e2e_ok(id, data)``: whether a frame
@@ -111,9 +114,8 @@ class BusFaults:
         e = self.errors
         if spec.kind == "babbling_node":
             data = bytes([BABBLE_BYTE]) * spec.dlc
-            self._active[index] = b = e.start_babbler(spec.frame_id, data, t_ns, name=f"Babbler#{index}", queue=self._send is None)
-            if self._send is not None:
-                self._send(b.node, spec.frame_id, data)
+            self._active[index] = b = e.start_babbler(spec.frame_id, data, t_ns, name=f"Babbler#{index}", queue=False)
+            self._send(b.node, spec.frame_id, data)  # also starts an arbitration on an idle bus
             return
         rng = fault_rng(self.seed, index)
         ids = target_ids(spec, self.packing)
