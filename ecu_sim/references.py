@@ -5,8 +5,11 @@ an import reference, as ``uvicorn main:app`` and python-can's ``can.interface`` 
 can publish names under the entry-point groups :data:`LAW_GROUP` and :data:`PROGRAM_GROUP`. Because the reference
 is a string in the scenario, every process of a run (the virtual rig, each real-time node) resolves it itself.
 
-Modules are looked up on ``sys.path`` and then in the current directory, so ``hil run --set
-controller.law=mylaw:PDSpacing`` finds ``./mylaw.py``. Failures raise :class:`ReferenceLoadError`, whose message
+Modules are looked up on ``sys.path``, then in the current directory, then in the folders of the environment
+variable ``TRAINHIL_USER_PATH`` (the real-time rig sets it for its node processes to the folders it imported the
+user's modules from), so ``hil run --set controller.law=mylaw:PDSpacing`` finds ``./mylaw.py``. Those folders
+come *after* the installed packages: a file in the working folder named like one of them (``cantools.py``) is
+never imported in its place. Failures raise :class:`ReferenceLoadError`, whose message
 names the reference, the module and the exception, in one line.
 """
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 LAW_GROUP = "trainhil.controllers"
+USER_PATH_ENV = "TRAINHIL_USER_PATH"
 PROGRAM_GROUP = "trainhil.ecu_programs"
 
 
@@ -34,12 +38,12 @@ def is_import_reference(text: str) -> bool:
 
 
 def _import_module(module: str, reference: str):
-    """Import ``module``, with the current directory searched after ``sys.path`` (as ``python -m`` would; it stays
-    there, so that the user's module can import its siblings later too, as in the real-time nodes, which get the
-    module's folder on their ``PYTHONPATH``)."""
+    """Import ``module``, with the current directory and then ``TRAINHIL_USER_PATH``'s folders searched after
+    ``sys.path`` (they stay there, so that the user's module can import its siblings later too)."""
     cwd = os.getcwd()
-    if cwd not in sys.path and "" not in sys.path:
-        sys.path.append(cwd)
+    for folder in [cwd, *filter(None, os.environ.get(USER_PATH_ENV, "").split(os.pathsep))]:
+        if folder not in sys.path and not (folder == cwd and "" in sys.path):
+            sys.path.append(folder)
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as exc:
@@ -123,7 +127,7 @@ def reference_of(obj: Any) -> str | None:
 
 
 def module_root(reference: str) -> Path | None:
-    """The ``sys.path`` folder the reference's module is imported from (for child processes' ``PYTHONPATH``), or
+    """The ``sys.path`` folder the reference's module is imported from (for child processes' ``TRAINHIL_USER_PATH``), or
     None when the module is not loaded here or has no file."""
     module = reference.partition(":")[0]
     mod = sys.modules.get(module)

@@ -234,7 +234,8 @@ def test_unknown_paths_say_what_exists():
 
 
 def test_real_time_nodes_import_the_users_law_and_ecu_program(tmp_path):
-    """The node processes resolve the scenario's references themselves, from the PYTHONPATH the rig gives them."""
+    """The node processes resolve the scenario's references themselves, after their sys.path, in the folders the
+    rig names in TRAINHIL_USER_PATH."""
     from hil.runtime.realtime.orchestrator import node_environment
     from hil.runtime.assembly import assemble
     from hil.runtime.firmware import build_ecu
@@ -251,11 +252,12 @@ def test_real_time_nodes_import_the_users_law_and_ecu_program(tmp_path):
              "e = build_ecu(assemble(load_scenario_json(sys.argv[1])), TrainDb.load(), 4); "
              "print(type(e).__qualname__, type(e.controller).__qualname__)")
     env = node_environment(sc)
-    out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "scenario.json")], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-P", "-c", probe, str(tmp_path / "scenario.json")], capture_output=True, text=True,
                          timeout=120, cwd=tmp_path, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["SilentAfterOneSecond", "ConstantForce"]
-    assert "sitecustomize" not in env.get("PYTHONPATH", "") and str(ROOT) in env["PYTHONPATH"].split(os.pathsep)
+    assert env.get("PYTHONPATH") == os.environ.get("PYTHONPATH")  # nothing put before the installed packages
+    assert str(ROOT) in env["TRAINHIL_USER_PATH"].split(os.pathsep)
 
     class Local(ConstantForce):
         name = "test_local"

@@ -3,6 +3,7 @@
 outside real time; and the run's verdict for CI (``--check``) with every violation on the timeline."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -200,13 +201,27 @@ def test_check_exits_with_its_own_code_naming_the_verdicts_and_violations_reach_
                  "--out", str(user_dir / "safe")]) == 0
 
 
+PLANTED = """
+import os, pathlib
+pathlib.Path(os.environ["PLANTED_MARKER"]).open("a").write(f"{os.getpid()}\\n")
+raise ImportError("the planted module was imported")
+"""
+
+
 @pytest.mark.slow  # about 10 s: node start-up and 2 s of real time
 def test_hil_run_realtime_runs_the_users_law_from_their_own_folder(user_dir):
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "2",
+    """The user's ./mylaw.py is found by every node, and modules planted in the same folder under the names of
+    installed packages (cantools, numpy, can) are never imported: nodes start with ``python -P``."""
+    marker = user_dir / "planted.log"
+    for name in ("cantools", "numpy", "can", "scipy"):
+        (user_dir / f"{name}.py").write_text(PLANTED)
+    env = {**os.environ, "PLANTED_MARKER": str(marker)}
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "2",
                            "--ecus-per-process", "3", "--set", "controller.law=mylaw:Push",
                            "--set", "controller.params.force_n=2500.0", "--quiet", "--out", "rt"],
-                          capture_output=True, text=True, timeout=300, cwd=user_dir)
+                          capture_output=True, text=True, timeout=300, cwd=user_dir, env=env)
     assert proc.returncode == 0, proc.stderr
+    assert not marker.exists(), "a module planted in the working folder ran in a node: " + marker.read_text()
     from hil.record import load_run
 
     run = load_run(user_dir / "rt")

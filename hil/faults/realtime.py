@@ -22,9 +22,6 @@ from __future__ import annotations
 import os
 import queue
 import signal
-import subprocess
-import sys
-from pathlib import Path
 
 from hil.faults.actuator import ActuatorFaults
 from hil.faults.bus import EngineBusFaults, describe_bus_event, e2e_checker
@@ -230,18 +227,3 @@ class RealtimeFaults:
         log.events.sort(key=lambda e: e.t)
         can = {f"bus{i + 1}": bf.summary() for i, bf in enumerate(self.buses)}
         log.fault_report = fault_report(self.specs, self.layout, log, can, {"ecu_restarts": self.restarts})
-
-
-def spawn_ecu(node_cls, run: str, nodes_dir: Path, seed: int, duration: float, pace: float, u: int, name: str,
-              serial: int):
-    """A late-joining ECU process for unit ``u`` (``--join-late``): the orchestrator's node command line."""
-    argv = [sys.executable, "-m", "hil.runtime.realtime.ecu_node", "--run", run, "--scenario-json", str(nodes_dir / "scenario.json"),
-            "--seed", str(seed), "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir),
-            "--unit", str(u), "--join-late"]
-    err = nodes_dir / f"ecu_restart_{serial}.stderr"
-    with open(err, "w") as fh:
-        proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=fh, text=True, bufsize=1,
-                                start_new_session=True)
-    node = node_cls(name, "ecu", proc, err)
-    node.start_reader()
-    return node

@@ -90,7 +90,7 @@ def _override_plans(sc: Scenario) -> list[UnitFirmware]:
 
 def import_roots(sc: Scenario) -> list[Path]:
     """The ``sys.path`` folders the scenario's ``module:QualName`` references are imported from here: the real-time
-    node processes get them on ``PYTHONPATH`` so that they import the same modules."""
+    node processes search them (``TRAINHIL_USER_PATH``) so that they import the same modules."""
     roots: list[Path] = []
     for f in firmware_plan(sc):
         for ref in (f.law, f.program):

@@ -26,6 +26,7 @@ real-time rig. Steps:
 """
 from __future__ import annotations
 
+import collections
 import math
 import os
 import queue
@@ -42,13 +43,14 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ecu_sim.codec import TrainDb
+from ecu_sim.references import USER_PATH_ENV
 from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.busserver import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.native_server import NativeBusServer
-from hil.runtime.realtime.external import ExternalUnitMissing, JoinWait
+from hil.runtime.realtime.external import JOIN_LINE, ExternalUnitMissing, JoinWait
 from hil.runtime.realtime.live_tail import LiveTail
 from hil.runtime.realtime.sockets import remove_run_dir, remove_stale_run_dirs, validate_name
 from hil.runtime.realtime.socketcan import check_channels
@@ -74,6 +76,10 @@ RUNNING_NOTE = ("a real-time run writes run.rrd and these metrics when it ends; 
                 "`hil recover {out}` rebuilds both from what the nodes recorded")
 
 
+PROTOCOL_WORDS = frozenset({"ready", JOIN_LINE})  # the first words of what a node prints for the orchestrator
+PRINTED_TAIL_LINES = 20
+
+
 class NodeError(RuntimeError):
     """A node failed to start or to become ready."""
 
@@ -89,11 +95,21 @@ class Node:
     lines: "queue.Queue[str]" = field(default_factory=queue.Queue)
     ready: bool = False
     reported: bool = False
+    #: the last lines the node's own code printed (a law's print calls), kept bounded: a chatty law costs no memory
+    printed: "collections.deque[str]" = field(default_factory=lambda: collections.deque(maxlen=PRINTED_TAIL_LINES))
+    printed_count: int = 0
 
     def start_reader(self) -> None:
+        """Drain the node's stdout for as long as it lives: protocol lines ("ready") to ``lines``, the rest to the
+        bounded ``printed`` tail (never left in the pipe, where a full pipe would block the node)."""
         def read() -> None:
             for line in self.proc.stdout:
-                self.lines.put(line.strip())
+                line = line.strip()
+                if line.partition(" ")[0] in PROTOCOL_WORDS:
+                    self.lines.put(line)
+                else:
+                    self.printed.append(line)
+                    self.printed_count += 1
 
         threading.Thread(target=read, name=f"stdout {self.name}", daemon=True).start()
 
@@ -215,8 +231,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             spool = BusSpool(servers, nodes_dir)  # the servers' frame rows to files as the run goes
             if on_channels is not None:
                 on_channels(channels(run, scenario))
+            env = node_environment(scenario)
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us,
-                                 faults.solo_units if faults else (), external, node_environment(scenario))
+                                 faults.solo_units if faults else (), external, env)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
                 say(f"{len(nodes)} node processes, pace {pace:g}" + (
@@ -235,7 +252,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 if on_start is not None:
                     on_start(t0)
                 if faults is not None:
-                    faults.go(t0, pace, nodes, _respawn(run, nodes_dir, seed, duration, pace, layout))
+                    faults.go(t0, pace, nodes, _respawn(run, nodes_dir, seed, duration, pace, layout, env))
                 if live is not None:
                     tail = LiveTail(live, scenario, layout, nodes_dir, (t0, pace), run)
                     if say is not None:
@@ -315,12 +332,14 @@ def channels(run: str, sc: Scenario) -> list[Channel]:
 
 
 def node_environment(sc: Scenario) -> dict[str, str]:
-    """The node processes' environment: ours, with the folders the scenario's ``module:QualName`` references
-    are imported from put first on ``PYTHONPATH`` (each node resolves the references itself)."""
+    """The node processes' environment: ours, with the folders the scenario's ``module:QualName`` references are
+    imported from in ``TRAINHIL_USER_PATH``, which a node searches *after* its ``sys.path`` (each node resolves the
+    references itself). Not on ``PYTHONPATH``: a folder there comes before the installed packages, so any module
+    in it would shadow them."""
     env = dict(os.environ)
     roots = [str(r) for r in import_roots(sc)]
     if roots:
-        env["PYTHONPATH"] = os.pathsep.join([*roots, *filter(None, [env.get("PYTHONPATH")])])
+        env[USER_PATH_ENV] = os.pathsep.join([*roots, *filter(None, [env.get(USER_PATH_ENV)])])
     return env
 
 
@@ -352,12 +371,18 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
     return RealtimeFaults(scenario, layout, servers, seed, db)
 
 
-def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout):
-    """spawn(unit): a late-joining ECU process for a restarted unit."""
-    from hil.faults.realtime import spawn_ecu
-
+def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout,
+             env: dict[str, str]):
+    """spawn(unit): a late-joining ECU process for a restarted unit, started as every node is (``launch_node``)."""
     serial = iter(range(1, 1 << 30))
-    return lambda u: spawn_ecu(Node, run, nodes_dir, seed, duration, pace, u, layout.unit_name(u), next(serial))
+
+    def spawn(u: int) -> Node:
+        argv = ["hil.runtime.realtime.ecu_node", "--run", run, "--scenario-json", str(nodes_dir / "scenario.json"),
+                "--seed", str(seed), "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir),
+                "--unit", str(u), "--join-late"]
+        return launch_node(layout.unit_name(u), "ecu", argv, nodes_dir / f"ecu_restart_{next(serial)}.stderr", env)
+
+    return spawn
 
 
 def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, duration: float, pace: float,
@@ -373,17 +398,23 @@ def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, dura
     for group in groups:
         names = ",".join(layout.unit_name(u) for u in group)
         specs.append((names, "ecu", ["hil.runtime.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
-    nodes = []
-    for name, kind, argv in specs:
-        err = nodes_dir / f"{kind}_{len(nodes)}.stderr"
-        with open(err, "w") as fh:
-            proc = subprocess.Popen([sys.executable, "-m", argv[0], *common, *argv[1:]], stdin=subprocess.PIPE,
-                                    stdout=subprocess.PIPE, stderr=fh, text=True, bufsize=1, env=env,
-                                    start_new_session=True)  # a terminal's Ctrl-C reaches only us: we stop them
-        node = Node(name, kind, proc, err)
-        node.start_reader()
-        nodes.append(node)
-    return nodes
+    return [launch_node(name, kind, [argv[0], *common, *argv[1:]], nodes_dir / f"{kind}_{i}.stderr", env)
+            for i, (name, kind, argv) in enumerate(specs)]
+
+
+def launch_node(name: str, kind: str, argv: list[str], stderr_path: Path, env: dict[str, str] | None) -> Node:
+    """Start one node process (``argv``: its module and arguments) with its stdout drained and its stderr to a file.
+
+    ``python -P``: the working folder is not put on the node's ``sys.path``, so a module planted there (a
+    ``cantools.py``) is never imported in place of the real one; the user's own modules are found by the
+    documented rule (``ecu_sim.references``: after ``sys.path``). Its own session: a terminal's Ctrl-C reaches
+    only the orchestrator, which stops the nodes."""
+    with open(stderr_path, "w") as fh:
+        proc = subprocess.Popen([sys.executable, "-P", "-m", *argv], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                stderr=fh, text=True, bufsize=1, env=env, start_new_session=True)
+    node = Node(name, kind, proc, stderr_path)
+    node.start_reader()
+    return node
 
 
 def _wait_ready(nodes: list[Node], stop: _StopRequest) -> None:
