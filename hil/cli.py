@@ -323,7 +323,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from hil.record.live import exit_now_if_abandoned
+
     args = build_parser().parse_args(argv)
+    code = _dispatch(args)
+    exit_now_if_abandoned(code)  # a dropped live viewer: rerun would wait for it at exit, maybe forever
+    return code
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """Run the command; user errors become one line on stderr and their documented exit code."""
     try:
         return args.func(args)
     except (ScenarioError, CanLogUnavailable) as exc:

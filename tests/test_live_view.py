@@ -110,3 +110,63 @@ def test_a_real_time_run_streams_to_a_viewer_on_the_wall_clock(sink, tmp_path):
     final = received_times(saved, ENTITY)
     assert final[-1] == pytest.approx(5.9, abs=0.11)
     assert len(final) == len(set(final)) == len(received_times(tmp_path / "r" / "run.rrd", ENTITY))  # once each
+
+
+class SilentPeer:
+    """A TCP peer on loopback that accepts connections and never reads from them (a stalled viewer)."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(8)
+        self.port = self.sock.getsockname()[1]
+        self.held: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        try:
+            while True:
+                self.held.append(self.sock.accept()[0])
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        self.sock.close()
+        for c in self.held:
+            c.close()
+
+
+def _run_with_viewer(url: str, out: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--duration", "5", "--quiet",
+                           "--connect", url, "--out", str(out)], capture_output=True, text=True, timeout=90)
+
+
+def _assert_whole_run(out: Path) -> None:
+    from hil.record import load_run
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["sim_time_s"] == 5.0 and not metrics["interrupted"]
+    t, _ = load_run(out)[ENTITY]
+    assert t[-1] >= 4.9
+
+
+@pytest.mark.parametrize("peer", ["silent", "dead"])
+def test_a_viewer_that_never_reads_or_is_not_there_costs_neither_the_run_nor_its_files(tmp_path, peer):
+    """``--connect`` to a peer that accepts and never reads (it used to hang past SIGTERM), or to a dead port (it
+    used to lose run.rrd): the run ends on its own within seconds, exit 0, files whole, the viewer named."""
+    silent = SilentPeer() if peer == "silent" else None
+    port = silent.port if silent is not None else free_port()
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    try:
+        started = time.monotonic()
+        proc = _run_with_viewer(url, tmp_path / "out")
+        took = time.monotonic() - started
+    finally:
+        if silent is not None:
+            silent.close()
+    assert proc.returncode == 0, proc.stderr
+    assert f"hil: warning: live view at {url} dropped" in proc.stderr
+    assert took < 45, took
+    _assert_whole_run(tmp_path / "out")

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import os
 import time
+import uuid
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -23,7 +25,7 @@ import rerun as rr
 from hil.layout import TrainLayout
 from hil.record import paths
 from hil.record.blueprint import default_blueprint
-from hil.record.live import LiveTarget
+from hil.record.live import LiveStream, LiveTarget
 from hil.record.diskspace import MIN_FREE_BYTES, DiskFullError, check_space, free_bytes
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.series import MPS_TO_KMH, limit_values, margin_colors, signal_columns, track_geometry
@@ -31,7 +33,6 @@ from hil.record.series import MPS_TO_KMH, limit_values, margin_colors, signal_co
 FLUSH_TIMEOUT_S = 10.0  # a flush takes ~20 ms; one that takes this long means rerun's writer is stuck (a full disk)
 
 APPLICATION_ID = "trainhil"
-SERVING: list[rr.RecordingStream] = []  # streams served with --serve, kept alive after their run ends
 TIMELINE = "sim_time"
 WALL_TIMELINE = "wall_time"
 SCALARS = rr.Scalars.descriptor_scalars()
@@ -72,15 +73,9 @@ class RerunWriter:
         if wall_clock is not None and not wall_clock[1] > 0:
             raise ValueError(f"wall_clock pace must be > 0, got {wall_clock[1]!r}")
         self.wall_clock = wall_clock
-        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, make_default=False,
-                                      make_thread_default=False)
-        if self.path is not None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._serving = live is not None and live.port is not None
-        if live is None:
-            self.rec.save(self.path)
-        else:
-            self.rec.set_sinks(*([rr.FileSink(self.path)] if self.path is not None else []), live.sink())
+        recording_id = recording_id if recording_id is not None else str(uuid.uuid4())
+        self.live = LiveStream(live, APPLICATION_ID, recording_id) if live is not None else None
+        self.rec = _Tee(self._file_stream(recording_id), self.live)
         self._flushed_size = 0  # bytes of the file written by the last flush that completed
         self.rec.send_recording_name(scenario_name)
         blueprint = default_blueprint(layout, bus_names, frames=frames, realtime=realtime or wall_clock is not None)
@@ -88,6 +83,16 @@ class RerunWriter:
         self._log_series_styles()
         self._log_track_statics()
         self.flush()  # the header, blueprint and statics on disk: a readable file from the start
+
+    def _file_stream(self, recording_id: str) -> rr.RecordingStream | None:
+        """The stream that writes run.rrd, or None without a file."""
+        if self.path is None:
+            return None
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, make_default=False,
+                                 make_thread_default=False)
+        rec.save(self.path)
+        return rec
 
     # ---------------------------------------------------------------- static styling
 
@@ -225,13 +230,14 @@ class RerunWriter:
         A full disk is a DiskFullError naming the place: checked before, and after a flush with a deadline (rerun's
         writer thread dies when the disk fills, and an unbounded flush would then wait forever)."""
         self._check_open()
-        if self.path is None:  # live only: nothing on disk to check
-            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        if self.live is not None:
+            self.live.flush()  # in the background: a stalled viewer never holds up the file
+        if self.rec.file is None:  # live only: nothing on disk to check
             return
         try:
             check_space(self.path)
             try:
-                self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+                self.rec.file.flush(timeout_sec=FLUSH_TIMEOUT_S)
             except RuntimeError as exc:  # "Flush timed out": the writer thread is stuck or gone
                 check_space(self.path)
                 raise RuntimeError(f"{self.path}: the recording could not be written within {FLUSH_TIMEOUT_S:g} s: "
@@ -260,23 +266,53 @@ class RerunWriter:
         if self._closed:
             return
         self._closed = True
-        if self.path is not None and free_bytes(self.path) < MIN_FREE_BYTES:
+        if self.live is not None:
+            self.live.close()
+        if self.rec.file is None:
+            return
+        if free_bytes(self.path) < MIN_FREE_BYTES:
             self._cut_to_last_flush()
             return  # the disk is full: rerun's file writer has stopped, and waiting for it would never end
         try:
-            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+            self.rec.file.flush(timeout_sec=FLUSH_TIMEOUT_S)
         except RuntimeError:
             return  # as above, the writer is stuck: what reached the file stays readable
-        if self._serving:
-            SERVING.append(self.rec)  # a served recording stays up for late viewers until the process ends
-            return
-        self.rec.disconnect()
+        self.rec.file.disconnect()
 
     def __enter__(self) -> "RerunWriter":
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _Tee:
+    """Each recording call goes to the file's stream and to the live stream while the viewer keeps up."""
+
+    def __init__(self, file: rr.RecordingStream | None, live: LiveStream | None) -> None:
+        self.file, self.live = file, live
+
+    def _streams(self) -> list[rr.RecordingStream]:
+        out = [] if self.file is None else [self.file]
+        if self.live is not None and self.live.alive:
+            out.append(self.live.rec)
+        return out
+
+    def log(self, *args: Any, **kwargs: Any) -> None:
+        for rec in self._streams():
+            rec.log(*args, **kwargs)
+
+    def send_columns(self, *args: Any, **kwargs: Any) -> None:
+        for rec in self._streams():
+            rec.send_columns(*args, **kwargs)
+
+    def send_blueprint(self, *args: Any, **kwargs: Any) -> None:
+        for rec in self._streams():
+            rec.send_blueprint(*args, **kwargs)
+
+    def send_recording_name(self, name: str) -> None:
+        for rec in self._streams():
+            rec.send_recording_name(name)
 
 
 def event_path(source: str) -> str:
