@@ -13,6 +13,7 @@ from ecu_sim.references import ReferenceLoadError
 from hil.can.cli import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
+from hil.record.out_dir import OutputDirError, ensure_writable_dir, hold_folder, release_folder
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
 from hil.scenario.loader import parse_assignment
 
@@ -110,8 +111,6 @@ def _check_run_options(args: argparse.Namespace) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from hil.session import run_scenario
-
     _check_run_options(args)
     overrides = dict(parse_assignment(a) for a in args.set)
     if args.seed is not None:
@@ -125,6 +124,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
         refuse_external_units(scenario, "the ideal loop" if args.ideal else "virtual time")
     out = Path(args.out) if args.out else default_output_dir(scenario.name, args)
     check_output_dir(out, args.overwrite)
+    try:
+        return _run_in(out, scenario, args, overrides)
+    finally:
+        release_folder(out)
+
+
+def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict) -> int:
+    """The run itself, into ``out`` (checked and held)."""
+    from hil.session import run_scenario
+
     from hil.faults.schedule import late_faults
 
     for warning in late_faults(scenario, scenario.duration_s if args.duration is None else args.duration):
@@ -161,13 +170,10 @@ def default_output_dir(name: str, args: argparse.Namespace) -> Path:
 
 def check_output_dir(out: Path, overwrite: bool) -> None:
     """A directory that holds a previous run is refused (exit 2), unless ``--overwrite``: then its run files go
-    first, so nothing of the old run is mistaken for the new one."""
-    try:
-        if out.exists() and not out.is_dir():
-            raise ScenarioError(f"--out {out}: exists and is not a directory")
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:  # no permission, a read-only place such as /sys, a name component over 255 bytes
-        raise ScenarioError(f"--out {out}: cannot create the output directory: {exc.strerror}") from None
+    first, so nothing of the old run is mistaken for the new one. A directory that a live run holds is refused
+    even with ``--overwrite``; from here this process holds it (``hil.record.folder_lock``)."""
+    ensure_writable_dir(out)
+    hold_folder(out)  # before anything of an old run goes: a run still writing there keeps its folder
     old = [f for pattern in RUN_FILES for f in out.glob(pattern)] if out.is_dir() else []
     if not old:
         return
@@ -335,7 +341,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     """Run the command; user errors become one line on stderr and their documented exit code."""
     try:
         return args.func(args)
-    except (ScenarioError, CanLogUnavailable) as exc:
+    except (ScenarioError, CanLogUnavailable, OutputDirError) as exc:
         print(f"hil: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except (FileNotFoundError, ReferenceLoadError) as exc:  # ReferenceLoadError: user code named in the scenario

@@ -1,9 +1,14 @@
 """Careless and hostile use, round three (issue 23): each test is one reproduction and what the user gets instead."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
+import pytest
+
+from hil.cli import main
 from hil.runtime.realtime.orchestrator import Node
 
 
@@ -23,3 +28,76 @@ def test_a_node_that_prints_a_lot_is_drained_into_a_bounded_tail(tmp_path):
     finally:
         proc.stdin.close()
         proc.wait(10)
+
+
+# --------------------------------------------------------------------------- output folders
+
+ROOT = Path(__file__).resolve().parents[1]
+CRUISE = ROOT / "examples" / "cruise.toml"
+
+
+def test_a_folder_that_a_live_run_holds_is_refused_even_with_overwrite(tmp_path, capsys):
+    """Two runs into one folder used to both exit 0, leaving one run's metrics beside the other's recording."""
+    from hil.record.out_dir import LOCK_NAME
+
+    out = tmp_path / "same"
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_FOLDER, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main(["run", str(CRUISE), "--duration", "1", "--quiet", "--out", str(out), "--overwrite"]) == 2
+        err = capsys.readouterr().err
+        assert f"is in use by a run that is still going (pid {holder.pid}, started " in err
+        assert not (out / "metrics.json").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert (out / LOCK_NAME).exists()  # a killed holder leaves its file, but not its lock
+    assert main(["run", str(CRUISE), "--duration", "1", "--quiet", "--out", str(out), "--overwrite"]) == 0
+    assert not (out / LOCK_NAME).exists()  # a finished run lets its folder go
+
+
+HOLD_FOLDER = """
+import sys, time
+from hil.record.out_dir import hold_folder
+import pathlib
+out = pathlib.Path(sys.argv[1]); out.mkdir(parents=True)
+hold_folder(out)
+print("held", flush=True)
+time.sleep(600)
+"""
+
+
+@pytest.fixture
+def read_only_dir(tmp_path):
+    """An existing folder on a read-only file system (root ignores permission bits, so a mount it is)."""
+    where = tmp_path / "ro"
+    where.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(where)],
+                      capture_output=True).returncode != 0:
+        if os.geteuid() == 0:
+            pytest.skip("cannot mount a read-only tmpfs here")
+        where.chmod(0o555)
+        yield where
+        where.chmod(0o755)
+        return
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", str(where)], check=True)
+
+
+@pytest.mark.parametrize("command", [["run", str(CRUISE), "--duration", "1"],
+                                     ["run", str(CRUISE), "--duration", "1", "--realtime"],
+                                     ["compare", str(CRUISE), str(CRUISE), "--duration", "1"],
+                                     ["sweep", "bitrate", "--duration", "1"]])
+def test_a_read_only_output_folder_is_refused_before_any_work(read_only_dir, capsys, command):
+    """It used to be an OSError traceback, in compare after every run was done."""
+    import time
+
+    started = time.monotonic()
+    assert main([*command, "--quiet", "--out", str(read_only_dir)] if command[0] != "compare"
+                else [*command, "--out", str(read_only_dir)]) == 2
+    err = capsys.readouterr().err
+    assert f"hil: error: --out {read_only_dir}: cannot write there: Read-only file system" in err \
+        or "Permission denied" in err
+    assert time.monotonic() - started < 10

@@ -12,6 +12,8 @@ import os
 import time
 from pathlib import Path
 
+from hil.record.out_dir import ensure_writable_dir
+
 from hil.scenario import ScenarioError, load_scenario
 
 
@@ -45,6 +47,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     labels = _unique([sc.name for sc in scenarios])
     items = [CompareItem(label, sc, family.name, args.ideal, args.duration) for label, sc in zip(labels, scenarios)]
     out = Path(args.out) if args.out else Path("runs") / ("compare-" + "-".join(labels))[:120]
+    ensure_writable_dir(out)  # before any run
     wall0 = time.perf_counter()
     workers = (os.cpu_count() or 1) if args.workers is None else args.workers
     if workers < 1:

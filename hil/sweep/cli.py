@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hil.record.out_dir import ensure_writable_dir
+
 from hil.can.cli import positive_seconds
 from hil.sweep.spec import SweepError, SweepSpec, load_sweep, packaged_sweeps
 
@@ -58,6 +60,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     spec = load_sweep(args.sweep, dict(parse_assignment(a) for a in args.set), args.duration)
     out = Path(args.out) if args.out else Path("runs") / f"sweep-{spec.name}"
+    ensure_writable_dir(out)  # before any run
     result = run_sweep(spec, out, workers=args.workers, dask=args.dask, progress=not args.quiet)
     plots = [] if args.no_plots or not result.rows else _plots(spec, result.rows, out)
     _summary(spec, result, plots)
