@@ -49,12 +49,13 @@ def _import_module(module: str, reference: str):
     except ModuleNotFoundError as exc:
         if exc.name and module.startswith(exc.name):
             raise ReferenceLoadError(f"{reference!r}: no module named {exc.name!r} (looked on sys.path and in {cwd})") from None
-        raise ReferenceLoadError(f"{reference!r}: importing module {module!r} failed: {_one_line(exc)}") from None
+        raise ReferenceLoadError(f"{reference!r}: importing module {module!r} failed: {one_line(exc)}") from None
     except Exception as exc:  # the user's module raised at import: say which and what, no traceback
-        raise ReferenceLoadError(f"{reference!r}: importing module {module!r} failed: {_one_line(exc)}") from None
+        raise ReferenceLoadError(f"{reference!r}: importing module {module!r} failed: {one_line(exc)}") from None
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: its type, its words, and the file and line it was raised at."""
     where = ""
     tb = exc.__traceback__
     while tb is not None and tb.tb_next is not None:
@@ -108,7 +109,7 @@ def entry_point(group: str, name: str) -> Any | None:
                 return ep.load()
             except Exception as exc:
                 raise ReferenceLoadError(f"{name!r}: entry point {ep.value!r} (group {group}) failed to load: "
-                                         f"{_one_line(exc)}") from None
+                                         f"{one_line(exc)}") from None
     return None
 
 

@@ -25,9 +25,12 @@ degraded mode as a stale sensor (service brake, no AgentState/AgentAux).
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Literal, NoReturn, Protocol
 
 from trainhil_engine import Mailbox
 
@@ -39,6 +42,37 @@ from ecu_sim.view import AgentInfo, BrakeMode, Command, LocalView, NeighbourView
 INF = float("inf")
 _EMERGENCY = BrakeMode.EMERGENCY
 _SERVICE = BrakeMode.SERVICE
+
+
+ECU_STOPPED = "ECU stopped"  # the words that end every firmware-failure event (the rig's ecu_failure verdict)
+RESTARTED = "restarted with a reset controller"  # the start of every restart event (the same verdict)
+
+
+@contextlib.contextmanager
+def os_exit_stops_the_firmware() -> Iterator[None]:
+    """While firmware runs in the rig's own process (virtual time), ``os._exit`` raises SystemExit instead, which
+    stops the calling ECU like any failure (``guarded_cycle``) rather than ending the run with nothing written."""
+    real = os._exit
+
+    def refuse(code: int) -> NoReturn:
+        raise SystemExit(f"os._exit({code}) called by the firmware")
+
+    os._exit = refuse  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        os._exit = real
+
+
+def guarded_cycle(ecu: "Ecu", t: float) -> list[tuple[int, bytes]]:
+    """``ecu.cycle(t)``, with a program that raises (or calls sys.exit) stopped like a failed law, not the run."""
+    if not ecu.alive:
+        return []
+    try:
+        return ecu.cycle(t)
+    except (Exception, SystemExit) as exc:
+        ecu.stop(t, f"ECU program failed: {exc!r}")
+        return []
 
 
 class EcuSettings(Protocol):
@@ -230,6 +264,12 @@ class Ecu:
             monitor(self, t)
         return frames
 
+    def stop(self, t: float, why: str) -> None:
+        """The firmware failed: the ECU falls silent (the plant's fail-safe takes over), an ERROR event says why."""
+        self.alive = False
+        self.counters.controller_errors += 1
+        self.events.append((t, "ERROR", f"{why}; {ECU_STOPPED}"))
+
     def restart(self) -> None:
         """Power-cycle: clear the controller's memory and the mailboxes, start sending again."""
         self.controller.reset()
@@ -256,10 +296,8 @@ class Ecu:
             cmd = self.controller.step(view)
             if not math.isfinite(cmd.force_n):
                 raise ValueError(f"controller returned a non-finite force {cmd.force_n}")
-        except Exception as exc:  # the firmware crashed: fall silent, the plant's fail-safe takes over
-            self.alive = False
-            self.counters.controller_errors += 1
-            self.events.append((t, "ERROR", f"controller {type(self.controller).__name__} failed: {exc!r}; ECU stopped"))
+        except (Exception, SystemExit) as exc:  # the firmware crashed (sys.exit too): fall silent, fail-safe
+            self.stop(t, f"controller {type(self.controller).__name__} failed: {exc!r}")
             return None
         if self.agent.has_reference:
             self._flag(t, "ref_stale", not ref_ok, "WARN", "reference stale: service brake")

@@ -13,6 +13,7 @@ from ecu_sim.references import ReferenceLoadError
 from hil.can.cli import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
+from hil.record.safety import ECU_FAILURE
 from hil.record.out_dir import OutputDirError, ensure_writable_dir, hold_folder, release_folder
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
 from hil.scenario.loader import parse_assignment
@@ -84,8 +85,9 @@ def _safety_lines(safety: dict | None) -> list[str]:
     if not safety:
         return []
     verdicts = {k: v for k, v in safety.items() if isinstance(v, dict) and "violated" in v}
-    bad = [f"{k}: {v['count']}x from t = {v['first_s']:.1f} s ({v['total_s']:.1f} s summed over units)"
-           for k, v in verdicts.items() if v["violated"]]
+    bad = [f"{k}: {v['count']}x from t = {v['first_s']:.1f} s " + (
+           f"({v['violations'][0]['where']}: {v['violations'][0]['text']})" if k == ECU_FAILURE
+           else f"({v['total_s']:.1f} s summed over units)") for k, v in verdicts.items() if v["violated"]]
     return [f"{'safety verdicts':38s} " + ("; ".join(bad) if bad else "safe (" + ", ".join(verdicts) + ": none)")]
 
 
@@ -122,6 +124,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from hil.runtime.firmware import refuse_external_units
 
         refuse_external_units(scenario, "the ideal loop" if args.ideal else "virtual time")
+    from hil.runtime.assembly import check_firmware
+
+    check_firmware(scenario, ecus=not args.ideal)  # a law or program that cannot be built: exit 2, nothing written
     out = Path(args.out) if args.out else default_output_dir(scenario.name, args)
     check_output_dir(out, args.overwrite)
     try:

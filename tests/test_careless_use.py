@@ -101,3 +101,106 @@ def test_a_read_only_output_folder_is_refused_before_any_work(read_only_dir, cap
     assert f"hil: error: --out {read_only_dir}: cannot write there: Read-only file system" in err \
         or "Permission denied" in err
     assert time.monotonic() - started < 10
+
+
+# --------------------------------------------------------------------------- firmware that fails must fail CI
+
+BAD_LAWS = '''
+import os, sys
+from ecu_sim.controllers.base import Controller, ControllerParams
+from ecu_sim.view import Command
+
+
+class _Law(Controller):
+    Params = ControllerParams
+
+    def step(self, view):
+        return Command(force_n=0.0, accel_mps2=0.0)
+
+
+class Raises(_Law):
+    def step(self, view):
+        raise ValueError("boom")
+
+
+class ReturnsNan(_Law):
+    def step(self, view):
+        return Command(force_n=float("nan"), accel_mps2=0.0)
+
+
+class ReturnsNone(_Law):
+    def step(self, view):
+        return None
+
+
+class SysExit3(_Law):
+    def step(self, view):
+        sys.exit(3)
+
+
+class OsExit0(_Law):
+    def step(self, view):
+        os._exit(0)
+
+
+class NoStep(Controller):
+    Params = ControllerParams
+
+
+class InitRaises(_Law):
+    def __init__(self, *args, **kwargs):
+        raise RuntimeError("init boom")
+'''
+
+
+@pytest.fixture
+def bad_laws(tmp_path_factory, monkeypatch):
+    """A folder with careless_laws.py as the working folder (imported once per test session)."""
+    where = tmp_path_factory.getbasetemp() / "careless_laws"
+    where.mkdir(exist_ok=True)
+    (where / "careless_laws.py").write_text(BAD_LAWS)
+    monkeypatch.chdir(where)
+    return where
+
+
+@pytest.mark.parametrize("law", ["Raises", "ReturnsNan", "ReturnsNone", "SysExit3", "OsExit0"])
+def test_a_law_that_fails_on_every_step_fails_check(bad_laws, capsys, law):
+    """Every ECU stops: ``--check`` used to exit 0 with "safe" (sys.exit(3) exited 3 with no word, os._exit(0)
+    exited 0 leaving a stub). Now each ECU's stop is the ecu_failure verdict, named on stderr, exit 3."""
+    out = bad_laws / f"out-{law}"
+    code = main(["run", str(CRUISE), "--duration", "1", "--quiet", "--check", "--overwrite", "--out", str(out),
+                 "--set", f"controller.law=careless_laws:{law}"])
+    captured = capsys.readouterr()
+    assert code == 3, captured.err
+    assert "hil: unsafe: ecu_failure (6x, first at t = " in captured.err
+    assert "ecu_failure: 6x from t = " in captured.out and "ECU stopped" in captured.out
+    import json
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert not metrics["safety"]["safe"] and metrics["safety"]["ecu_failure"]["count"] == 6
+    assert metrics["sim_time_s"] == 1.0  # the run went on to its end, the plant's fail-safe holding the trains
+
+
+@pytest.mark.slow  # a real-time run: about 8 s
+def test_an_ecu_process_that_exits_fails_check_in_real_time(bad_laws):
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "2",
+                           "--quiet", "--check", "--out", "rt", "--set", "controller.law=careless_laws:OsExit0"],
+                          capture_output=True, text=True, timeout=300, cwd=bad_laws)
+    assert proc.returncode == 3, proc.stderr
+    assert "hil: unsafe: ecu_failure (6x" in proc.stderr
+    assert "ECU process train1/unit1 exited with code 0" in proc.stdout
+
+
+@pytest.mark.parametrize("law, says", [
+    ("NoStep", "'careless_laws:NoStep': NoStep does not define step (a law needs step(view) -> Command)"),
+    ("InitRaises", "'careless_laws:InitRaises': building the law for train 1 unit 1 failed: RuntimeError: init boom "
+                   "(careless_laws.py, line ")])
+@pytest.mark.parametrize("runtime", [[], ["--realtime"]])
+def test_a_law_that_cannot_be_built_is_one_line_and_exit_2_before_anything_is_written(bad_laws, capsys, law, says,
+                                                                                      runtime):
+    out = bad_laws / f"out-{law}-{len(runtime)}"
+    code = main(["run", str(CRUISE), "--duration", "1", "--quiet", "--out", str(out), *runtime,
+                 "--set", f"controller.law=careless_laws:{law}"])
+    err = capsys.readouterr().err
+    assert code == 2 and says in err and "Traceback" not in err
+    assert not out.exists()

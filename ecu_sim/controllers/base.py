@@ -6,12 +6,13 @@ State (integrators, observers, fractional memories) lives inside the controller 
 """
 from __future__ import annotations
 
+import inspect
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
-from ecu_sim.references import LAW_GROUP, ReferenceLoadError, known_names, resolve
+from ecu_sim.references import LAW_GROUP, ReferenceLoadError, known_names, one_line, resolve
 from ecu_sim.view import AgentInfo, Command, LocalView
 
 
@@ -87,6 +88,10 @@ def _check_law(obj: object, reference: str) -> type[Controller]:
     """A loaded object is a law: a Controller subclass with its Params model."""
     if not (isinstance(obj, type) and issubclass(obj, Controller)):
         raise ReferenceLoadError(f"{reference!r} is {obj!r}, not a subclass of ecu_sim.controllers.base.Controller")
+    if inspect.isabstract(obj):
+        missing = ", ".join(sorted(obj.__abstractmethods__))
+        raise ReferenceLoadError(f"{reference!r}: {obj.__qualname__} does not define {missing} (a law needs "
+                                 "step(view) -> Command)")
     params = getattr(obj, "Params", None)
     if not (isinstance(params, type) and issubclass(params, BaseModel)):
         raise ReferenceLoadError(f"{reference!r}: {obj.__qualname__} has no `Params` (its ControllerParams model)")
@@ -103,4 +108,8 @@ def known_controllers() -> list[str]:
 def build_controller(name: str, params: dict[str, Any], agent: AgentInfo, plant_info: PlantInfo) -> Controller:
     """Validate ``params`` against the law's model and build one controller."""
     cls = get_controller(name)
-    return cls(cls.Params(**params), agent, plant_info)
+    p = cls.Params(**params)
+    try:
+        return cls(p, agent, plant_info)
+    except Exception as exc:  # the user's __init__ raised: one line naming the law, not a traceback
+        raise ReferenceLoadError(f"{name!r}: building the law for train {agent.train + 1} unit {agent.unit + 1} failed: {one_line(exc)}") from None

@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import heapq
 
+from ecu_sim.runtime import RESTARTED
+
 WHY = ("crash", "hang", "error")
 _AFTER = {"crash": "a crash", "hang": "a hang", "error": "a controller error"}
 
 
 def restart_text(by: str, why: str | None) -> str:
     """The timeline's words for a restart: ``by`` what (the watchdog, the crash's end), after what."""
-    return f"restarted with a reset controller ({by}, after {_AFTER.get(why or '', 'a stop')})"
+    return f"{RESTARTED} ({by}, after {_AFTER.get(why or '', 'a stop')})"
 
 
 class Watchdog:

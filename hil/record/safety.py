@@ -5,6 +5,8 @@ Verdicts, judged on every recorded sample (a sample holds until the next, as in 
 * ``gap_below_le``: the gap of a train pair below l_e (the emergency-braking gap);
 * ``collision``: a gap below zero;
 * ``coupler_out_of_band``: a coupler's displacement outside the band (max compression, max stretch);
+* ``ecu_failure``: an ECU whose law or program raised, returned no command or a non-finite force, or called
+  sys.exit (the ECU stops), whose process died, or that was restarted: firmware that fails must fail CI too;
 * ``overspeed``: a unit faster than the reference speed v_r plus the ETCS emergency-brake intervention margin
   of ceiling speed monitoring (SUBSET-026 3.13.9.2.3, default values: 7.5 km/h up to 110 km/h, 15 km/h from
   210 km/h, linear in between), or than ``line_limit_mps`` if one is given. v_r is our stand-in for the line's
@@ -20,13 +22,16 @@ from __future__ import annotations
 import re
 from dataclasses import asdict
 
+from ecu_sim.runtime import ECU_STOPPED, RESTARTED
 from hil.record.runlog import Event, RunLog
 from hil.record.signal_summary import KMH, MAX_LISTED, Violation, ebi_margin
 
 __all__ = ["KMH", "MAX_LISTED", "VERDICTS", "Violation", "check_safety", "ebi_margin", "explain", "safety_report"]
 
 CAUSE_WINDOW_S = 60.0
-VERDICTS = ("gap_below_le", "collision", "coupler_out_of_band", "overspeed")
+VERDICTS = ("gap_below_le", "collision", "coupler_out_of_band", "overspeed")  # judged on the sampled signals
+ECU_FAILURE = "ecu_failure"  # judged on the events: an ECU stopped, died or was restarted
+_ECU_EXIT = re.compile(r"^ECU process \S+ exited with code")
 _FAULT_EVENT = re.compile(r"^#(\d+) (\S+) on (.+?): (injected|over)")
 
 
@@ -115,7 +120,32 @@ def safety_report(log: RunLog, band: tuple[float, float], line_limit_mps: float 
         mine = [v for v in listed if v.verdict == verdict]
         out[verdict] = {"violated": bool(count), "count": count, "total_s": float(total), "first_s": first,
                         "violations": [asdict(v) for v in mine]}
+    out[ECU_FAILURE] = ecu_failure_verdict(log.events)
+    out["safe"] = out["safe"] and not out[ECU_FAILURE]["violated"]
     return out
+
+
+def ecu_failures(events: list[Event]) -> list[Event]:
+    """The events that say an ECU stopped (its law or program raised, returned no command or a non-finite one,
+    called sys.exit), its process died, or it was restarted: the ``ecu_failure`` verdict, in time order."""
+    return sorted((ev for ev in events if _is_ecu_failure(ev)), key=lambda ev: ev.t)
+
+
+def _is_ecu_failure(ev: Event) -> bool:
+    if ev.level == "ERROR" and (ev.text.endswith(ECU_STOPPED) or ECU_STOPPED in ev.text.split(": ")[0]):
+        return True
+    if ev.level == "ERROR" and ev.source == "rig" and _ECU_EXIT.match(ev.text):
+        return True
+    return ev.text.startswith(RESTARTED)
+
+
+def ecu_failure_verdict(events: list[Event]) -> dict:
+    """``ecu_failure`` for metrics.json: violated when any ECU stopped, died or restarted (``--check`` fails on
+    it), with the first MAX_LISTED of them (time, ECU, what its event said)."""
+    failures = ecu_failures(events)
+    return {"violated": bool(failures), "count": len(failures), "total_s": 0.0,
+            "first_s": failures[0].t if failures else None,
+            "violations": [{"t_s": ev.t, "where": ev.source, "text": ev.text} for ev in failures[:MAX_LISTED]]}
 
 
 def violation_events(log: RunLog, band: tuple[float, float]) -> list[Event]:

@@ -63,3 +63,17 @@ def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     controllers = [build_controller(f.law, f.params, layout.agent_info(u), info) for u, f in enumerate(firmware)]
     return Assembly(scenario, layout, plant, ReferenceProfile.from_config(scenario.reference), controllers, firmware,
                     info, seed, streams)
+
+
+def check_firmware(scenario: Scenario, *, ecus: bool = True) -> None:
+    """Build every controller (and, with ``ecus``, every rig ECU) once, so a law or program that cannot be built
+    is one line (ReferenceLoadError, exit 2) before a run writes anything, in either runtime."""
+    from hil.runtime.firmware import build_ecu
+    from hil.runtime.train_db import load_train_db
+
+    parts = assemble(scenario)
+    if ecus:
+        db = load_train_db(scenario)
+        for u, firmware in enumerate(parts.firmware):
+            if not firmware.external:
+                build_ecu(parts, db, u)

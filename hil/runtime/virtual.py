@@ -18,7 +18,7 @@ from typing import Callable
 import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
-from ecu_sim.runtime import Ecu
+from ecu_sim.runtime import Ecu, guarded_cycle, os_exit_stops_the_firmware
 from hil.can.bus import CanNode
 from hil.runtime.plant_step import plant_step
 from hil.runtime.python_bus import VirtualCanBus
@@ -211,7 +211,7 @@ class VirtualRig:
 
     def _ecu_tick(self, u: int, t_ns: int) -> None:
         ecu = self.ecus[u]
-        frames = ecu.cycle(t_ns * 1e-9)
+        frames = guarded_cycle(ecu, t_ns * 1e-9)
         bus, node = self.buses[self._train_of[u]], self._ecu_nodes[u]
         if frames:
             bus.send_frames(node, frames)
@@ -236,7 +236,8 @@ class VirtualRig:
             t = self.kernel.now
             while t < end_ns:
                 t = min(t + chunk_ns, end_ns)
-                self.kernel.run(t)
+                with os_exit_stops_the_firmware():  # the firmware runs in this process
+                    self.kernel.run(t)
                 self._collect()
                 if progress:
                     progress(t * 1e-9)

@@ -19,7 +19,7 @@ import math
 import sys
 from pathlib import Path
 
-
+from ecu_sim.runtime import guarded_cycle
 from hil.faults.schedule import needs_fault_machinery
 from hil.faults.watchdog import Watchdog, restart_text
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
@@ -133,7 +133,7 @@ class UnitCycles:
         u, deadline = item
         now = self.kernel.clock.now()
         ecu = self.ecus[u]
-        frames = ecu.cycle(now)
+        frames = guarded_cycle(ecu, now)
         if frames:
             self.io.send(self.bus_of[u], frames)
         if self.watchdog is not None:
