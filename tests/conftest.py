@@ -2,10 +2,17 @@
 from __future__ import annotations
 
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 
 import pytest
+
+# Started from a shell that ignores SIGINT (a background job, nohup), every child process would inherit the ignored
+# SIGINT, and the tests that stop a run or a logger with Ctrl-C would wait in vain. A handled SIGINT here is reset
+# to the default in each child at exec, as it is when the suite is started from a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture

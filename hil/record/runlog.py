@@ -9,6 +9,7 @@ A long run need not keep its samples: ``release_signals(row)`` summarises the ro
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +20,7 @@ from hil.record.signal_summary import SignalSummary
 from hil.tables import SampleTable
 
 SETTLE_BAND_MPS = 0.5 / 3.6  # the metrics' default settling band: 0.5 km/h
+SUMMARY_BLOCK_ROWS = 512  # the signal summary takes rows in blocks this long, at fixed row numbers
 
 __all__ = ["BusLog", "Event", "RunLog", "SampleTable"]
 
@@ -60,24 +62,38 @@ class RunLog:
     def summary(self, coupler_band: tuple[float, float], settle_band_mps: float = SETTLE_BAND_MPS,
                 line_limit_mps: float | None = None) -> SignalSummary:
         """The summary of every sample so far, for these bands: kept up to date as samples come (a summary asked
-        for after samples were released must have been asked for before, so it has seen them)."""
+        for after samples were released must have been asked for before, so it has seen them).
+
+        The summary itself takes rows in whole blocks of SUMMARY_BLOCK_ROWS, at fixed row numbers, so its sums
+        never depend on when it was asked (the wall clock paces the recording); the rows after the last whole
+        block are added to a copy, which is what is returned."""
         key = (tuple(float(b) for b in coupler_band), float(settle_band_mps), line_limit_mps)
+        summary, fed = self._fed_summary(key, line_limit_mps)
+        n = len(self.signals)
+        if n > fed:
+            summary = copy.deepcopy(summary)
+            summary.add(self.signals.rows(fed, n))
+        return summary
+
+    def _fed_summary(self, key: tuple, line_limit_mps: float | None) -> tuple[SignalSummary, int]:
+        """The block-aligned summary of ``key``, fed every whole block of rows there is (made if new)."""
         summary, fed = self.summaries.get(key, (None, 0))
         if summary is None:
             if self.signals.released:
                 raise ValueError(f"no summary for {key}: the samples before row {self.signals.released} were "
                                  "released without one")
             summary = SignalSummary(self.layout, key[0], key[1], self.reference_change_times, line_limit_mps)
-        n = len(self.signals)
-        if n > fed:
-            summary.add(self.signals.rows(fed, n))
-        self.summaries[key] = (summary, n)
-        return summary
+        upto = fed + (len(self.signals) - fed) // SUMMARY_BLOCK_ROWS * SUMMARY_BLOCK_ROWS
+        if upto > fed:
+            summary.add(self.signals.rows(fed, upto))
+        self.summaries[key] = (summary, upto)
+        return summary, upto
 
     def release_signals(self, row: int) -> None:
-        """Summarise the samples before ``row`` (every summary asked for so far) and let them go."""
+        """Summarise the samples before ``row`` (every summary asked for so far) and let them go, but for those
+        after the summaries' last whole block (they are let go with the next block)."""
         for key in list(self.summaries):
-            self.summary(*key)
+            row = min(row, self._fed_summary(key, key[2])[1])
         self.signals.release_before(row)
 
     def tally_frames_lost(self) -> int:

@@ -6,7 +6,8 @@ tail of each reference segment, the effort and jerk sums, and the safety violati
 samples to compute its metrics, and its memory does not grow with its length (``RunLog.release_signals``).
 
 The figures do not depend on the chunking, except for the last bits of the sums (times spent, effort, jerk), which
-are added chunk by chunk. Durations use a zero-order hold: sample k holds until sample k+1, the last one 0 s.
+are added chunk by chunk: ``RunLog.summary`` therefore feeds it in blocks of fixed row numbers, so metrics.json is
+the same bit for bit however the wall clock paced the recording. Durations use a zero-order hold: sample k holds until sample k+1, the last one 0 s.
 A violation is one interval of one pair, coupler or unit (hil/record/safety.py says which verdicts); all are
 counted, and the MAX_LISTED earliest of each verdict are kept with their worst value.
 """
