@@ -236,14 +236,14 @@ class TrainDb:
 
     def containers_for(self, units: int | None = None) -> list[Container]:
         """This DBC's containers for a train of ``units`` unit slots (default: all): parts of slots beyond it are
-        left out and each container is shortened to what is left (no sender would ever complete a container whose
-        parts no one sends)."""
+        left out (no sender would ever complete a container whose parts no one sends), and each container keeps
+        its DBC length, the absent parts' bytes zero, so every frame on the wire decodes strictly with the DBC (a
+        static container PDU has a fixed length; CANoe and cantools refuse a shorter frame)."""
         out, slots = [], self.max_units if units is None else units
         for c in self.containers:
             parts = tuple(p for p in c.parts if (_unit_slot(p.name) or 0) < slots)
             if parts:
-                length = fd_length(max(p.offset + p.length for p in parts))
-                out.append(Container(c.name, c.frame_id, length, parts))  # type: ignore[arg-type]
+                out.append(Container(c.name, c.frame_id, c.length, parts))
         return out
 
     def carriers(self, frame_id: int, units: int | None = None) -> list[Container]:
