@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hil.record import load_run
@@ -81,3 +82,63 @@ def test_dead_run_directories_are_removed_and_live_ones_kept(tmp_path, monkeypat
         assert not dead.exists() and live.exists() and young.exists()  # a young one may be a rig starting up
     finally:
         server.close()
+
+
+@pytest.fixture(scope="module")
+def finished_rt_run(tmp_path_factory):
+    """A 2 s real-time run that ended normally: its nodes' files are what a killed rig leaves."""
+    out = tmp_path_factory.mktemp("rt") / "run"
+    done = hil("run", str(CRUISE), "--realtime", "--duration", "2", "--ecus-per-process", "3", "--quiet", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    return out
+
+
+def as_killed(run: Path, where: Path) -> Path:
+    """A copy of ``run`` as its killed rig would have left it: a "running" stub and no run.rrd."""
+    import shutil
+
+    from hil.record.integrity import mark_running
+
+    shutil.copytree(run, where)
+    (where / "run.rrd").unlink()
+    mark_running(where / "metrics.json", "cruise", "realtime")
+    return where
+
+
+@pytest.mark.parametrize("damage, says", [
+    ("random", "nodes/signals.bin: row 0 is not a sample of this run"),
+    ("no run.json", "the rig never started (no valid nodes/run.json): there is no run to recover"),
+    ("bad scenario", "nodes/scenario.json: not a valid scenario ("),
+    ("empty stream", "nodes/signals.bin: no samples: the plant never recorded"),
+])
+def test_recover_refuses_what_it_cannot_trust(finished_rt_run, tmp_path, damage, says):
+    """Random bytes in signals.bin used to give exit 0 and a coupler of 7.8e307 m; a rig that never started was
+    "recovered" as a 0 s run; a corrupt scenario.json was a pydantic traceback."""
+    run = as_killed(finished_rt_run, tmp_path / "r")
+    stream = run / "nodes" / "signals.bin"
+    if damage == "random":
+        stream.write_bytes(np.random.default_rng(1).bytes(stream.stat().st_size))
+    elif damage == "no run.json":
+        (run / "nodes" / "run.json").unlink()
+    elif damage == "bad scenario":
+        (run / "nodes" / "scenario.json").write_text('{"name": 5, "trains": "many"}')
+    else:
+        stream.write_bytes(b"")
+    done = hil("recover", str(run))
+    assert done.returncode == 2 and says in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert json.loads((run / "metrics.json").read_text())["status"] == "running"  # nothing was made up
+
+
+def test_recover_reports_the_time_a_cut_stream_really_covers(finished_rt_run, tmp_path):
+    """A half-cut signals.bin used to be reported as the plant's whole time: now the figures say what they cover."""
+    run = as_killed(finished_rt_run, tmp_path / "r")
+    stream = run / "nodes" / "signals.bin"
+    data = stream.read_bytes()
+    stream.write_bytes(data[:len(data) // 2 + 5])  # half the rows and a cut one
+    done = hil("recover", str(run))
+    assert done.returncode == 0, done.stderr
+    m = json.loads((run / "metrics.json").read_text())
+    t, _ = load_run(run)["/trains/1/units/1/speed_kmh"]
+    assert m["sim_time_s"] == pytest.approx(t[-1]) and t[-1] < 1.2 and m["recovered_covers_s"] == [0.0, t[-1]]
+    assert any(e[3].startswith("the plant's signal stream ends at t = ") for e in [
+        (ev.t, ev.level, ev.source, ev.text) for ev in load_run(run).events])
