@@ -201,12 +201,12 @@ def test_cli_measured_without_the_key_names_the_file(tmp_path, capsys):
 
 
 def test_cli_measured_from_a_real_run_stays_under_the_bounds(tmp_path, capsys):
-    from hil.record.metrics import compute_metrics
+    from hil.record.metrics import run_metrics
     from hil.runtime.virtual import VirtualRig
 
     sc = load_scenario("seed000")
     log = VirtualRig(sc).run(2.0)
-    metrics = compute_metrics(log, sc.plant.coupler_band_m)
+    metrics = run_metrics(log, sc, "virtual", sc.seed)
     (tmp_path / "metrics.json").write_text(json.dumps(metrics))
     code, out, _ = cli(["--scenario", "seed000", "--bus", "bus2", "--measured", str(tmp_path)], capsys)
     assert code == 0

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from ecu_sim.codec import DbcMismatchError, TrainDb, default_dbc_path
-from hil.record.metrics import compute_metrics
+from hil.record.metrics import run_metrics
 from hil.runtime.train_db import load_train_db
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import ScenarioError, load_scenario
@@ -145,7 +145,7 @@ def test_can_analysis_of_the_packed_scenario_bounds_its_run(tmp_path, capsys):
 
     sc = load_scenario("seed001-fd-packed")
     assert sc.ecu.cycle_s == 0.001 and sc.can.dbc == "train_fd.dbc"
-    metrics = compute_metrics(VirtualRig(sc).run(2.0), sc.plant.coupler_band_m)
+    metrics = run_metrics(VirtualRig(sc).run(2.0), sc, "virtual", sc.seed)
     (tmp_path / "metrics.json").write_text(json.dumps(metrics))
     assert can_analysis(["--scenario", "seed001-fd-packed", "--measured", str(tmp_path)]) == 0
     out = capsys.readouterr().out

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -188,7 +189,7 @@ def test_an_ecu_process_that_exits_fails_check_in_real_time(bad_laws):
                           capture_output=True, text=True, timeout=300, cwd=bad_laws)
     assert proc.returncode == 3, proc.stderr
     assert "hil: unsafe: ecu_failure (6x" in proc.stderr
-    assert "ECU process train1/unit1 exited with code 0" in proc.stdout
+    assert re.search(r"ecu_failure: 6x from t = .* \(rig: ECU process train\d/unit\d exited with code 0\)", proc.stdout)
 
 
 @pytest.mark.parametrize("law, says", [
@@ -204,3 +205,20 @@ def test_a_law_that_cannot_be_built_is_one_line_and_exit_2_before_anything_is_wr
     err = capsys.readouterr().err
     assert code == 2 and says in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_a_sweep_set_on_one_of_its_axes_is_refused(tmp_path, capsys):
+    """``hil sweep latency-loss --set radio.latency_s=0.5`` used to run the sweep with the axis winning, silently."""
+    assert main(["sweep", "latency-loss", "--set", "radio.latency_s=0.5", "--out", str(tmp_path / "sw"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--set radio.latency_s=...: 'radio.latency_s' is an axis of this sweep (values [0.0, 0.2, 0.5])" in err
+    assert not (tmp_path / "sw").exists()
+
+
+def test_can_analysis_refuses_a_measured_run_of_another_scenario(tmp_path, capsys):
+    """``--scenario seed001-fd --measured RUN`` of a seed001 run used to say "EXCEEDS BOUND"."""
+    assert main(["run", "seed001", "--duration", "0.2", "--quiet", "--no-record", "--out", str(tmp_path / "r")]) == 0
+    capsys.readouterr()
+    assert main(["can-analysis", "--scenario", "seed001-fd", "--measured", str(tmp_path / "r")]) == 2
+    assert "a run of scenario 'seed001', not of 'seed001-fd'" in capsys.readouterr().err
+    assert main(["can-analysis", "--scenario", "seed001", "--measured", str(tmp_path / "r")]) == 0

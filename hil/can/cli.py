@@ -116,6 +116,28 @@ def read_measured(run_dir: Path, bus: str) -> tuple[dict[int, float], dict]:
     return out, metrics
 
 
+def db_path(sc: Scenario | None) -> Path:
+    """The DBC analysed without an explicit one: the scenario's, else the packaged train.dbc."""
+    return sc.can.dbc_path if sc is not None else default_dbc_path()
+
+
+def check_measured_run(run_dir: Path, metrics: dict, sc: Scenario | None, dbc: Path) -> None:
+    """The measured run must be a run of the analysed scenario on the analysed DBC (its provenance says): another
+    scenario's latencies say nothing about these bounds."""
+    from hil.record.provenance import file_hash
+
+    prov = metrics.get("provenance")
+    if not isinstance(prov, dict):
+        raise CanAnalysisError(f"--measured {run_dir}: its metrics.json has no provenance, so nothing says which "
+                               "scenario and DBC it ran: run the scenario again with `hil run`")
+    if sc is not None and prov.get("scenario") != sc.name:
+        raise CanAnalysisError(f"--measured {run_dir}: a run of scenario {prov.get('scenario')!r}, not of "
+                               f"{sc.name!r}: its latencies do not belong to this analysis")
+    if prov.get("dbc_sha256") not in (None, file_hash(dbc)):
+        raise CanAnalysisError(f"--measured {run_dir}: the run used another DBC ({prov.get('dbc')!r}, sha256 "
+                               f"{prov['dbc_sha256'][:12]}...) than the one analysed ({dbc})")
+
+
 def _scenario(args: argparse.Namespace) -> Scenario | None:
     """The scenario given with --scenario, with its --set overrides (None without one)."""
     if args.set and not args.scenario:
@@ -152,10 +174,12 @@ def _analyse(args: argparse.Namespace) -> None:
         raise CanAnalysisError(f"{args.dbc} looks like a scenario file; the positional argument is a DBC file. "
                                f"Analyse a scenario's bus with --scenario {args.dbc}")
     sc = _scenario(args)
-    db = TrainDb.load(Path(args.dbc) if args.dbc else sc.can.dbc_path if sc is not None else default_dbc_path())
+    db = TrainDb.load(Path(args.dbc) if args.dbc else db_path(sc))
     bus_index = parse_bus(args.bus)
     setup, where = _setup(args, bus_index, db, sc)
     measured, metrics = read_measured(Path(args.measured), f"bus{bus_index + 1}") if args.measured else ({}, {})
+    if args.measured:
+        check_measured_run(Path(args.measured), metrics, sc, Path(args.dbc) if args.dbc else db_path(sc))
     timings = analyse_train_bus(db, setup, measured)
     ahead, behind = forwarded_jitter(db, setup)
     print(f"DBC {db.path}: {where}")

@@ -242,6 +242,11 @@ def load_sweep(name_or_path: str | Path, overrides: dict[str, Any] | None = None
     (``--duration``) replaces the file's. Both change the run ids, so they never reuse runs made without them."""
     path = resolve_sweep(name_or_path)
     data = read_toml(path, SweepError)
+    axes = data.get("axes") if isinstance(data.get("axes"), dict) else {}
+    clash = sorted(set(overrides or {}) & set(axes))
+    if clash:  # the axis would silently win over --set in every run
+        raise SweepError(f"{path}: --set {clash[0]}=...: {clash[0]!r} is an axis of this sweep (values "
+                         f"{axes[clash[0]]}); a --set cannot fix it: sweep it, or copy the sweep file without that axis")
     if overrides:
         data["overrides"] = {**data.get("overrides", {}), **overrides}
     if duration_s is not None:
