@@ -77,7 +77,8 @@ def print_summary(metrics: dict, out: Path) -> None:
         print(f"  {'signals saturated (count)':38s} " + ", ".join(f"{k}: {v}" for k, v in sat.items()))
     for line in _safety_lines(metrics.get("safety")) + _fault_lines(metrics.get("faults")):
         print(f"  {line}")
-    print(f"  written to {out}/ (run.rrd, metrics.json)")
+    written = [name for name in ("run.rrd", "metrics.json") if (out / name).exists()]
+    print(f"  written to {out}/ ({', '.join(written)})")
 
 
 def _safety_lines(safety: dict | None) -> list[str]:

@@ -222,3 +222,18 @@ def test_can_analysis_refuses_a_measured_run_of_another_scenario(tmp_path, capsy
     assert main(["can-analysis", "--scenario", "seed001-fd", "--measured", str(tmp_path / "r")]) == 2
     assert "a run of scenario 'seed001', not of 'seed001-fd'" in capsys.readouterr().err
     assert main(["can-analysis", "--scenario", "seed001", "--measured", str(tmp_path / "r")]) == 0
+
+
+def test_another_law_by_set_brings_only_its_own_parameters(bad_laws, capsys):
+    """``--set controller.law=mymodule:Cls`` on seed000 used to fail with 13 "Extra inputs are not permitted" (the
+    finite-time law's parameters); as with ``extends``, the old law's parameters go with it."""
+    from hil.scenario import load_scenario
+
+    sc = load_scenario("seed000", {"controller.law": "careless_laws:_Law"})
+    assert sc.controller.law == "careless_laws:_Law" and sc.controller.params == {}
+    kept = load_scenario("seed000", {"controller.law": "consensus", "controller.params.kx_ref": 0.5})
+    assert kept.controller.params["kx_ref"] == 0.5
+    assert main(["run", "seed000", "--duration", "0.5", "--quiet", "--no-record", "--out", str(bad_laws / "o17"),
+                 "--overwrite", "--set", "controller.law=careless_laws:_Law"]) == 0
+    out = capsys.readouterr().out
+    assert f"written to {bad_laws / 'o17'}/ (metrics.json)" in out  # --no-record: no run.rrd named

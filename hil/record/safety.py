@@ -15,7 +15,8 @@ Verdicts, judged on every recorded sample (a sample holds until the next, as in 
 A violation is one interval of one pair, coupler or unit: start, end (the first sample back within the limit,
 or the last sample), duration, the worst value and when. Its cause is what the run's events say happened on
 that train (or pair) shortly before: injected faults active then or ended up to ``CAUSE_WINDOW_S`` earlier
-(from the ``faults`` events, hil/faults), else the last degraded-mode or ERROR event there, else "none seen".
+(from the ``faults`` events, hil/faults), else the last ERROR event or rig warning (an external unit gone
+missing) there, else "none seen".
 """
 from __future__ import annotations
 
@@ -89,7 +90,8 @@ def _event_trains(ev: Event) -> set[int]:
 def explain(violations: list[Violation], events: list[Event], n_trains: int) -> list[Violation]:
     """Fill in each violation's cause from the run's events (see the module docstring)."""
     faults = _fault_windows(events)
-    notable = [ev for ev in events if ev.level == "ERROR" and ev.source not in ("faults", "safety")]
+    notable = [ev for ev in events if (ev.level == "ERROR" and ev.source not in ("faults", "safety"))
+               or (ev.level == "WARN" and ev.source == "rig")]  # the rig's own warnings: a device gone missing
     for v in violations:
         trains = v.trains
         near = [f"{label} ({'active' if end is None or end >= v.start_s else f'ended at t = {end:.2f} s'})"
@@ -104,7 +106,8 @@ def explain(violations: list[Violation], events: list[Event], n_trains: int) -> 
             ev = before[-1]
             v.cause = f"after {ev.source} at t = {ev.t:.2f} s: {ev.text}"
         else:
-            v.cause = f"no injected fault or ERROR event on this train in the {CAUSE_WINDOW_S:g} s before it"
+            v.cause = (f"no injected fault, ERROR event or rig warning on this train in the {CAUSE_WINDOW_S:g} s "
+                       "before it")
     return violations
 
 

@@ -68,8 +68,15 @@ def _validate_firmware(source: str, scenario: Scenario) -> None:
 
 
 def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrides: dict[str, Any] | None = None) -> Scenario:
-    """Validate a parsed scenario (``overrides``: dotted keys -> values, applied first)."""
-    for dotted, value in (overrides or {}).items():
+    """Validate a parsed scenario (``overrides``: dotted keys -> values, applied first).
+
+    As with ``extends``, a ``controller.law`` override naming another law brings only its own parameters: the old
+    law's ``controller.params`` are dropped, except those the overrides set themselves."""
+    overrides = overrides or {}
+    old_law = _table(data, "controller").get("law")
+    if "controller.law" in overrides and overrides["controller.law"] != old_law and isinstance(data.get("controller"), dict):
+        data["controller"]["params"] = {}  # another law's parameters would not fit it
+    for dotted, value in overrides.items():
         node = data
         *parents, leaf = dotted.split(".")
         for part in parents:

@@ -267,6 +267,12 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if faults is not None:
                 faults.release()
             _stop_nodes(nodes)
+    except NodeError as exc:  # the rig never ran: say so, not "running" (which would point to hil recover)
+        write_json_atomic(out_dir / "metrics.json", {
+            "scenario": scenario.name, "runtime": "realtime", "status": "failed", "interrupted": True,
+            "sim_time_s": 0.0, "error": str(exc).splitlines()[0],
+            "note": "the rig did not start, nothing ran: there is nothing to recover"})
+        raise
     finally:
         _kill_all(nodes)
         server_stats = {s.log.name: s.stats.as_dict() for s in servers}

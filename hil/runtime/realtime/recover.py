@@ -44,6 +44,8 @@ def recover(out_dir: Path, wait_s: float = NODES_GRACE_S) -> dict:
     status = _status(out_dir / "metrics.json")
     if not (nodes_dir / "scenario.json").is_file():
         raise RecoverError(f"{out_dir}: no nodes/scenario.json: not the output directory of a real-time run")
+    if status == "failed":
+        raise RecoverError(f"{out_dir}: the rig did not start, nothing ran; nothing to recover")
     if status is not None and status != RUNNING:
         raise RecoverError(f"{out_dir}: the run finished and wrote its results; nothing to recover")
     _wait_for_plant(nodes_dir, wait_s)
