@@ -80,7 +80,7 @@ def how_to_open(files: list[Path], reason: str) -> str:
         "To look at them, on a machine with a display and rerun-sdk installed (copy the files there if needed):",
         f"  CI=1 rerun --bind 127.0.0.1 {args}",
         "  (CI=1 keeps rerun's usage analytics off; or run `rerun analytics disable` once.)",
-        "Or read them in Python without a viewer: rerun.chunk.RrdReader(path).stream() (tests/rrd_reader.py shows how).",
+        "Or read them in Python without a viewer: hil.record.load_run(RUN_DIR) (signals, events and metrics).",
     ]
     return "\n".join(lines)
 
