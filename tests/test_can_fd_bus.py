@@ -19,7 +19,7 @@ from hil.can.frame import (
     frame_bits,
     worst_case_fd_frame_bits,
 )
-from hil.record.metrics import compute_metrics
+from hil.record.metrics import run_metrics
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import ScenarioError, load_scenario
 
@@ -134,7 +134,7 @@ def test_can_analysis_of_the_packaged_fd_scenario_bounds_its_run(tmp_path, capsy
 
     sc = load_scenario("seed001-fd")
     assert sc.can.fd and sc.can.data_rate == 5_000_000
-    metrics = compute_metrics(VirtualRig(sc).run(3.0), sc.plant.coupler_band_m)
+    metrics = run_metrics(VirtualRig(sc).run(3.0), sc, "virtual", sc.seed)  # with its provenance
     (tmp_path / "metrics.json").write_text(json.dumps(metrics))
     assert can_analysis(["--scenario", "seed001-fd", "--measured", str(tmp_path)]) == 0
     out = capsys.readouterr().out
