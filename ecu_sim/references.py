@@ -31,6 +31,11 @@ class ReferenceLoadError(LookupError):
     """A name or ``module:QualName`` reference that does not resolve; the message says why, in one line."""
 
 
+class FirmwareBuildError(ReferenceLoadError, ValueError):
+    """A law or program that resolved but could not be built (its ``__init__`` raised, e.g. a parameter that does
+    not fit the train); a ValueError too, as the law's own check was."""
+
+
 def is_import_reference(text: str) -> bool:
     """``"package.module:QualName"`` (a colon with a module part before it), not a registered name."""
     module, sep, qualname = text.partition(":")

@@ -176,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     db = cantools.database.load_file(args.dbc)
     ecu, containers = PiSpeedEcu(db, args.unit, args.mass_kg, args.kp, args.ki), Containers(db)
     ids = ecu.receive_ids()
+    wanted = set(ids)
     filters = [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ids + containers.carrying(ids)]
     end = None if args.duration is None else time.monotonic() + args.duration
     fd = bool(containers.parts)  # a packed DBC is for CAN FD buses
@@ -189,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
             if msg is None or msg.is_error_frame or msg.is_remote_frame:
                 continue
             for part_id, part in containers.unpack(msg.arbitration_id, bytes(msg.data)):
+                if part_id not in wanted:  # a container's other parts (absent units' slots are zero): not ours
+                    continue
                 out = ecu.on_frame(part_id, part)
                 for frame_id, data in containers.pack(out):
                     bus.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=len(data) > 8,

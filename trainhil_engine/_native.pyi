@@ -140,8 +140,9 @@ class Network:
     def attach_commands(self, bus: int, name: str, commands: Sequence[tuple[int, MessageCodec, int]],
                         valid_modes: Sequence[int]) -> tuple[int, int]:
         """The plant's node: TractionCmd frames checked (length, CRC, mode) and decoded on delivery; (node, table)."""
-    def drain_commands(self) -> tuple[list[tuple[int, float, int, float]], list[tuple[int, int, bytes, int]]]:
-        """([(unit, force, mode, t_s)] accepted, [(table, frame_id, data, t_end_ns)] rejected) since the last call."""
+    def drain_commands(self) -> tuple[list[tuple[int, float, int, float, int]], list[tuple[int, int, bytes, int]]]:
+        """([(unit, force, mode, t_s, alive counter)] accepted, [(table, frame_id, data, t_end_ns)] rejected) since
+        the last call."""
     def drain_inboxes(self) -> list[tuple[int, int, bytes, int]]:
         """(inbox, frame_id, data, t_end) of every frame delivered into an inbox since the last call, in order."""
     def take_stats(self, bus: int) -> tuple[bytes, bytes, int, int]:

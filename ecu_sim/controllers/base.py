@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
-from ecu_sim.references import LAW_GROUP, ReferenceLoadError, known_names, one_line, resolve
+from ecu_sim.references import LAW_GROUP, FirmwareBuildError, ReferenceLoadError, known_names, one_line, resolve
 from ecu_sim.view import AgentInfo, Command, LocalView
 
 
@@ -112,4 +112,4 @@ def build_controller(name: str, params: dict[str, Any], agent: AgentInfo, plant_
     try:
         return cls(p, agent, plant_info)
     except Exception as exc:  # the user's __init__ raised: one line naming the law, not a traceback
-        raise ReferenceLoadError(f"{name!r}: building the law for train {agent.train + 1} unit {agent.unit + 1} failed: {one_line(exc)}") from None
+        raise FirmwareBuildError(f"{name!r}: building the law for train {agent.train + 1} unit {agent.unit + 1} failed: {one_line(exc)}") from None

@@ -36,6 +36,11 @@ pub fn e2e_crc(data_id: u8, payload: &[u8]) -> u8 {
     crc ^ XOR_OUT
 }
 
+/// The alive counter a frame carries (low nibble of byte 1); 0 for a frame too short to hold one.
+pub fn counter_of(data: &[u8]) -> u8 {
+    data.get(1).map_or(0, |b| b & (COUNTER_MODULO - 1))
+}
+
 /// Whether byte 0 of the frame is the CRC of the rest under `data_id`.
 pub fn crc_ok(data_id: u8, data: &[u8]) -> bool {
     data.len() >= HEADER_BYTES && data[0] == e2e_crc(data_id, data)

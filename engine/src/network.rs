@@ -32,8 +32,9 @@ pub const FAULT_DRAWS: usize = usize::MAX;
 /// A frame delivered into an inbox: (inbox, frame id, payload, end of transmission in ns).
 pub type InboxFrame = (usize, u32, Payload, u64);
 
-/// An actuator command decoded on delivery: (unit, force N, mode, arrival time s).
-pub type Command = (usize, f64, i64, f64);
+/// An actuator command decoded on delivery: (unit, force N, mode, arrival time s, E2E alive counter). The
+/// counter goes with it so that the plant can check each command stream's sequence (a second sender).
+pub type Command = (usize, f64, i64, f64, u8);
 
 /// What a command inbox accepts: per frame ID the unit it drives and the message layout (signals Mode, Force).
 #[derive(Default)]
@@ -55,7 +56,7 @@ impl CommandTable {
         if m as f64 != mode || !self.valid_modes.contains(&m) {
             return None;
         }
-        Some((*unit, force, m, t_ns as f64 * 1e-9))
+        Some((*unit, force, m, t_ns as f64 * 1e-9, crate::e2e::counter_of(data)))
     }
 }
 

@@ -491,9 +491,9 @@ impl Network {
         !self.core.commands.is_empty() || !self.core.rejected.is_empty()
     }
 
-    /// The commands accepted since the last call, in arrival order: ([(unit, force, mode, t_s)], [(table,
-    /// frame_id, data, t_end_ns)] of the frames rejected).
-    fn drain_commands<'py>(&mut self, py: Python<'py>) -> PyResult<(Vec<(usize, f64, i64, f64)>, Bound<'py, PyList>)> {
+    /// The commands accepted since the last call, in arrival order: ([(unit, force, mode, t_s, alive counter)],
+    /// [(table, frame_id, data, t_end_ns)] of the frames rejected).
+    fn drain_commands<'py>(&mut self, py: Python<'py>) -> PyResult<(Vec<(usize, f64, i64, f64, u8)>, Bound<'py, PyList>)> {
         let commands = std::mem::take(&mut self.core.commands);
         let rejected = std::mem::take(&mut self.core.rejected);
         let items: Vec<Bound<'py, PyTuple>> = rejected.iter()

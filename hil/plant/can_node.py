@@ -1,14 +1,16 @@
 """The plant's and the wayside's side of the train buses, shared by the virtual and the real-time runtime.
 
 Sensor frames out (one per unit, numbered by sample), Reference/ReferenceAux frames out, TractionCmd
-frames in (CRC and Mode checked, then applied to the plant as a zero-order hold). It has no transport:
+frames in (CRC, Mode and the stream's alive-counter sequence checked, then applied to the plant as a zero-order hold). It has no transport:
 callers send the frames it returns and hand it the frames they receive, as the ECU runtime does.
 """
 from __future__ import annotations
 
 from ecu_sim.codec import TrainDb
+from ecu_sim.e2e import counter_of
 from ecu_sim.view import BrakeMode
 from hil.layout import TrainLayout
+from hil.plant.command_streams import CommandStreams
 from hil.plant.dynamics import Plant
 from hil.record.runlog import RunLog
 from hil.reference import ReferenceProfile
@@ -29,6 +31,7 @@ class PlantCanNode:
         self.ref_counter = 0
         self.e2e_errors = 0
         self.malformed_frames = 0  # TractionCmd frames of the wrong length
+        self.streams = CommandStreams(layout.n_units)  # each unit's command stream in sequence (hil/plant/command_streams.py)
 
     def command(self, train: int, frame_id: int, data: bytes, t: float) -> int | None:
         """Apply a TractionCmd received on a train's bus at time t; the unit it drove, or None if rejected (logged)."""
@@ -47,8 +50,29 @@ class PlantCanNode:
             self.log.event(t, "WARN", source, f"{codec.name}: unknown Mode {mode:g}, frame ignored")
             return None
         u = self.cmd_unit[train][frame_id]
+        if not self.in_sequence(u, counter_of(data), t):
+            return None
         self.plant.command(u, force, int(mode), t)
         return u
+
+    def in_sequence(self, u: int, counter: int, t: float) -> bool:
+        """Whether unit u's command with alive counter ``counter`` continues its stream; a rejection is counted
+        and logged (the first, then at most one a second per stream)."""
+        why = self.streams.accept(u, counter)
+        if why is None:
+            return True
+        if self.streams.should_log(u, t):
+            train, unit = self.layout.train_unit(u)
+            what = "repeated" if why == "REPEATED" else "out of sequence"
+            self.log.event(t, "WARN", f"bus{train + 1}/plant",
+                           f"{self.db.traction_cmd(unit).name}: alive counter {counter} {what} (stream at "
+                           f"{self.streams.held[u]}): commands lost, or a second sender on this stream? command ignored "
+                           f"({self.streams.rejected[why][u]} so far)")
+        return False
+
+    def command_rejects(self) -> dict[str, dict[str, int]]:
+        """Commands refused for their sequence, per unit name (metrics.json ``plant_command_rejects``)."""
+        return self.streams.report([self.layout.unit_name(u) for u in range(self.layout.n_units)])
 
     def sensor_frames(self) -> list[tuple[int, int, int, bytes]]:
         """Sample every unit now: (train, unit index, frame id, data) per unit, numbered by sample."""

@@ -15,6 +15,8 @@ its frames: latency percentiles are exact (rounded to the microsecond past 65,53
 
 ``safety`` is the safety supervisor's report (hil/record/safety.py): per verdict (gap below l_e, collision, coupler
 out of band, overspeed) whether it happened, and each violation with its time, place, worst value and cause.
+``plant_command_rejects``: per unit, the TractionCmd frames the plant refused because their alive counter did not
+continue the unit's stream (REPEATED, WRONG_SEQUENCE: a second sender; hil/plant/command_streams.py).
 ``faults`` (only when the scenario schedules faults) is hil/faults' injected-vs-detected report.
 """
 from __future__ import annotations
@@ -52,6 +54,7 @@ def compute_metrics(log: RunLog, coupler_band: tuple[float, float], settle_band_
     out["radio"] = _counters(log.radio_stats)
     out["e2e"] = _counters(log.e2e)
     out.update(_reader_samples(log.e2e))
+    out["plant_command_rejects"] = {k: dict(v) for k, v in log.plant_command_rejects.items()}
     out["interrupted"] = bool(log.interrupted)
     out["safety"] = safety_report(log, (lo, hi))  # each violation with its time and cause (hil/record/safety.py)
     if log.fault_report is not None:  # set by hil.faults when the scenario schedules faults

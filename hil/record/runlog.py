@@ -52,6 +52,7 @@ class RunLog:
     interrupted: bool = False  # stopped early (Ctrl-C): everything up to sim_time_s is valid
     sim_time_s: float = 0.0
     wall_time_s: float = 0.0
+    plant_command_rejects: dict[str, dict[str, int]] = field(default_factory=dict)  # per unit: out-of-sequence commands
     fault_report: dict | None = None  # the faults block of metrics.json, set by hil.faults when faults are scheduled
     # (coupler band, settle band, line limit) -> the summary of the samples and how many rows it has seen
     summaries: dict[tuple, tuple[SignalSummary, int]] = field(default_factory=dict, repr=False)

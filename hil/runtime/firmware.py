@@ -16,7 +16,7 @@ from pydantic import ValidationError
 from ecu_sim.codec import TrainDb
 from ecu_sim.controllers.base import get_controller
 from ecu_sim.programs import EcuSetup, get_program
-from ecu_sim.references import ReferenceLoadError, is_import_reference, module_root, one_line
+from ecu_sim.references import FirmwareBuildError, ReferenceLoadError, is_import_reference, module_root, one_line
 from ecu_sim.runtime import Ecu, NeighbourLink
 from hil.layout import TrainLayout
 from hil.scenario.model import Scenario
@@ -131,7 +131,7 @@ def build_ecu(parts, db: TrainDb, u: int) -> Ecu:
     try:
         ecu = factory(ecu_setup(parts, db, u))
     except Exception as exc:  # the user's program raised while being built: one line, not a traceback
-        raise ReferenceLoadError(f"ECU program {program!r} for {parts.layout.unit_name(u)} could not be built: "
+        raise FirmwareBuildError(f"ECU program {program!r} for {parts.layout.unit_name(u)} could not be built: "
                                  f"{one_line(exc)}") from None
     if not isinstance(ecu, Ecu):
         raise ReferenceLoadError(f"ECU program {program!r} returned {type(ecu).__name__}, not an ecu_sim.runtime.Ecu")

@@ -191,9 +191,10 @@ class VirtualRig:
         and decoded in the engine; the rejected ones go through the plant node, which logs why."""
         commands, rejected = self.net.drain_commands()  # type: ignore[union-attr]
         if commands:
-            command = self.plant.command
-            for u, force, mode, t in commands:
-                command(u, force, mode, t)
+            command, in_sequence = self.plant.command, self.plant_io.in_sequence
+            for u, force, mode, t, counter in commands:
+                if in_sequence(u, counter, t):
+                    command(u, force, mode, t)
         for table, frame_id, data, t_ns in rejected:
             self.plant_io.command(self._command_train[table], frame_id, data, t_ns * 1e-9)
 
@@ -274,6 +275,7 @@ class VirtualRig:
         log.tally_frames_lost()
         log.codec_saturations = self.db.total_saturations()
         log.e2e = {ecu.name: ecu.e2e_summary() for ecu in self.ecus}
+        log.plant_command_rejects = self.plant_io.command_rejects()
         log.sim_time_s = now * 1e-9
         log.wall_time_s = wall_s
         if self.faults is not None:

@@ -56,6 +56,7 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
     if stop_reason:
         log.events.append(Event(float(plant.get("sim_time_s", 0.0)), "WARN", "rig", f"run stopped early: {stop_reason}"))
     log.events.sort(key=lambda e: e.t)
+    log.plant_command_rejects = plant.get("command_rejects", {})
     radio = (_read_json(nodes_dir / "radio.json") or {}).get("links", {})
     log.radio_stats = radio
     for s in servers:

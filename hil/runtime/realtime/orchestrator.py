@@ -76,7 +76,10 @@ RUNNING_NOTE = ("a real-time run writes run.rrd and these metrics when it ends; 
                 "`hil recover {out}` rebuilds both from what the nodes recorded")
 
 
-PROTOCOL_WORDS = frozenset({"ready", JOIN_LINE})  # the first words of what a node prints for the orchestrator
+# The first words of the lines a node prints for the orchestrator: "ready" (pacing.handshake), the plant's
+# "joined" (an external unit, JoinWait) and "fault" lines (hil/faults/realtime.py); anything else is the node's
+# own code printing.
+PROTOCOL_WORDS = frozenset({"ready", JOIN_LINE, "fault"})
 PRINTED_TAIL_LINES = 20
 
 

@@ -232,7 +232,7 @@ class PlantNode:
                 "e2e_latency_n": e2e.n, "e2e_latency_p50_s": e2e.percentile(50), "e2e_latency_p99_s": e2e.percentile(99),
                 "e2e_latency_max_s": e2e.max if e2e.n else None, "e2e_crc_errors": self.io.e2e_errors,
                 "late_commands": self.late_commands, "late_command_max_s": self.late_command_max_s,
-                "malformed_frames": self.io.malformed_frames,
+                "malformed_frames": self.io.malformed_frames, "command_rejects": self.io.command_rejects(),
                 "events": [[e.t, e.level, e.source, e.text] for e in self.log.events],
                 "codec_saturations": self.db.total_saturations(),
                 **({"external_units": self.external.report(self.log.sim_time_s)} if self.external is not None else {})}
