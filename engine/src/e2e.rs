@@ -122,6 +122,13 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_alive_counter_is_the_low_nibble_of_byte_1() {
+        assert_eq!(counter_of(&[0x12, 0xA7, 0xFF]), 7);
+        assert_eq!(counter_of(&[0x12, 0x0F]), 15);
+        assert_eq!(counter_of(&[0x12]), 0); // too short to carry one
+    }
+
+    #[test]
     fn crc8_j1850_check_value() {
         // CRC-8/SAE-J1850 of "123456789" is 0x4B; here the first byte is the data ID and byte 0 of the payload is skipped.
         let payload = [0u8, b'2', b'3', b'4', b'5', b'6', b'7', b'8', b'9'];
