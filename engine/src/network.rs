@@ -4,10 +4,8 @@
 //! an external event is due. Scheduling follows the Python kernel exactly (a periodic task is rescheduled
 //! after its handler ran), so both give the same frame schedule.
 
-use std::cell::RefCell;
 use std::collections::HashMap;
-use std::rc::Rc;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use crate::bus::{Bus, Payload, Sink, Transmission};
 use crate::errors::BusEvent;
@@ -65,7 +63,7 @@ pub struct Network {
     pub queue: EventQueue<Event>,
     pub buses: Vec<Bus>,
     arbitration_pending: Vec<bool>,
-    pub mailboxes: Vec<Rc<RefCell<Mailbox>>>,
+    pub mailboxes: Vec<Arc<Mutex<Mailbox>>>,
     /// Frames delivered into any inbox, in arrival order (the rig drains them once per plant step).
     pub inbox: Vec<InboxFrame>,
     inboxes: usize,
@@ -92,7 +90,7 @@ impl Network {
         self.buses.len() - 1
     }
 
-    pub fn add_mailbox(&mut self, mailbox: Rc<RefCell<Mailbox>>) -> usize {
+    pub fn add_mailbox(&mut self, mailbox: Arc<Mutex<Mailbox>>) -> usize {
         self.mailboxes.push(mailbox);
         self.mailboxes.len() - 1
     }
@@ -239,7 +237,7 @@ impl Network {
             match n.sink {
                 Sink::None => {}
                 Sink::Mailbox(m) => {
-                    self.mailboxes[m].borrow_mut().put(frame_id, data.as_slice(), tx.t_end as f64 * 1e-9);
+                    self.mailboxes[m].lock().unwrap().put(frame_id, data.as_slice(), tx.t_end as f64 * 1e-9);
                 }
                 Sink::Inbox(i) => self.inbox.push((i, frame_id, data, tx.t_end)),
                 Sink::Commands(i) => {

@@ -1,8 +1,6 @@
 //! The Python surface of the engine (`trainhil_engine._native`); its typed stub is `trainhil_engine/_native.pyi`.
 
-use std::cell::RefCell;
-use std::rc::Rc;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use pyo3::exceptions::{PyIndexError, PyKeyError, PyValueError};
 use pyo3::prelude::*;
@@ -239,16 +237,16 @@ impl MessageCodec {
 
 /// An ECU's input mailboxes, one per stream; delivery stores the latest frame, `refresh` checks and decodes
 /// what arrived since the last cycle.
-#[pyclass(module = "trainhil_engine._native", unsendable)]
+#[pyclass(module = "trainhil_engine._native")]
 pub struct Mailbox {
-    inner: Rc<RefCell<mailbox::Mailbox>>,
+    inner: Arc<Mutex<mailbox::Mailbox>>,
 }
 
 #[pymethods]
 impl Mailbox {
     #[new]
     fn new() -> Self {
-        Mailbox { inner: Rc::new(RefCell::new(mailbox::Mailbox::default())) }
+        Mailbox { inner: Arc::new(Mutex::new(mailbox::Mailbox::default())) }
     }
 
     /// Add the mailbox of one message stream; returns its slot index.
@@ -256,12 +254,12 @@ impl Mailbox {
         if max_delta > e2e::COUNTER_MODULO - 2 {
             return Err(PyValueError::new_err(format!("{}: max_delta {max_delta} is not in 0..14", codec.name)));
         }
-        Ok(self.inner.borrow_mut().add_slot(codec.layout.clone(), max_delta))
+        Ok(self.inner.lock().unwrap().add_slot(codec.layout.clone(), max_delta))
     }
 
     /// Store a frame received at `t` (s): 0 stored, 1 unknown ID, 2 known ID with the wrong length (dropped).
     fn put(&self, frame_id: u32, data: PyBackedBytes, t: f64) -> u8 {
-        match self.inner.borrow_mut().put(frame_id, &data, t) {
+        match self.inner.lock().unwrap().put(frame_id, &data, t) {
             mailbox::Delivery::Stored => 0,
             mailbox::Delivery::UnknownId => 1,
             mailbox::Delivery::WrongLength(..) => 2,
@@ -271,7 +269,7 @@ impl Mailbox {
     /// Check and decode the frame of every slot that arrived since the last call; returns the count of
     /// wrong-length frames so far (the firmware reports the first).
     fn refresh(&self) -> u64 {
-        let mut mb = self.inner.borrow_mut();
+        let mut mb = self.inner.lock().unwrap();
         mb.refresh();
         mb.malformed_frames
     }
@@ -279,7 +277,7 @@ impl Mailbox {
     /// One slot at time t: (fresh within `timeout`, age s, values, alive counter, reception time of the last good
     /// frame). A stream that had been fresh and is not any more counts a TIMEOUT.
     fn read<'py>(&self, py: Python<'py>, slot: usize, t: f64, timeout: f64) -> PyResult<Bound<'py, PyTuple>> {
-        let mut mb = self.inner.borrow_mut();
+        let mut mb = self.inner.lock().unwrap();
         let s = mb.slots.get_mut(slot).ok_or_else(|| PyIndexError::new_err(format!("no mailbox slot {slot}")))?;
         let fresh = s.fresh(t, timeout);
         let values = PyTuple::new(py, s.values.iter())?;
@@ -288,28 +286,28 @@ impl Mailbox {
 
     /// Values of a slot's last good frame (empty before any).
     fn values<'py>(&self, py: Python<'py>, slot: usize) -> PyResult<Bound<'py, PyTuple>> {
-        let mb = self.inner.borrow();
+        let mb = self.inner.lock().unwrap();
         PyTuple::new(py, mb.slots[slot].values.iter())
     }
 
     fn counter(&self, slot: usize) -> i32 {
-        self.inner.borrow().slots[slot].counter
+        self.inner.lock().unwrap().slots[slot].counter
     }
 
     fn t_good(&self, slot: usize) -> f64 {
-        self.inner.borrow().slots[slot].t_good
+        self.inner.lock().unwrap().slots[slot].t_good
     }
 
     /// Forget what every slot received (a power cycle); keeps the statistics.
     fn reset(&self) {
-        for s in &mut self.inner.borrow_mut().slots {
+        for s in &mut self.inner.lock().unwrap().slots {
             s.reset();
         }
     }
 
     /// E2E verdicts of one slot: non-zero counts by status name, plus LOST and TIMEOUT.
     fn summary<'py>(&self, py: Python<'py>, slot: usize) -> PyResult<Bound<'py, PyDict>> {
-        let mb = self.inner.borrow();
+        let mb = self.inner.lock().unwrap();
         let c = &mb.slots[slot].checker;
         let d = PyDict::new(py);
         for (name, &n) in STATUS_NAMES.iter().zip(c.counts.iter()) {
@@ -328,27 +326,27 @@ impl Mailbox {
 
     /// Count of one E2E status (index as in ecu_sim.e2e.E2EStatus) of one slot.
     fn count(&self, slot: usize, status: usize) -> u64 {
-        self.inner.borrow().slots[slot].checker.counts[status]
+        self.inner.lock().unwrap().slots[slot].checker.counts[status]
     }
 
     /// The frame IDs with a slot (the acceptance filter).
     fn ids(&self) -> Vec<u32> {
-        self.inner.borrow().ids()
+        self.inner.lock().unwrap().ids()
     }
 
     #[getter]
     fn unknown_frames(&self) -> u64 {
-        self.inner.borrow().unknown_frames
+        self.inner.lock().unwrap().unknown_frames
     }
 
     #[getter]
     fn malformed_frames(&self) -> u64 {
-        self.inner.borrow().malformed_frames
+        self.inner.lock().unwrap().malformed_frames
     }
 
     /// The first wrong-length frame not reported yet: (t, slot, length), or None.
     fn take_first_malformed(&self) -> Option<(f64, usize, usize)> {
-        let mut mb = self.inner.borrow_mut();
+        let mut mb = self.inner.lock().unwrap();
         let first = mb.first_malformed;
         if first.is_some() {
             mb.first_malformed = Some((f64::NAN, usize::MAX, 0)); // reported: later ones are only counted
@@ -403,7 +401,7 @@ impl Packing {
     }
 }
 
-#[pyclass(module = "trainhil_engine._native", unsendable)]
+#[pyclass(module = "trainhil_engine._native")]
 pub struct Network {
     core: CoreNetwork,
     refills: Vec<Py<PyAny>>,
@@ -457,7 +455,7 @@ impl Network {
 
     /// A node delivering into an ECU's mailboxes (filter: the mailbox's IDs).
     fn attach_mailbox(&mut self, bus: usize, name: &str, mailbox: &Mailbox) -> PyResult<usize> {
-        let ids = mailbox.inner.borrow().ids();
+        let ids = mailbox.inner.lock().unwrap().ids();
         let m = self.core.add_mailbox(mailbox.inner.clone());
         Ok(self.bus_mut(bus)?.attach(name, Sink::Mailbox(m), Some(ids), false))
     }
@@ -1170,12 +1168,12 @@ impl BusServerCore {
 
 /// A node's receive path without python-can: frames read from a bus server's socket go straight into ECU
 /// mailboxes (stamped in simulated time); the node sends its frames through it too.
-#[pyclass(module = "trainhil_engine._native", unsendable)]
+#[pyclass(module = "trainhil_engine._native")]
 pub struct FrameLink {
     fd: i32,
     t0: f64,
     pace: f64,
-    routes: std::collections::HashMap<u32, Vec<Rc<RefCell<mailbox::Mailbox>>>>,
+    routes: std::collections::HashMap<u32, Vec<Arc<Mutex<mailbox::Mailbox>>>>,
     partial: Vec<u8>,
     received: u64,
     /// Keep the frames that have no route for `take` (a node that handles its frames itself).
@@ -1226,7 +1224,7 @@ impl FrameLink {
     fn hand_over(&mut self, id: u32, data: &[u8], t: f64) {
         if let Some(boxes) = self.routes.get(&id) {
             for mb in boxes {
-                mb.borrow_mut().put(id, data, t);
+                mb.lock().unwrap().put(id, data, t);
             }
             self.received += 1;
         } else if self.keep {
