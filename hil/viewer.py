@@ -15,8 +15,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+from hil.record.rrd_file import check_rrd
+
 ANALYTICS_OFF = {"CI": "1"}  # rerun's analytics pipeline is off when CI is set (and FORCE_RERUN_ANALYTICS is not)
 MAX_FILES = 20
+VIEWER_SETTLE_S = 2.0  # a viewer still running this long after its start counts as opened
 
 
 def find_recordings(target: Path) -> list[Path]:
@@ -85,16 +88,42 @@ def how_to_open(files: list[Path], reason: str) -> str:
     return "\n".join(lines)
 
 
+def readable_recordings(files: list[Path]) -> list[Path]:
+    """The files that are recordings (a cut-short one reads up to its last complete message, and is said so); the
+    others are named on stderr; none at all is a FileNotFoundError."""
+    good = []
+    for f in files:
+        check = check_rrd(f)
+        if not check.ok:
+            print(f"hil view: skipping {f}: {check.why}", file=sys.stderr)
+        else:
+            if not check.whole:
+                print(f"hil view: {f} is cut short: {check.messages} complete messages are readable", file=sys.stderr)
+            good.append(f)
+    if not good:
+        raise FileNotFoundError(f"no readable recording among {len(files)} .rrd file{'s' if len(files) > 1 else ''}")
+    return good
+
+
 def cmd_view(args: argparse.Namespace) -> int:
-    files = find_recordings(Path(args.target))
+    files = readable_recordings(find_recordings(Path(args.target)))
     executable = rerun_executable()
     reason = "--print given" if args.print_only else why_no_viewer(dict(os.environ), executable=executable)
     if reason is not None or executable is None:
         print(how_to_open(files, reason or "no viewer"))
         return 0
     cmd = viewer_command(executable, files)
-    subprocess.Popen(cmd, env=viewer_env(dict(os.environ)), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                     stderr=subprocess.DEVNULL, start_new_session=True)
+    viewer = subprocess.Popen(cmd, env=viewer_env(dict(os.environ)), stdin=subprocess.DEVNULL,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:  # a viewer that dies at once (no GPU, no display server after all) is not "opened"
+        _, err = viewer.communicate(timeout=VIEWER_SETTLE_S)
+    except subprocess.TimeoutExpired:
+        viewer.stderr.close()  # it runs: let it go on alone
+    else:
+        tail = (err or b"").decode(errors="replace").strip().splitlines()[-1:]
+        print(f"hil view: the rerun viewer exited at once (code {viewer.returncode})"
+              + (f": {tail[0]}" if tail else ""), file=sys.stderr)
+        return 1
     print(f"hil view: opened {len(files)} recording{'s' if len(files) > 1 else ''} in the rerun viewer: "
           + " ".join(str(f) for f in files[:3]) + (" ..." if len(files) > 3 else ""))
     return 0

@@ -177,3 +177,57 @@ def test_frame_rows_flag_crc_errors_and_frames_not_in_the_dbc():
     text, level = rec.format(cmd.frame_id, bad, 250_000)
     assert text.endswith("| alive 3 | CRC ERROR | latency 0.250 ms") and level == "WARN"
     assert rec.format(0x7F0, b"\x01\x02", 0) == ("0x7F0 (not in the DBC) data 01 02 | latency 0.000 ms", "WARN")
+
+
+def test_hil_view_skips_what_is_no_recording_and_says_a_cut_one(recorded, tmp_path, capsys):
+    """Garbage, empty and truncated .rrd files used to be listed alike, exit 0."""
+    from hil.cli import main
+
+    rrd, _, _ = recorded
+    runs = tmp_path / "runs"
+    for name, data in (("good", rrd.read_bytes()), ("cut", rrd.read_bytes()[: rrd.stat().st_size // 2]),
+                       ("garbage", b"hello world" * 40), ("empty", b"")):
+        (runs / name).mkdir(parents=True)
+        (runs / name / "run.rrd").write_bytes(data)
+    assert main(["view", "--print", str(runs)]) == 0
+    out, err = capsys.readouterr()
+    assert str(runs / "good" / "run.rrd") in out and str(runs / "cut" / "run.rrd") in out
+    assert "garbage" not in out and "empty/run.rrd" not in out
+    assert f"skipping {runs / 'garbage' / 'run.rrd'}: not a rerun recording (no RRF2 header)" in err
+    assert f"skipping {runs / 'empty' / 'run.rrd'}: empty" in err
+    assert f"{runs / 'cut' / 'run.rrd'} is cut short: " in err
+    assert main(["view", "--print", str(runs / "garbage")]) == 2
+    assert "no readable recording among 1 .rrd file" in capsys.readouterr().err
+
+
+def test_hil_view_says_when_the_viewer_died_at_once(recorded, tmp_path, monkeypatch, capsys):
+    from hil import viewer
+    from hil.cli import main
+
+    rrd, _, _ = recorded
+    fake = tmp_path / "rerun"
+    fake.write_text("#!/bin/sh\necho 'no GPU adapter found' >&2\nexit 1\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(viewer, "rerun_executable", lambda: str(fake))
+    monkeypatch.setenv("DISPLAY", ":0")
+    assert main(["view", str(rrd)]) == 1
+    err = capsys.readouterr().err
+    assert "hil view: the rerun viewer exited at once (code 1): no GPU adapter found" in err
+
+
+def test_load_run_reads_a_cut_recording_up_to_its_last_complete_message(recorded, tmp_path):
+    """It used to raise at once: rerun's reader refuses a file whose last message is cut."""
+    from hil.record import load_run
+
+    rrd, _, _ = recorded
+    whole = load_run(rrd)
+    cut = tmp_path / "run.rrd"
+    cut.write_bytes(rrd.read_bytes()[: rrd.stat().st_size * 2 // 3])
+    part = load_run(cut)
+    assert part.cut_short and not whole.cut_short and 0 < len(part.series) <= len(whole.series)
+    entity = next(iter(part.series))
+    t = part[entity].t
+    assert np.array_equal(t, whole[entity].t[: len(t)])
+    (tmp_path / "junk.rrd").write_bytes(b"\x00" * 100)
+    with pytest.raises(ValueError, match="junk.rrd: not a rerun recording"):
+        load_run(tmp_path / "junk.rrd")

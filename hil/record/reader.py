@@ -6,13 +6,17 @@
     [e for e in run.events if e.level == "ERROR"]       # (t, level, source, text), in time order
     run.metrics["safety"]["safe"]                        # metrics.json beside the recording (None if absent)
 
-It reads the .rrd with rerun's own reader (``rerun.chunk.RrdReader``), chunk by chunk, so a recording cut short
-(a run killed, a disk that filled) reads up to its last complete message.
+It reads the .rrd with rerun's own reader (``rerun.chunk.RrdReader``), chunk by chunk; a recording cut short (a run
+killed, a disk that filled) reads up to its last complete message (``cut_short`` says so), and a file that is no
+recording (garbage, empty) is a ValueError naming it.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import re
+import tempfile
+import warnings
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -22,6 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from rerun.chunk import RrdReader
 
+from hil.record.rrd_file import check_rrd
 from hil.record.runlog import Event
 
 SCALARS_COLUMN = "Scalars:scalars"
@@ -55,6 +60,7 @@ class Recording:
     series: Mapping[str, Series]
     events: list[Event]
     metrics: dict[str, Any] | None
+    cut_short: bool = False  # the file ended mid-message: what is here are its complete messages
 
     def __getitem__(self, entity: str) -> Series:
         try:
@@ -75,23 +81,49 @@ def load_run(path: str | Path) -> Recording:
         raise FileNotFoundError(f"{rrd}: no recording (hil run writes run.rrd in its output directory)")
     series: dict[str, list[tuple[np.ndarray, np.ndarray]]] = defaultdict(list)
     events: list[Event] = []
-    for chunk in RrdReader(rrd).stream():
-        batch = chunk.to_record_batch()
-        names = batch.schema.names
-        if TIME_COLUMN not in names:
-            continue  # static rows (styles, blueprint)
-        t = batch.column(TIME_COLUMN).cast("int64").to_numpy() * 1e-9
-        if SCALARS_COLUMN in names:
-            v = np.array([row[0] if row else np.nan for row in batch.column(SCALARS_COLUMN).to_pylist()], dtype=float)
-            series[chunk.entity_path].append((t, v))
-        elif "TextLog:text" in names and chunk.entity_path.startswith("/events/"):
-            source = _event_source(chunk.entity_path)
-            for ti, text, level in zip(t, batch.column("TextLog:text").to_pylist(), batch.column("TextLog:level").to_pylist()):
-                events.append(Event(float(ti), (level or ["INFO"])[0], source, (text or [""])[0]))
+    with _readable(rrd) as (readable, cut_short):
+        for chunk in RrdReader(readable).stream():
+            _take(chunk, series, events)
     events.sort(key=lambda e: e.t)
     metrics_file = rrd.parent / "metrics.json"
     metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else None
-    return Recording(rrd, {entity: _joined(parts) for entity, parts in sorted(series.items())}, events, metrics)
+    return Recording(rrd, {entity: _joined(parts) for entity, parts in sorted(series.items())}, events, metrics,
+                     cut_short)
+
+
+@contextlib.contextmanager
+def _readable(rrd: Path) -> Iterator[tuple[Path, bool]]:
+    """(a file rerun's reader takes, whether it was cut short): the file itself when whole, else a temporary copy
+    of its complete messages; ValueError naming the file when it is no recording at all."""
+    check = check_rrd(rrd)
+    if not check.ok:
+        raise ValueError(f"{rrd}: {check.why}")
+    if check.whole:
+        yield rrd, False
+        return
+    with tempfile.TemporaryDirectory(prefix="hil-rrd-") as tmp:
+        prefix = Path(tmp) / rrd.name
+        with open(rrd, "rb") as src, open(prefix, "wb") as dst:
+            dst.write(src.read(check.complete_bytes))
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "RRD file has no footer")
+            yield prefix, True
+
+
+def _take(chunk, series: dict, events: list[Event]) -> None:
+    """One chunk's scalar rows into ``series`` and text rows into ``events``."""
+    batch = chunk.to_record_batch()
+    names = batch.schema.names
+    if TIME_COLUMN not in names:
+        return  # static rows (styles, blueprint)
+    t = batch.column(TIME_COLUMN).cast("int64").to_numpy() * 1e-9
+    if SCALARS_COLUMN in names:
+        v = np.array([row[0] if row else np.nan for row in batch.column(SCALARS_COLUMN).to_pylist()], dtype=float)
+        series[chunk.entity_path].append((t, v))
+    elif "TextLog:text" in names and chunk.entity_path.startswith("/events/"):
+        source = _event_source(chunk.entity_path)
+        for ti, text, level in zip(t, batch.column("TextLog:text").to_pylist(), batch.column("TextLog:level").to_pylist()):
+            events.append(Event(float(ti), (level or ["INFO"])[0], source, (text or [""])[0]))
 
 
 def _joined(parts: list[tuple[np.ndarray, np.ndarray]]) -> Series:
