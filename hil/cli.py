@@ -14,7 +14,8 @@ from hil.can.cli import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
 from hil.record.safety import ECU_FAILURE
-from hil.record.out_dir import OutputDirError, ensure_writable_dir, hold_folder, release_folder
+from hil.record.out_dir import (OutputDirError, ensure_writable_dir, free_reserve, hold_folder, release_folder,
+                                reserve_space)
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
 from hil.scenario.loader import parse_assignment
 
@@ -133,6 +134,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     try:
         return _run_in(out, scenario, args, overrides)
     finally:
+        free_reserve(out)
         release_folder(out)
 
 
@@ -180,6 +182,7 @@ def check_output_dir(out: Path, overwrite: bool) -> None:
     even with ``--overwrite``; from here this process holds it (``hil.record.folder_lock``)."""
     ensure_writable_dir(out)
     hold_folder(out)  # before anything of an old run goes: a run still writing there keeps its folder
+    reserve_space(out)  # room for metrics.json should the recording fill the disk (given back at the end)
     old = [f for pattern in RUN_FILES for f in out.glob(pattern)] if out.is_dir() else []
     if not old:
         return

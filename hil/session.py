@@ -16,7 +16,9 @@ from typing import Any, Callable
 
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.plant.dynamics import PlantDiverged
+from hil.record.diskspace import DiskFullError
 from hil.record.integrity import StopSignals, mark_running, write_json_atomic
+from hil.record.out_dir import disk_full_outcome, write_metrics_when_full
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
 from hil.record.metrics import run_metrics
 from hil.record.rerun_writer import RerunWriter
@@ -147,6 +149,13 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
         log.event(log.sim_time_s, "ERROR", "plant", f"run stopped: {exc}")
         if recorder:
             recorder(log)
+    except DiskFullError as exc:  # the recording filled the disk: stop; the metrics go after the recording's cut
+        if rig is None:
+            raise DiskFullError(exc.errno, f"{exc.strerror}: before the run started; nothing ran") from None
+        stop.defer()
+        failure, log = exc, rig.log
+        log.interrupted = True
+        log.event(log.sim_time_s, "ERROR", "rig", f"run stopped: {exc.strerror}")
     finally:
         stop.defer()  # from here on a stop signal is remembered: the files below are written whole
         if sys.exc_info()[0] is not None and failure is None:
@@ -161,11 +170,16 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
         metrics = run_metrics(log, scenario, runtime, scenario.seed if seed is None else seed, overrides=overrides,
                               source=source)
         if failure is not None:
-            metrics["error"] = f"{type(failure).__name__}: {failure}"
-        write_json_atomic(out_dir / "metrics.json", metrics)
+            metrics["error"] = f"{type(failure).__name__}: {failure.strerror if isinstance(failure, OSError) else failure}"
+        if isinstance(failure, DiskFullError):
+            written = write_metrics_when_full(out_dir / "metrics.json", metrics)
+        else:
+            write_json_atomic(out_dir / "metrics.json", metrics)
     finally:
         stop.restore()
     files.append(out_dir / "metrics.json")
+    if isinstance(failure, DiskFullError):
+        raise disk_full_outcome(out_dir, written, log.sim_time_s)
     if failure is not None:
         raise failure
     return RunResult(log, metrics, out_dir, files)

@@ -35,4 +35,4 @@ def check_space(path: Path, need: int = MIN_FREE_BYTES) -> None:
 def disk_full(path: Path, free: int | None = None) -> DiskFullError:
     where = Path(path).parent if Path(path).suffix else Path(path)
     left = f" ({free} bytes free)" if free is not None else ""
-    return DiskFullError(errno.ENOSPC, f"no space left on {where}{left}: what was written before stays readable")
+    return DiskFullError(errno.ENOSPC, f"no space left on {where}{left}")

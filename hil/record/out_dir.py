@@ -9,6 +9,7 @@ so a killed run never leaves a stale lock; the pid and start time in the file on
 from __future__ import annotations
 
 import datetime
+import errno
 import fcntl
 import os
 from pathlib import Path
@@ -69,3 +70,59 @@ def release_folder(out: Path) -> None:
     except OSError:
         pass
     os.close(fd)
+
+
+def disk_full_outcome(out: Path, metrics_written: bool, sim_time_s: float) -> "DiskFullError":
+    """The error a run that filled its disk ends with, saying truly what it left: how far run.rrd is readable, and
+    whether metrics.json holds the run (written after the recording was cut, where it usually fits)."""
+    from hil.record.diskspace import DiskFullError, free_bytes
+    from hil.record.reader import recorded_until
+
+    until = recorded_until(Path(out) / "run.rrd")
+    rrd = (f"run.rrd is readable up to t = {until:.1f} s" if until is not None
+           else "run.rrd holds no samples (the disk filled before its first flush of them)")
+    metrics = (f"metrics.json holds the run's metrics to t = {sim_time_s:.1f} s" if metrics_written
+               else "metrics.json could not be written either (it is the stub of the start)")
+    return DiskFullError(errno.ENOSPC, f"no space left on {out} ({free_bytes(Path(out))} bytes free): {rrd}; {metrics}")
+
+
+RESERVE_NAME = ".hil-reserve"
+RESERVE_BYTES = 128 * 1024  # room kept for metrics.json (tens of kB) should the recording fill the disk
+
+
+def reserve_space(out: Path) -> None:
+    """Set RESERVE_BYTES aside in ``out`` (an allocated file), so that a run whose recording fills the disk can
+    still write its metrics: ``write_metrics_when_full`` gives it back first. Where it cannot be had, nothing."""
+    try:
+        fd = os.open(Path(out) / RESERVE_NAME, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    except OSError:
+        return
+    try:
+        os.posix_fallocate(fd, 0, RESERVE_BYTES)
+    except OSError:  # no room even for that, or a file system without fallocate: no reserve
+        os.close(fd)
+        free_reserve(out)
+        return
+    os.close(fd)
+
+
+def free_reserve(out: Path) -> None:
+    """Give the reserved space back (at the end of every run, and before the metrics on a full disk)."""
+    try:
+        os.unlink(Path(out) / RESERVE_NAME)
+    except OSError:
+        pass
+
+
+def write_metrics_when_full(path: Path, metrics: dict) -> bool:
+    """Write metrics.json on a disk the recording filled: with the reserve given back first; False when it does not
+    fit even then."""
+    from hil.record.diskspace import DiskFullError
+    from hil.record.integrity import write_json_atomic
+
+    free_reserve(Path(path).parent)
+    try:
+        write_json_atomic(path, metrics)
+    except DiskFullError:
+        return False
+    return True

@@ -16,7 +16,6 @@ import contextlib
 import json
 import re
 import tempfile
-import warnings
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -98,16 +97,14 @@ def _readable(rrd: Path) -> Iterator[tuple[Path, bool]]:
     check = check_rrd(rrd)
     if not check.ok:
         raise ValueError(f"{rrd}: {check.why}")
-    if check.whole:
-        yield rrd, False
+    if check.whole or check.complete_bytes == rrd.stat().st_size:  # whole, or ended between messages
+        yield rrd, not check.whole
         return
-    with tempfile.TemporaryDirectory(prefix="hil-rrd-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="hil-rrd-") as tmp:  # the complete messages before the cut
         prefix = Path(tmp) / rrd.name
         with open(rrd, "rb") as src, open(prefix, "wb") as dst:
             dst.write(src.read(check.complete_bytes))
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", "RRD file has no footer")
-            yield prefix, True
+        yield prefix, True
 
 
 def _take(chunk, series: dict, events: list[Event]) -> None:
@@ -124,6 +121,17 @@ def _take(chunk, series: dict, events: list[Event]) -> None:
         source = _event_source(chunk.entity_path)
         for ti, text, level in zip(t, batch.column("TextLog:text").to_pylist(), batch.column("TextLog:level").to_pylist()):
             events.append(Event(float(ti), (level or ["INFO"])[0], source, (text or [""])[0]))
+
+
+def recorded_until(rrd: Path) -> float | None:
+    """The last sample time an .rrd holds (a cut one up to its last complete message), None when it holds none or
+    is no recording."""
+    try:
+        run = load_run(rrd)
+    except (ValueError, OSError, RuntimeError):
+        return None
+    ends = [float(s.t[-1]) for s in run.series.values() if len(s.t)]
+    return max(ends) if ends else None
 
 
 def _joined(parts: list[tuple[np.ndarray, np.ndarray]]) -> Series:

@@ -26,7 +26,7 @@ from hil.layout import TrainLayout
 from hil.record import paths
 from hil.record.blueprint import default_blueprint
 from hil.record.live import LiveStream, LiveTarget
-from hil.record.diskspace import MIN_FREE_BYTES, DiskFullError, check_space, free_bytes
+from hil.record.diskspace import MIN_FREE_BYTES, DiskFullError, check_space, disk_full, free_bytes
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.series import MPS_TO_KMH, limit_values, margin_colors, signal_columns, track_geometry
 
@@ -75,7 +75,7 @@ class RerunWriter:
         self.wall_clock = wall_clock
         recording_id = recording_id if recording_id is not None else str(uuid.uuid4())
         self.live = LiveStream(live, APPLICATION_ID, recording_id) if live is not None else None
-        self.rec = _Tee(self._file_stream(recording_id), self.live)
+        self.rec = _Tee(self._file_stream(recording_id), self.live, self.path)
         self._flushed_size = 0  # bytes of the file written by the last flush that completed
         self.rec.send_recording_name(scenario_name)
         blueprint = default_blueprint(layout, bus_names, frames=frames, realtime=realtime or wall_clock is not None)
@@ -91,7 +91,10 @@ class RerunWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, make_default=False,
                                  make_thread_default=False)
-        rec.save(self.path)
+        try:
+            rec.save(self.path)
+        except RuntimeError as exc:
+            raise as_disk_full(exc, self.path) from None
         return rec
 
     # ---------------------------------------------------------------- static styling
@@ -286,33 +289,41 @@ class RerunWriter:
         self.close()
 
 
+def as_disk_full(exc: RuntimeError, path: Path | None) -> Exception:
+    """rerun's RuntimeError for a write that found no space, as the DiskFullError naming the place; others as
+    they are."""
+    if "No space left" in str(exc) and path is not None:
+        return disk_full(path)
+    return exc
+
+
 class _Tee:
-    """Each recording call goes to the file's stream and to the live stream while the viewer keeps up."""
+    """Each recording call goes to the file's stream and to the live stream while the viewer keeps up. rerun says
+    a full disk as a RuntimeError of the call that could not write: that is a DiskFullError here."""
 
-    def __init__(self, file: rr.RecordingStream | None, live: LiveStream | None) -> None:
-        self.file, self.live = file, live
+    def __init__(self, file: rr.RecordingStream | None, live: LiveStream | None, path: Path | None = None) -> None:
+        self.file, self.live, self.path = file, live, path
 
-    def _streams(self) -> list[rr.RecordingStream]:
-        out = [] if self.file is None else [self.file]
+    def _call(self, method: str, *args: Any, **kwargs: Any) -> None:
+        if self.file is not None:
+            try:
+                getattr(self.file, method)(*args, **kwargs)
+            except RuntimeError as exc:
+                raise as_disk_full(exc, self.path) from None
         if self.live is not None and self.live.alive:
-            out.append(self.live.rec)
-        return out
+            getattr(self.live.rec, method)(*args, **kwargs)
 
     def log(self, *args: Any, **kwargs: Any) -> None:
-        for rec in self._streams():
-            rec.log(*args, **kwargs)
+        self._call("log", *args, **kwargs)
 
     def send_columns(self, *args: Any, **kwargs: Any) -> None:
-        for rec in self._streams():
-            rec.send_columns(*args, **kwargs)
+        self._call("send_columns", *args, **kwargs)
 
     def send_blueprint(self, *args: Any, **kwargs: Any) -> None:
-        for rec in self._streams():
-            rec.send_blueprint(*args, **kwargs)
+        self._call("send_blueprint", *args, **kwargs)
 
     def send_recording_name(self, name: str) -> None:
-        for rec in self._streams():
-            rec.send_recording_name(name)
+        self._call("send_recording_name", name)
 
 
 def event_path(source: str) -> str:

@@ -37,6 +37,7 @@ class BusSpool:
             self._files[name] = (open(frames, "wb"), open(load, "wb"))
             self._written[name] = [0, 0]
         self._next = 0.0
+        self.lost: str | None = None  # why spooling stopped (a full disk): later rows are let go unwritten
 
     def tick(self, _sim_now: float = 0.0) -> None:
         if time.monotonic() >= self._next:
@@ -49,6 +50,16 @@ class BusSpool:
             s.with_log(self._take)
 
     def _take(self, log: BusLog) -> None:
+        if self.lost is not None:  # the files end at the last whole spool: let the rows go, memory stays bounded
+            log.frames.hand_off(len(log.frames))
+            log.load.release_before(len(log.load))
+            return
+        try:
+            self._write(log)
+        except OSError as exc:  # a full disk: stop spooling here (a half-written row must not be followed by more)
+            self.lost = f"{log.name}: {exc.strerror or exc}"
+
+    def _write(self, log: BusLog) -> None:
         frames_f, load_f = self._files[log.name]
         written = self._written[log.name]
         frames = log.frames.rows_from(written[0])
@@ -68,5 +79,8 @@ class BusSpool:
         """The last rows, then the files closed (before the servers close)."""
         self.spool()
         for frames_f, load_f in self._files.values():
-            frames_f.close()
-            load_f.close()
+            for f in (frames_f, load_f):
+                try:
+                    f.close()
+                except OSError as exc:  # its last buffered rows did not fit
+                    self.lost = self.lost or f"{f.name}: {exc.strerror or exc}"

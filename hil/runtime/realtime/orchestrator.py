@@ -56,7 +56,9 @@ from hil.runtime.realtime.sockets import remove_run_dir, remove_stale_run_dirs, 
 from hil.runtime.realtime.socketcan import check_channels
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget
+from hil.record.diskspace import DiskFullError
 from hil.record.integrity import mark_running, write_json_atomic
+from hil.record.out_dir import disk_full_outcome, write_metrics_when_full
 from hil.record.metrics import run_metrics
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.record.safety import record_violations
@@ -287,18 +289,27 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             w.stop()
         remove_run_dir(run)
     wall = run_wall if t0 is not None else time.perf_counter() - wall0
-    rrd = open_recording(scenario, layout, out_dir / "run.rrd", None if t0 is None else (t0, pace),
-                         [s.log.name for s in servers]) if record else None
-    sinks = ([(rrd, 0)] if rrd is not None else []) + ([(tail.writer, tail.sent)] if tail is not None else [])
-    log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason,
-                             sinks, keep_rows=keep_signals)
-    if faults is not None:
-        faults.finish(log, t0, pace)
-    record_violations(log, scenario.plant.coupler_band_m)  # every safety violation on the timeline
-    extra["realtime"]["bus_servers"] = server_stats
+    if spool is not None and spool.lost:
+        events.append(Event(0.0, "ERROR", "rig", f"bus rows spooled only until the disk filled ({spool.lost})"))
+    full = None  # a DiskFullError from writing the recording: the metrics are still merged and written
+    rrd = None
     files = [log_path(out_dir, f"bus{i + 1}", fmt) for i in range(len(asc))] if fmt else []
-    for writer, _ in sinks:  # the rest to the recording and the viewer: events, timing
-        write_rest(writer, log, nodes_dir)
+    try:
+        rrd = open_recording(scenario, layout, out_dir / "run.rrd", None if t0 is None else (t0, pace),
+                             [s.log.name for s in servers]) if record else None
+        sinks = ([(rrd, 0)] if rrd is not None else []) + ([(tail.writer, tail.sent)] if tail is not None else [])
+        log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason,
+                                 sinks, keep_rows=keep_signals)
+        _finish_log(log, faults, t0, pace, scenario)
+        for writer, _ in sinks:  # the rest to the recording and the viewer: events, timing
+            write_rest(writer, log, nodes_dir)
+    except DiskFullError as exc:  # run.rrd filled the disk (its writer cuts it): merge again for the metrics alone
+        full = exc
+        log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason,
+                                 [], keep_rows=False)
+        _finish_log(log, faults, t0, pace, scenario)
+        log.events.append(Event(log.sim_time_s, "ERROR", "rig", f"run.rrd cut: {exc.strerror}"))
+    extra["realtime"]["bus_servers"] = server_stats
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
@@ -311,12 +322,22 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     missing = join.missing() if join is not None and join.waiting and not stop.requested else None
     if missing is not None:
         metrics["error"] = f"ExternalUnitMissing: {stop_reason or missing}"
+    if full is not None:
+        metrics["error"] = f"DiskFullError: {full.strerror}"
+        raise disk_full_outcome(out_dir, write_metrics_when_full(out_dir / "metrics.json", metrics), log.sim_time_s)
     write_json_atomic(out_dir / "metrics.json", metrics)
     files.append(out_dir / "metrics.json")
     if missing is not None:
         raise ExternalUnitMissing(f"{stop_reason or missing} (what ran is in {out_dir}): start the external program "
                                   "once the rig has printed its channels, or raise ecu.join_timeout_s")
     return _run_result(log, metrics, out_dir, files)
+
+
+def _finish_log(log: RunLog, faults, t0: float | None, pace: float, scenario: Scenario) -> None:
+    """The merged log's fault report and its safety violations on the timeline."""
+    if faults is not None:
+        faults.finish(log, t0, pace)
+    record_violations(log, scenario.plant.coupler_band_m)
 
 
 @dataclass(frozen=True)
