@@ -292,7 +292,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     if spool is not None and spool.lost:
         events.append(Event(0.0, "ERROR", "rig", f"bus rows spooled only until the disk filled ({spool.lost})"))
     full = None  # a DiskFullError from writing the recording: the metrics are still merged and written
-    rrd = None
+    rrd, log = None, None
     files = [log_path(out_dir, f"bus{i + 1}", fmt) for i in range(len(asc))] if fmt else []
     try:
         rrd = open_recording(scenario, layout, out_dir / "run.rrd", None if t0 is None else (t0, pace),
@@ -303,11 +303,12 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         _finish_log(log, faults, t0, pace, scenario)
         for writer, _ in sinks:  # the rest to the recording and the viewer: events, timing
             write_rest(writer, log, nodes_dir)
-    except DiskFullError as exc:  # run.rrd filled the disk (its writer cuts it): merge again for the metrics alone
+    except DiskFullError as exc:  # run.rrd filled the disk (its writer cuts it): the metrics are merged all the same
         full = exc
-        log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason,
-                                 [], keep_rows=False)
-        _finish_log(log, faults, t0, pace, scenario)
+        if log is None:  # it filled during the merge: again, without the recording
+            log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall,
+                                     stop_reason, [], keep_rows=False)
+            _finish_log(log, faults, t0, pace, scenario)
         log.events.append(Event(log.sim_time_s, "ERROR", "rig", f"run.rrd cut: {exc.strerror}"))
     extra["realtime"]["bus_servers"] = server_stats
     if rrd is not None:
