@@ -1,4 +1,4 @@
-"""The firmware package stands alone (DESIGN.md: firmware never touches the rig): importing every module of
+"""The firmware package stands alone (docs/architecture.md: firmware never touches the rig): importing every module of
 ``ecu_sim`` loads nothing of ``hil``."""
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The virtual-time rig: plant, ECUs, wayside, CAN buses and radio on one discrete-event queue.
 
-Data path (DESIGN.md): plant --Sensor frames--> train bus --> ECU --TractionCmd--> bus --> plant;
+Data path (docs/architecture.md): plant --Sensor frames--> train bus --> ECU --TractionCmd--> bus --> plant;
 ECUs exchange AgentState/AgentAux on their bus; the radio gateway forwards the tail's state to the
 next train's bus and the head's state back; the wayside sends Reference frames to every bus.
 Nothing crosses between these nodes except encoded CAN frames. Same seed, same run, bit for bit.

@@ -4,7 +4,7 @@ Nodes (python-can ``TrainhilBus`` clients, see ``protocol``) connect to ``<run d
 selector loop: frames read from a node are queued in its TX queue at the current time (ns since the server
 started); when the bus is idle and frames wait, the model arbitrates; the loop sleeps until the transmission's
 end, completes it and hands the frame, stamped with that end time, to every node whose acceptance filters take
-it (filtering happens here, not in the nodes: DESIGN.md measured it doubles how many ECU processes keep their
+it (filtering happens here, not in the nodes: measured when the rig was designed, it doubles how many ECU processes keep their
 lateness low). When the server wakes late, frames that were waiting at an end time are arbitrated at that
 model time, so the bus schedule stays exact and only the delivery is late (``lateness`` in the statistics).
 

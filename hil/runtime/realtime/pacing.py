@@ -3,7 +3,7 @@
 Every process of a rig maps wall time to simulated time the same way: ``sim_t = (wall_epoch - T0) * pace``, with
 ``T0`` chosen by the orchestrator once every node is ready. Frame timestamps from the bus servers (epoch seconds
 of the end of transmission) convert with the same mapping. Waits sleep to absolute deadlines with the timer
-slack at 1 ns (DESIGN.md: asyncio-style sleeps are 0.3-2 ms late); only the plant spins, for the last
+slack at 1 ns (measured when the rig was designed: asyncio-style sleeps are 0.3-2 ms late); only the plant spins, for the last
 ``spin_s`` before a deadline, so at most one process per rig burns a core.
 """
 from __future__ import annotations
