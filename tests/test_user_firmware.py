@@ -244,6 +244,8 @@ def test_a_real_time_node_that_cannot_load_the_law_reports_the_whole_error(tmp_p
     sc = build_scenario(CRUISE, {"controller.law": OnlyHere.name})
     with pytest.raises(NodeError) as err:
         run_realtime(sc, tmp_path, duration_s=1.0, ecus_per_process=6)
+    stub = __import__("json").loads((tmp_path / "metrics.json").read_text())
+    assert stub["status"] == "failed" and "hil recover" not in stub["note"]  # nothing ran: nothing to recover
     msg = str(err.value)
     assert "exited with code 1 before it was ready:" in msg
     assert "unknown controller law 'test_only_in_this_process' (known: " in msg
