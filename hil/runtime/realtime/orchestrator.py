@@ -46,7 +46,7 @@ from ecu_sim.codec import TrainDb
 from ecu_sim.references import USER_PATH_ENV
 from hil.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
-from hil.runtime.realtime.busserver import BusServer
+from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.native_server import NativeBusServer

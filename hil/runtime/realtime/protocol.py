@@ -34,7 +34,7 @@ complete and answers FILTERS_ACK with that generation. A FILTER matches a frame 
 ``(frame_id ^ can_id) & can_mask == 0`` and the frame's format fits ``match`` (0 any, 1 standard only,
 2 extended only): python-can's filter semantics. Any other record, or a version mismatch, ends the session.
 
-Loopback TCP (optional, see ``busserver``): a TCP client must send AUTH with the bus's per-run token as its
+Loopback TCP (optional, see ``sockets.listen_tcp``): a TCP client must send AUTH with the bus's per-run token as its
 very first record, before HELLO; a missing or wrong token ends the connection at once. Unix-socket clients are
 authenticated by the file system (owner-only run directory and socket) and never send AUTH.
 

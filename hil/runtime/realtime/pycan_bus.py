@@ -1,4 +1,4 @@
-"""python-can interface ``trainhil``: a node on an emulated CAN bus served by ``hil.runtime.realtime.busserver``.
+"""python-can interface ``trainhil``: a node on an emulated CAN bus served by a bus server (``hil.runtime.realtime.bus_server``).
 
     bus = can.Bus(interface="trainhil", channel="seed000/bus1")   # run "seed000", bus "bus1"
     bus = can.Bus(interface="trainhil", channel="/abs/path/bus1.sock")

@@ -18,11 +18,14 @@ import ipaddress
 import json
 import os
 import re
+import secrets
 import socket
 import stat
 import tempfile
 import time
 from pathlib import Path
+
+from hil.runtime.realtime.protocol import TOKEN_BYTES
 
 ROOT_NAME = "trainhil"
 SOCKET_SUFFIX = ".sock"
@@ -268,3 +271,82 @@ def parse_tcp_channel(channel: object) -> tuple[str, Path | None, str | None, in
     if os.path.isabs(text[len("tcp:"):]):
         raise ValueError(f"channel {text!r}: use {TCP_CHANNEL_SYNTAX}")
     return text, token_path(sock), None, None
+
+
+class BusServerError(RuntimeError):
+    """A bus server cannot start (socket taken, not a socket, ...)."""
+
+
+def bind_unix_socket(path: Path) -> socket.socket:
+    """Listen on ``path``: bound under a temporary name, chmod 0o600, then linked into place atomically."""
+    if os.path.lexists(path):
+        if not stat.S_ISSOCK(os.lstat(path).st_mode):
+            raise BusServerError(f"{path} exists and is not a socket: refusing to replace it")
+        if socket_is_live(path):
+            raise BusServerError(f"a bus server is already running on {path}")
+        os.unlink(path)  # stale: its server died
+    tmp = path.with_name(f".{secrets.token_hex(4)}.tmp")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sock.bind(str(tmp))
+        try:
+            os.chmod(tmp, 0o600)
+            sock.listen(128)
+            os.link(tmp, path)
+        finally:
+            os.unlink(tmp)
+    except FileExistsError:
+        sock.close()
+        raise BusServerError(f"another bus server started on {path} at the same time") from None
+    except BaseException:
+        sock.close()
+        raise
+    sock.setblocking(False)
+    return sock
+
+
+def listen_tcp(host: str, port: int, path: Path) -> tuple[socket.socket, bytes, tuple[str, int], Path]:
+    """A non-blocking loopback TCP listener for the bus at ``path``, with a fresh token published beside the socket
+    (``<bus>.tcp``, mode 0o600): (socket, token, (host, port), token file)."""
+    check_loopback(host)
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(128)
+        sock.setblocking(False)
+        token = secrets.token_bytes(TOKEN_BYTES)
+        address = (host, sock.getsockname()[1])
+        token_file = token_path(path)
+        write_token_file(token_file, host, address[1], token)
+    except BaseException:
+        sock.close()
+        raise
+    return sock, token, address, token_file
+
+
+def check_server_args(run: str, bus: str, tcp: bool, tcp_host: str, spin_us: float, pace: float) -> None:
+    """ValueError naming a bad argument of a bus server (either kind), before anything is created."""
+    validate_name(run, "run")
+    validate_name(bus, "bus")
+    if tcp:
+        check_loopback(tcp_host)
+    if spin_us < 0:
+        raise ValueError(f"spin_us={spin_us!r} must be >= 0")
+    if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
+        raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
+
+
+def remove_endpoints(path: Path, inode: int, token_file: Path | None) -> None:
+    """Remove a closed server's token file and its socket, if the socket is still the one it made (same inode)."""
+    if token_file is not None:
+        try:
+            os.unlink(token_file)
+        except FileNotFoundError:
+            pass
+    try:
+        if os.lstat(path).st_ino == inode:
+            os.unlink(path)
+    except FileNotFoundError:
+        pass

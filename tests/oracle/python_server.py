@@ -1,4 +1,7 @@
-"""One emulated CAN bus in wall-clock time: a unix-socket server that drives the clock-agnostic ``CanBusModel``.
+"""The engine's oracle for the real-time bus server (test code): one emulated CAN bus in wall-clock time, a unix-socket
+server in Python that drives the clock-agnostic ``CanBusModel``. The rig serves its buses with the engine's
+``NativeBusServer``; this one meets the same ``hil.runtime.realtime.bus_server.BusServer`` protocol, and the
+tests run the same sessions through both (``tests/conftest.py: server_cls``).
 
 Nodes (python-can ``TrainhilBus`` clients, see ``protocol``) connect to ``<run dir>/<bus>.sock``. One thread runs a
 selector loop: frames read from a node are queued in its TX queue at the current time (ns since the server
@@ -32,40 +35,31 @@ from __future__ import annotations
 import hmac
 import logging
 import os
-import secrets
 import selectors
 import select
 import socket
-import stat
 import threading
 import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from hil.can.bus import CanBusModel, CanNode, Transmission
-from hil.runtime.realtime.sockets import check_loopback, socket_is_live, socket_path, token_path, validate_name, write_token_file
+from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServerStats
+from hil.runtime.realtime.sockets import bind_unix_socket, check_server_args, listen_tcp, remove_endpoints, socket_path
 from hil.runtime.realtime.protocol import (
     AUTH_TIMEOUT_S, FLAG_BRS, FLAG_ECHO, FLAG_EXTENDED, FLAG_FD, FRAME, KIND_AUTH, KIND_FILTER,
     KIND_FILTERS, KIND_FRAME, KIND_FRAME_DATA, KIND_HELLO, MAX_DLC, MAX_UNAUTHENTICATED, PROTOCOL_VERSION, RECORD_SIZE,
-    REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING, TOKEN_BYTES, Filter, Frame, ProtocolError,
+    REFUSED_FULL, REFUSED_TIMEOUT, REFUSED_TOKEN, REFUSED_WAITING, Filter, Frame, ProtocolError,
     filters_accept, frame_data_records, frame_error, join_frame, pack_filters_ack, pack_frame, pack_refused, pack_welcome,
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
 from hil.can.stats import BusLog
 from hil.runtime.realtime.pacing import set_timer_slack
 
-LOG = logging.getLogger(__name__)
-DEFAULT_SPIN_US = 200
+LOG = logging.getLogger("hil.runtime.realtime.bus_server")  # the native server's logger too
 READ_RECORDS = 32  # per node and loop turn: a babbling node cannot stall the loop, the rest waits in its socket
 OUT_CAP_BYTES = 1 << 20  # a node that stops reading loses frames beyond this backlog (counted as overruns)
 _RX_CACHE_MAX = 8192
-MAX_CLIENTS = 256  # connections beyond this are refused and counted
-HELLO_TIMEOUT_S = 5.0  # wall seconds a connection may take to complete its handshake (AUTH, HELLO)
 LOG_FIRST = 10  # bad-input warnings logged per kind; the counters keep counting
-
-
-class BusServerError(RuntimeError):
-    """The server cannot start (socket taken, not a socket, ...)."""
 
 
 class _Refused(Exception):
@@ -131,37 +125,6 @@ class _Histogram:
         return self.max_ns * 1e-9
 
 
-@dataclass
-class BusServerStats:
-    """What a bus server has carried so far."""
-
-    channel: str
-    bitrate: int
-    uptime_s: float  # model seconds (wall seconds x pace), as are frames_per_s, load and the latencies
-    clients: int
-    frames: int  # transmissions completed
-    frames_per_s: float
-    load: float  # busy time / uptime
-    load_last_window: float | None  # the last closed window of the BusLog
-    frames_dropped: int  # TX queue full, or queued when the node disconnected
-    frames_rejected: int  # not a classical data frame (remote, error, FD, bad id)
-    rx_overruns: int  # deliveries lost because a node did not read
-    latency_p50_s: float | None  # enqueue -> end of transmission (queueing + transmission)
-    latency_p99_s: float | None
-    latency_max_s: float | None
-    lateness_p50_s: float | None  # frame handed to the nodes' sockets - its end time on the bus (wall seconds)
-    lateness_p99_s: float | None
-    lateness_max_s: float | None
-    protocol_errors: int = 0  # nodes disconnected for breaking the protocol (garbage, unknown kinds, no HELLO)
-    truncated_records: int = 0  # connections that ended inside a record (the partial record is discarded)
-    auth_failures: int = 0  # TCP connections refused for a missing or wrong token
-    clients_refused: int = 0  # connections refused: not loopback, or more than max_clients
-    tcp_port: int | None = None  # the loopback TCP port, when listening on TCP
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-
 def _try_send(sock: socket.socket, record: bytes) -> None:
     """Best effort: tell a connection why it is refused before closing it."""
     try:
@@ -200,54 +163,7 @@ class _Client:
         self.rejected = 0
 
 
-def listen_tcp(host: str, port: int, path: Path) -> tuple[socket.socket, bytes, tuple[str, int], Path]:
-    """A non-blocking loopback TCP listener for the bus at ``path``, with a fresh token published beside the socket
-    (``<bus>.tcp``, mode 0o600): (socket, token, (host, port), token file)."""
-    check_loopback(host)
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind((host, port))
-        sock.listen(128)
-        sock.setblocking(False)
-        token = secrets.token_bytes(TOKEN_BYTES)
-        address = (host, sock.getsockname()[1])
-        token_file = token_path(path)
-        write_token_file(token_file, host, address[1], token)
-    except BaseException:
-        sock.close()
-        raise
-    return sock, token, address, token_file
-
-
-def check_server_args(run: str, bus: str, tcp: bool, tcp_host: str, spin_us: float, pace: float) -> None:
-    """ValueError naming a bad argument of a bus server (either kind), before anything is created."""
-    validate_name(run, "run")
-    validate_name(bus, "bus")
-    if tcp:
-        check_loopback(tcp_host)
-    if spin_us < 0:
-        raise ValueError(f"spin_us={spin_us!r} must be >= 0")
-    if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
-        raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
-
-
-def remove_endpoints(path: Path, inode: int, token_file: Path | None) -> None:
-    """Remove a closed server's token file and its socket, if the socket is still the one it made (same inode)."""
-    if token_file is not None:
-        try:
-            os.unlink(token_file)
-        except FileNotFoundError:
-            pass
-    try:
-        if os.lstat(path).st_ino == inode:
-            os.unlink(path)
-    except FileNotFoundError:
-        pass
-
-
-class BusServer:
+class PythonBusServer:
     """One CAN bus served on ``<run dir>/<bus>.sock`` in wall-clock time (see the module docstring).
 
     ``serve_forever()`` runs the loop in the calling thread, ``start()`` in a daemon thread; ``with BusServer(...)
@@ -269,7 +185,7 @@ class BusServer:
         self._spin_ns = int(spin_us * 1000)
         self._window_ns = int(load_window_s * 1e9)
         self._keep_log = keep_log
-        self._listener = self._bind(self.path)
+        self._listener = bind_unix_socket(self.path)
         self._inode = os.lstat(self.path).st_ino
         self._mono0 = time.monotonic_ns()
         self._epoch0_ns = time.time_ns()
@@ -311,34 +227,6 @@ class BusServer:
         self._loop_ident: int | None = None
 
     # ---- socket setup
-    @staticmethod
-    def _bind(path: Path) -> socket.socket:
-        """Listen on ``path``: bound under a temporary name, chmod 0o600, then linked into place atomically."""
-        if os.path.lexists(path):
-            if not stat.S_ISSOCK(os.lstat(path).st_mode):
-                raise BusServerError(f"{path} exists and is not a socket: refusing to replace it")
-            if socket_is_live(path):
-                raise BusServerError(f"a bus server is already running on {path}")
-            os.unlink(path)  # stale: its server died
-        tmp = path.with_name(f".{secrets.token_hex(4)}.tmp")
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            sock.bind(str(tmp))
-            try:
-                os.chmod(tmp, 0o600)
-                sock.listen(128)
-                os.link(tmp, path)
-            finally:
-                os.unlink(tmp)
-        except FileExistsError:
-            sock.close()
-            raise BusServerError(f"another bus server started on {path} at the same time") from None
-        except BaseException:
-            sock.close()
-            raise
-        sock.setblocking(False)
-        return sock
-
     def _listen_tcp(self, host: str, port: int) -> None:
         """Listen on loopback ``host``:``port`` (0: any free port) and publish host, port and token (mode 0o600)."""
         try:
@@ -411,7 +299,7 @@ class BusServer:
             self._serving.clear()
             self._stopped.set()
 
-    def start(self) -> "BusServer":
+    def start(self) -> "PythonBusServer":
         """Serve in a daemon thread; returns once the loop runs."""
         if self._thread is None:
             self._thread = threading.Thread(target=self.serve_forever, name=f"bus-server {self.channel}", daemon=True)
@@ -447,7 +335,7 @@ class BusServer:
         self._sel.close()
         remove_endpoints(self.path, self._inode, self.token_file)
 
-    def __enter__(self) -> "BusServer":
+    def __enter__(self) -> "PythonBusServer":
         return self.start()
 
     def __exit__(self, *exc) -> None:
@@ -788,9 +676,9 @@ class BusServer:
                 tcp_port=self.tcp_address[1] if self._tcp_listener is not None else None, **self._bad)
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # python -m tests.oracle.python_server: `hil bus-server` on this server (benchmarks)
     import sys
 
     from hil.runtime.realtime.cli import bus_server_main
 
-    sys.exit(bus_server_main())
+    sys.exit(bus_server_main(server_cls=PythonBusServer))

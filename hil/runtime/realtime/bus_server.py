@@ -1,0 +1,88 @@
+"""The bus server seam: what the orchestrator, the merge, the fault machinery and ``hil bus-server`` need of a
+server of one emulated CAN bus, as a ``typing.Protocol``, with its statistics and defaults.
+
+The shipped implementation is the engine's ``NativeBusServer`` (``native_server.py``); the Python server the engine
+is checked against lives with the tests (``tests/oracle/python_server.py``) and meets the same protocol.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable, Protocol, runtime_checkable
+
+from hil.can.stats import BusLog
+
+DEFAULT_SPIN_US = 200
+MAX_CLIENTS = 256  # connections beyond this are refused and counted
+HELLO_TIMEOUT_S = 5.0  # wall seconds a connection may take to complete its handshake (AUTH, HELLO)
+
+
+@dataclass
+class BusServerStats:
+    """What a bus server has carried so far."""
+
+    channel: str
+    bitrate: int
+    uptime_s: float  # model seconds (wall seconds x pace), as are frames_per_s, load and the latencies
+    clients: int
+    frames: int  # transmissions completed
+    frames_per_s: float
+    load: float  # busy time / uptime
+    load_last_window: float | None  # the last closed window of the BusLog
+    frames_dropped: int  # TX queue full, or queued when the node disconnected
+    frames_rejected: int  # not a classical data frame (remote, error, FD, bad id)
+    rx_overruns: int  # deliveries lost because a node did not read
+    latency_p50_s: float | None  # enqueue -> end of transmission (queueing + transmission)
+    latency_p99_s: float | None
+    latency_max_s: float | None
+    lateness_p50_s: float | None  # frame handed to the nodes' sockets - its end time on the bus (wall seconds)
+    lateness_p99_s: float | None
+    lateness_max_s: float | None
+    protocol_errors: int = 0  # nodes disconnected for breaking the protocol (garbage, unknown kinds, no HELLO)
+    truncated_records: int = 0  # connections that ended inside a record (the partial record is discarded)
+    auth_failures: int = 0  # TCP connections refused for a missing or wrong token
+    clients_refused: int = 0  # connections refused: not loopback, or more than max_clients
+    tcp_port: int | None = None  # the loopback TCP port, when listening on TCP
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@runtime_checkable
+class BusServer(Protocol):
+    """A server of one bus in wall-clock time: nodes connect to ``path`` (and TCP with a token, optionally);
+    ``epoch0`` is the epoch time of the bus's time zero; ``log`` its frame rows and load windows (read it under
+    ``with_log``); ``frame_listeners`` get every completed transmission."""
+
+    path: Path
+
+    @property
+    def epoch0(self) -> float: ...
+
+    @property
+    def pace(self) -> float: ...
+
+    @property
+    def log(self) -> BusLog: ...
+
+    @property
+    def frame_listeners(self) -> list[Callable[..., None]]: ...
+
+    @property
+    def stats(self) -> BusServerStats: ...
+
+    def with_log(self, fn: Callable[[BusLog], Any]) -> Any: ...
+
+    def start(self) -> "BusServer": ...
+
+    def shutdown(self, wait: bool = True) -> None: ...
+
+    def close(self) -> None: ...
+
+
+if __name__ == "__main__":  # python -m hil.runtime.realtime.bus_server: the same as `hil bus-server`
+    import sys
+
+    from hil.runtime.realtime.cli import bus_server_main
+
+    sys.exit(bus_server_main())
