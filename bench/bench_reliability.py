@@ -12,7 +12,7 @@ Parts (each can be skipped with 0):
 3. ``--campaign``: runs of a small group (2 trains x 2 units, consensus law) with every one of the 13 fault kinds
    at seeded random times, targets and parameters: injected vs detected per kind, detection latency.
 4. ``--frames``: random CAN frames with 1..8 random bit errors through the receiver's bit-level checks
-   (hil/can/errors.py): corrupted vs rejected per number of flipped bits (CAN's residual error rate).
+   (the oracle tests/oracle/bus_errors.py, the engine's model): corrupted vs rejected per number of flipped bits (CAN's residual error rate).
 5. ``--kills``: ``hil run faults`` killed at random moments (``tests/killtest.py``'s ``random_kills``): recordings intact.
 
 Results go to ``--out``/results.json and are printed as tables; docs/faults.md quotes them.
@@ -31,7 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.can.errors import corrupt, receive, wire_bits  # noqa: E402
+from tests.oracle.bus_errors import corrupt, receive, wire_bits  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from hil.scenario.loader import read_scenario_data, resolve, scenario_from_dict  # noqa: E402
 from hil.scenario.model import FAULT_KINDS  # noqa: E402

@@ -16,12 +16,17 @@ import argparse
 import cProfile
 import io
 import pstats
+import sys
 import time
 import timeit
+from pathlib import Path
 
-from hil.runtime.ideal import IdealLoop
-from hil.runtime.virtual import VirtualRig
-from hil.scenario import load_scenario
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' oracles (the Python network)
+
+from hil.runtime.ideal import IdealLoop  # noqa: E402
+from hil.runtime.virtual import VirtualRig  # noqa: E402
+from hil.scenario import load_scenario  # noqa: E402
+from tests.oracle.python_rig import PythonNetworkRig  # noqa: E402
 
 
 def timed(build, sim_s: float) -> tuple[object, float]:
@@ -82,11 +87,11 @@ def main() -> None:
     ideal_wall = net_wall = py_wall = float("inf")
     for _ in range(max(1, args.repeat)):
         ideal_wall = min(ideal_wall, timed(lambda: IdealLoop(sc), args.sim)[1])
-        run, wall = timed(lambda: VirtualRig(sc, network="engine"), args.sim)
+        run, wall = timed(lambda: VirtualRig(sc), args.sim)
         if wall < net_wall:
             rig, net_wall = run, wall
         if args.python_model:
-            py_wall = min(py_wall, timed(lambda: VirtualRig(sc, network="python"), args.sim)[1])
+            py_wall = min(py_wall, timed(lambda: PythonNetworkRig(sc), args.sim)[1])
     print(f"best of {max(1, args.repeat)} interleaved runs each")
     frames = sum(b.frames_sent for b in rig.log.buses)  # type: ignore[attr-defined]
     engine_s = rig.net.busy_s  # type: ignore[attr-defined]

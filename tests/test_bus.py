@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from hil.runtime.python_bus import VirtualCanBus
+from tests.oracle.python_bus import VirtualCanBus
 from hil.can.frame import frame_bits
 from hil.runtime.kernel import Kernel
 

@@ -7,13 +7,14 @@ import numpy as np
 
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import load_scenario
+from tests.oracle.python_rig import rig_on
 
 
 def test_a_saturated_bus_reads_at_most_full_load_in_both_models():
     sc = load_scenario("seed000", {"can.bitrate": 125_000})  # ~680 kbit/s offered: the bus never idles
     loads = {}
     for model in ("engine", "python"):
-        log = VirtualRig(sc, network=model).run(2.0)
+        log = rig_on(model, sc).run(2.0)
         table = log.buses[0].load.array
         loads[model] = table
         assert table[:, 1].max() <= 1.0 + 1e-12, (model, table[:, 1].max())

@@ -1,4 +1,4 @@
-"""CAN errors (hil/can/errors.py): the receiver's bit-level checks, fault confinement against ISO 11898-1,
+"""CAN errors (the oracle tests/oracle/bus_errors.py; the engine has the same model): the receiver's bit-level checks, fault confinement against ISO 11898-1,
 bus-off and its recovery timing, retransmission, and the babbling idiot against the WCRT analysis."""
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import random
 import numpy as np
 import pytest
 
-from hil.runtime.python_bus import VirtualCanBus
-from hil.can.errors import (ERROR_TAIL_BITS, BusErrors, Corruption, ErrorCounters, ErrorState, FrameSelection,
+from tests.oracle.python_bus import VirtualCanBus
+from tests.oracle.bus_errors import (ERROR_TAIL_BITS, BusErrors, Corruption, ErrorCounters, ErrorState, FrameSelection,
                             corrupt, receive, wire_bits)
 from hil.can.frame import frame_bits
 from hil.can.wcrt import CanMessage, response_times

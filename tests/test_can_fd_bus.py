@@ -8,8 +8,8 @@ import random
 import numpy as np
 import pytest
 
-from hil.can.bus import CanBusModel
-from hil.can.errors import ERROR_TAIL_BITS, BusErrors
+from tests.oracle.bus_model import CanBusModel
+from tests.oracle.bus_errors import ERROR_TAIL_BITS, BusErrors
 from hil.can.frame import (
     FD_LENGTHS,
     FD_TAIL_BITS,
@@ -22,6 +22,7 @@ from hil.can.frame import (
 from hil.record.metrics import run_metrics
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import ScenarioError, load_scenario
+from tests.oracle.python_rig import rig_on
 
 FD_5M = {"can.fd": True, "can.data_bitrate": 5_000_000}
 
@@ -68,7 +69,7 @@ def test_engine_and_python_model_time_fd_frames_alike():
     sc = load_scenario("seed000", {"can.fd": True, "can.data_bitrate": 2_000_000})
     runs = []
     for network in ("python", "engine"):
-        rig = VirtualRig(sc, network=network)
+        rig = rig_on(network, sc)
         rows = _frames(rig)
         runs.append((rows, rig.run(3.0)))
     (py, py_log), (en, en_log) = runs

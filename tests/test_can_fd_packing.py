@@ -18,6 +18,7 @@ from hil.record.metrics import run_metrics
 from hil.runtime.train_db import load_train_db
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import ScenarioError, load_scenario
+from tests.oracle.python_rig import rig_on
 
 FD_DBC = default_dbc_path("train_fd.dbc")
 PACKED = {"can.fd": True, "can.data_bitrate": 2_000_000, "can.dbc": "train_fd.dbc"}
@@ -112,7 +113,7 @@ def test_the_engine_and_the_python_bus_model_pack_alike():
     sc = load_scenario("seed000", PACKED)
     runs = []
     for network in ("python", "engine"):
-        rig = VirtualRig(sc, network=network)
+        rig = rig_on(network, sc)
         rows: list[list] = [[] for _ in rig.buses]
         for bus, out in zip(rig.buses, rows):
             bus.frame_listeners.append(lambda tx, out=out: out.append((tx.frame_id, bytes(tx.data), tx.t_start, tx.t_end)))

@@ -6,7 +6,8 @@ import random
 import pytest
 from crccheck.crc import Crc8SaeJ1850
 
-from ecu_sim.e2e import E2EChecker, E2EStatus, counter_of, crc_ok, e2e_crc, next_counter
+from ecu_sim.e2e import E2EStatus, counter_of, crc_ok, e2e_crc
+from tests.oracle.e2e_checker import E2EChecker, next_counter
 
 
 def crc8_bitwise(data: bytes) -> int:

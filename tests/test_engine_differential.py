@@ -14,6 +14,7 @@ from ecu_sim.codec import TrainDb
 from ecu_sim.e2e import e2e_crc as python_e2e_crc
 from hil.can.frame import frame_bits_reference
 from tests.oracle.python_codec import oracle_codec
+from tests.oracle.python_rig import rig_on
 
 DB = TrainDb.load()
 CODECS = list(DB.by_name.values())
@@ -92,7 +93,7 @@ LOSSY_RADIO = {"radio.loss": {"model": "gilbert_elliott", "p_good_to_bad": 0.1, 
 
 def _schedule_and_log(network: str, scenario, seconds: float):
     """Every frame as (bus, ID, payload, enqueue ns, start ns, end ns), per bus in time order, and the run log."""
-    rig = VirtualRig(scenario, network=network)
+    rig = rig_on(network, scenario)
     frames: list[list[tuple]] = [[] for _ in rig.buses]
     for i, bus in enumerate(rig.buses):
         bus.frame_listeners.append(lambda tx, rows=frames[i], i=i: rows.append(
@@ -141,7 +142,6 @@ def test_bus_faults_and_error_confinement_run_on_the_engine_as_on_the_python_mod
     drops, a babbling node and the guardian, error frames and retransmission, error passive, bus-off and recovery:
     the same frames, signals, events and CAN error counts from the engine and the Python bus model (17 s)."""
     sc = _faults_with_every_bus_fault()
-    assert VirtualRig(sc).network == "engine"
     runs = []
     for network in ("python", "engine"):
         frames, log = _schedule_and_log(network, sc, 17.0)
@@ -203,7 +203,7 @@ def test_the_bus_model_is_a_leaf_and_node_processes_do_not_import_the_server():
     import subprocess
     import sys
 
-    code = ("import sys, hil.can.bus, hil.can.errors, hil.can.frame, hil.can.stats, hil.can.wcrt; "
+    code = ("import sys, hil.can.transmission, hil.can.error_events, hil.can.frame, hil.can.stats, hil.can.wcrt; "
             "bad = [m for m in sys.modules if m.startswith(('hil.record', 'hil.runtime'))]; assert not bad, bad; "
             "import hil.runtime.realtime.ecu_node, hil.runtime.realtime.plant_node, hil.runtime.realtime.radio_node; "
             "assert 'tests.oracle.python_server' not in sys.modules")
@@ -231,7 +231,7 @@ def test_an_inbox_node_hands_over_its_frames_in_arrival_order():
 
 # ---------------------------------------------------------------------------------------------- the CAN receiver
 
-from hil.can.errors import corrupt, receive, wire_bits  # noqa: E402
+from tests.oracle.bus_errors import corrupt, receive, wire_bits  # noqa: E402
 
 
 def _engine_reception(wire: list[int]) -> tuple:
@@ -276,10 +276,10 @@ def test_the_engine_continues_a_numpy_stream_and_draws_corrupted_bits_alike():
     """Two-bit corruptions of 70 % of the frames on a bus: the engine, handed the streams' states, hits the same
     frames and flips the same bits as the Python model (a partial Fisher-Yates shuffle over its numpy stream), so
     the same errors are found and the retransmitted frames go at the same times."""
-    from hil.can.errors import BusErrors, Corruption
+    from tests.oracle.bus_errors import BusErrors, Corruption
     from hil.faults.bus import rng_state
     from hil.runtime.kernel import Kernel
-    from hil.runtime.python_bus import VirtualCanBus
+    from tests.oracle.python_bus import VirtualCanBus
 
     kernel = Kernel()
     bus = VirtualCanBus(kernel, "b", 500_000)
@@ -328,3 +328,15 @@ def test_bad_bus_fault_arguments_are_refused_and_leave_the_bus_as_it_was():
     with pytest.raises(ValueError, match="can_id"):
         net.start_babbler(bus, 1, "Babbler#1", 0x800, bytes(8), False)  # not an 11-bit ID
     assert net.nodes(bus) == []  # the refused babbler did not join
+
+
+def test_the_network_seams_are_protocols_that_the_engine_and_the_oracle_meet():
+    """hil/runtime/network.py: the engine's kernel and bus, and the oracle's, are the same seam."""
+    from hil.runtime.network import EventKernel, TrainBus
+    from hil.runtime.kernel import Kernel
+    from tests.oracle.python_rig import PythonNetworkRig
+
+    sc = load_scenario("seed000")
+    for rig in (VirtualRig(sc), PythonNetworkRig(sc)):
+        assert isinstance(rig.kernel, EventKernel) and all(isinstance(b, TrainBus) for b in rig.buses)
+    assert isinstance(Kernel(), EventKernel)

@@ -24,7 +24,7 @@ import can
 import pytest
 
 from ecu_sim.codec import TrainDb
-from hil.can.bus import CanBusModel, arbitration_key
+from tests.oracle.bus_model import CanBusModel, arbitration_key
 from hil.can.frame import frame_bits
 from hil.runtime.realtime import sockets, protocol
 from hil.runtime.realtime.sockets import BusServerError
@@ -156,7 +156,7 @@ def test_names_and_channels_are_validated(rt):
         sockets.run_dir("a..b")
 
 
-# ---------------------------------------------------------------- model additions (hil/can/bus.py)
+# ---------------------------------------------------------------- model additions (tests/oracle/bus_model.py)
 
 def test_model_extended_frames_arbitrate_by_wire_order_and_time_as_extended():
     m = CanBusModel("b", 500_000)

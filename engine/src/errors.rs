@@ -1,6 +1,6 @@
 //! CAN errors on one bus: corrupted frames the receivers reject, error frames, retransmission, fault confinement,
 //! and the fault injectors that need the wire (babbling node, frame drops, error flags). The same model as
-//! `hil/can/errors.py` (its docstring has the whole description), decision for decision and draw for draw:
+//! `tests/oracle/bus_errors.py`, the Python oracle (its docstring has the whole description), decision for decision and draw for draw:
 //!
 //! * ISO 11898-1 fault confinement per controller: REC +1 for a receiver that detects an error, TEC +8 for the
 //!   transmitter of a destroyed frame, -1 on each success (a REC above 127 set back to 127); error passive at

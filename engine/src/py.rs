@@ -805,7 +805,7 @@ fn add_bus_fault(bus: &mut Bus, fault: u64, kind: &str, rng_state: (u128, u128),
     Ok(())
 }
 
-/// An event as (kind, fields) for Python (`hil.can.errors.event_text` and the guardian word them).
+/// An event as (kind, fields) for Python (`hil.can.error_events.event_text` and the guardian word them).
 fn event_fields<'py>(py: Python<'py>, bus: &Bus, e: &BusEvent) -> PyResult<(&'static str, Bound<'py, PyDict>)> {
     let d = PyDict::new(py);
     let name = |node: usize| bus.nodes[node].name.clone();

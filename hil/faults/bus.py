@@ -2,8 +2,8 @@
 
 A faulty run has error counters, fault confinement and a guardian on every bus, and the schedule's starts and ends
 become effects on the wire. ``EngineBusFaults`` does it on a bus of the compiled engine (engine/src/errors.rs,
-guardian.rs): the virtual network's ``EngineBus`` or a real-time ``NativeBusServer``. ``BusFaults`` does it on the
-Python bus model (``hil/can/errors.py``), the oracle the engine is checked against. Both draw the same numpy streams
+guardian.rs): the virtual network's ``EngineBus`` or a real-time ``NativeBusServer``. The oracle the engine is checked
+against does it on the Python bus model (``tests/oracle/bus_faults.py``); both draw the same numpy streams
 (``fault_rng``) and give the same frames, events and counts.
 """
 from __future__ import annotations
@@ -12,9 +12,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hil.can.bus import CanBusModel
-from hil.can.errors import BusErrors, Corruption, EventSink, FrameSelection, event_text
-from hil.faults.guardian import SHARE_NS, WINDOW_NS, BusGuardian, allowances, guardian_text
+from hil.can.error_events import event_text
+from hil.faults.guardian import SHARE_NS, WINDOW_NS, allowances, guardian_text
 from hil.faults.schedule import fault_rng
 
 BABBLE_BYTE = 0xA5
@@ -87,66 +86,6 @@ class EngineBusFaults:
         counts = self.bus.bus_errors()
         frames = counts.pop("undetected_frames")
         return {**counts, **undetected_summary(frames, self.e2e_ok)}
-
-
-class BusFaults:
-    """Bus faults on the Python bus model (the engine's oracle), driven by the virtual rig: ``send(node, id, data)``
-    queues a frame now and starts an arbitration on an idle bus (``VirtualCanBus.send``)."""
-
-    def __init__(self, bus: CanBusModel, index: int, seed: int, periods: dict[int, float], sink: EventSink,
-                 guardian_sink: EventSink, send: Callable[[object, int, bytes], bool],
-                 e2e_ok: Callable[[int, bytes], bool | None] | None = None, packing=None) -> None:
-        """``sink``/``guardian_sink(t_ns, level, text)`` take the error model's and the guardian's events (bus time);
-        ``periods``: frame ID -> DBC cycle time (the guardian's allowance); ``e2e_ok(id, data)``: whether a frame
-        passes its E2E CRC (None: an ID the DBC does not know), to judge corruptions CAN let through; ``packing``
-        (CAN FD containers): a fault aimed at a message also hits the containers that carry it."""
-        self.e2e_ok = e2e_ok
-        self.packing = packing
-        self.bus = bus
-        self.seed = seed
-        self.errors = BusErrors(bus, sink, fault_rng(seed, 1000 + index))
-        self.guardian = BusGuardian(bus.name, periods, guardian_sink)
-        bus.frame_listeners.append(self.guardian)
-        self._send = send
-        self._active: dict[int, object] = {}  # fault index -> its effect
-
-    def start(self, spec, index: int, t_ns: int) -> None:
-        e = self.errors
-        if spec.kind == "babbling_node":
-            data = bytes([BABBLE_BYTE]) * spec.dlc
-            self._active[index] = b = e.start_babbler(spec.frame_id, data, t_ns, name=f"Babbler#{index}", queue=False)
-            self._send(b.node, spec.frame_id, data)  # also starts an arbitration on an idle bus
-            return
-        rng = fault_rng(self.seed, index)
-        ids = target_ids(spec, self.packing)
-        if spec.kind == "bus_corruption":
-            sel = Corruption(rng, spec.probability, ids, spec.count, bits=spec.bits)
-            e.corruptions.append(sel)
-        elif spec.kind == "bus_error_frames":
-            sel = FrameSelection(rng, spec.probability, ids, spec.count)
-            e.error_flags.append(sel)
-        else:
-            sel = FrameSelection(rng, spec.probability, ids, spec.count)
-            e.drops.append(sel)
-        self._active[index] = sel
-
-    def end(self, spec, index: int) -> None:
-        effect = self._active.pop(index, None)
-        if effect is None:
-            return
-        e = self.errors
-        if spec.kind == "babbling_node":
-            e.stop_babbler(effect)
-        else:
-            for group in (e.corruptions, e.error_flags, e.drops):
-                if effect in group:
-                    group.remove(effect)
-
-    def summary(self) -> dict:
-        """The error model's counts, plus what became of the corruptions CAN did not detect: caught by the
-        receivers' E2E CRC, dropped by every acceptance filter (an ID no node knows), or accepted (E2E CRC valid)."""
-        return {**self.errors.summary(), "babbling_detections": self.guardian.detections,
-                **undetected_summary(self.errors.undetected_frames, self.e2e_ok)}
 
 
 def e2e_checker(db) -> Callable[[int, bytes], bool | None]:

@@ -8,15 +8,14 @@ retransmissions stay below that); an ID the DBC does not know may send two. The 
 empties a backlog (after a starvation, 64 queued frames go out back to back) from reading as a babbler: a
 babbling idiot is a node that monopolises the bus. It listens like a CAN logger (``frame_listeners``), so
 it sees every frame of the bus, whatever the acceptance filters; in the real-time rig it runs in the bus server.
-The compiled engine runs the same monitor (engine/src/guardian.rs) with ``allowances`` from here; both report
-(kind, fields) events that ``guardian_text`` words.
+The compiled engine runs the monitor (engine/src/guardian.rs) with ``allowances`` from here; its Python oracle is
+``tests/oracle/bus_faults.py: BusGuardian``; both report (kind, fields) events that ``guardian_text`` words.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
 
-from hil.can.bus import Transmission
 
 WINDOW_S = 0.1
 WINDOW_NS = round(WINDOW_S * 1e9)
@@ -40,41 +39,3 @@ def guardian_text(kind: str, f: dict) -> tuple[str, str]:
     if kind == "cleared":
         return "INFO", f"cleared: babbling ID 0x{f['frame_id']:03X}"
     raise ValueError(f"unknown guardian event kind {kind!r}")
-
-
-class BusGuardian:
-    def __init__(self, bus_name: str, periods: dict[int, float], sink: EventSink) -> None:
-        self.name = bus_name
-        self._allow = allowances(periods)
-        self._sink = sink
-        self._window_ns = WINDOW_NS
-        self._end = self._window_ns
-        self._counts: dict[int, int] = {}
-        self._busy: dict[int, int] = {}  # bus time (ns) per ID in the window
-        self._flagged: set[int] = set()
-        self.detections = 0
-
-    def __call__(self, tx: Transmission) -> None:
-        if tx.t_end >= self._end:
-            self._judge(tx.t_end)
-        fid = tx.frame_id
-        self._counts[fid] = self._counts.get(fid, 0) + 1
-        self._busy[fid] = self._busy.get(fid, 0) + tx.t_end - tx.t_start
-
-    def _judge(self, t_ns: int) -> None:
-        """Close the window ending at self._end (and any empty ones after it)."""
-        t_window = self._end
-        over = {fid: n for fid, n in self._counts.items()
-                if n > self._allow.get(fid, UNKNOWN_ALLOWANCE) and self._busy[fid] > SHARE_NS}
-        for fid, n in sorted(over.items()):
-            if fid not in self._flagged:
-                self._flagged.add(fid)
-                self.detections += 1
-                self._sink(t_window, *guardian_text("babbling", {"frame_id": fid, "frames": n, "busy_ns": self._busy[fid],
-                                                                 "allowance": self._allow.get(fid)}))
-        for fid in sorted(self._flagged - set(over)):
-            self._flagged.discard(fid)
-            self._sink(t_window, *guardian_text("cleared", {"frame_id": fid}))
-        self._counts.clear()
-        self._busy.clear()
-        self._end += self._window_ns * max(1, (t_ns - self._end) // self._window_ns + 1)

@@ -11,7 +11,7 @@ ecu_crash, ecu_hang    ``plant``: "train T unit U ...: no command ..., fail-safe
 sensor_stuck/_noise    the unit's own ECU: "own sensor implausible" (ecu_sim.diagnostics)
 babbling_node          ``busT/guardian``: "babbling node"; the bus's ECUs: stale sensor/neighbour/reference;
                        ``plant``: fail-safe of a unit of that train
-bus_corruption,        ``busT/can``: "error frame" or a bus-off (the receivers' CAN checks, hil/can/errors.py);
+bus_corruption,        ``busT/can``: "error frame" or a bus-off (the receivers' CAN checks, engine/src/errors.rs);
 bus_error_frames       an ECU of that train: "E2E ...: CRC errors" (a corruption CAN did not catch)
 frame_drop             an ECU of that train: "E2E ...: lost frames / wrong sequences", or a stale input;
                        ``plant``: fail-safe of a unit of that train

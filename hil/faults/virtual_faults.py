@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from ecu_sim.diagnostics import EcuDiagnostics, neighbour_names
 from hil.faults.actuator import ActuatorFaults
-from hil.faults.bus import BusFaults, EngineBusFaults, describe_bus_event, e2e_checker
+from hil.faults.bus import EngineBusFaults, describe_bus_event, e2e_checker
 from hil.faults.ecu import EcuFaults
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
@@ -23,6 +23,8 @@ from hil.runtime.kernel import to_ns
 
 
 class VirtualFaults:
+    """The fault machinery of one virtual rig (built by ``VirtualRig._make_faults``)."""
+
     def __init__(self, rig) -> None:
         self.rig = rig
         sc, layout, log = rig.sc, rig.layout, rig.log
@@ -34,30 +36,33 @@ class VirtualFaults:
         self.ecus = EcuFaults(rig, sc.ecu.restart_after_s, log.event)
         self.sensors = SensorFaults(rig.plant, layout, fault_rng(seed, 2000))
         self.actuators = ActuatorFaults(rig.plant, layout)
-        periods = rig.db.cycle_times()
-        ok = e2e_checker(rig.db)
-        # error confinement and the guardian on every bus: in the engine, or on the Python bus model (the oracle)
-        if rig.net is not None:
-            self.buses = [EngineBusFaults(bus, i, seed, periods, e2e_ok=ok, packing=bus.packing)
-                          for i, bus in enumerate(rig.buses)]
-            rig.kernel.after_advance = self._take_bus_events
-            for bus in rig.buses:
-                bus.after_send = self._take_bus_events
-        else:
-            self.buses = [BusFaults(bus, i, seed, periods, self._bus_sink(bus.name, "can"),
-                                    self._bus_sink(bus.name, "guardian"), send=bus.send, e2e_ok=ok, packing=bus.packing)
-                          for i, bus in enumerate(rig.buses)]
+        self.buses = self._bus_faults(seed, rig.db.cycle_times(), e2e_checker(rig.db))
         self.radio = None
         if rig.gateway:
             rng = fault_rng(seed, 3000)
-            on_engine = engine_impairments(rig.net, list(rig.gateway.links), rng) if rig.net is not None else None
-            self.radio = RadioFaults(rig.gateway.links, layout.n_trains, rng, on_engine)
+            self.radio = RadioFaults(rig.gateway.links, layout.n_trains, rng, self._radio_impairments(rng))
         k = rig.kernel
         for f in self.schedule.faults:
             if f.spec.at_s is not None:
                 k.at(to_ns(f.spec.at_s), self._start, f)
         if any(f.spec.at_position_m is not None for f in self.schedule.faults):
             k.every(0, to_ns(sc.can.sensor_period_s), self._poll)
+
+    # ---- on the network (the oracle's subclass overrides these)
+    def _bus_faults(self, seed: int, periods: dict[int, float], e2e_ok) -> list:
+        """Error confinement and the guardian on every bus, in the engine; its events taken whenever it hands back
+        control, so the timeline keeps their order."""
+        rig = self.rig
+        buses = [EngineBusFaults(bus, i, seed, periods, e2e_ok=e2e_ok, packing=bus.packing)
+                 for i, bus in enumerate(rig.buses)]
+        rig.kernel.after_advance = self._take_bus_events
+        for bus in rig.buses:
+            bus.after_send = self._take_bus_events
+        return buses
+
+    def _radio_impairments(self, rng):
+        """The radio faults' effects on the engine's links."""
+        return engine_impairments(self.rig.net, list(self.rig.gateway.links), rng)
 
     def _take_bus_events(self) -> None:
         """The engine's bus error and guardian events since the last call, onto the timeline in their order."""
@@ -67,10 +72,6 @@ class VirtualFaults:
             for bus, t_ns, kind, fields in net.take_bus_events():
                 what, level, text = describe_bus_event(kind, fields)
                 log.event(t_ns * 1e-9, level, f"{buses[bus].name}/{what}", text)
-
-    def _bus_sink(self, bus: str, what: str):
-        log = self.rig.log
-        return lambda t_ns, level, text: log.event(t_ns * 1e-9, level, f"{bus}/{what}", text)
 
     # ---- triggers
     def _poll(self, t_ns: int) -> None:
@@ -116,8 +117,7 @@ class VirtualFaults:
     def finish(self, log: RunLog) -> None:
         """Detections matched to faults and ``log.fault_report`` for the metrics."""
         sc = self.rig.sc
-        if self.rig.net is not None:
-            self._take_bus_events()  # those of the buses' finish
+        self._take_bus_events()  # those of the buses' finish
         can = {bus.name: bf.summary() for bus, bf in zip(self.rig.buses, self.buses)}
         log.fault_report = fault_report(list(sc.faults), self.rig.layout, log, can,
                                         {"ecu_restarts": self.ecus.restarts})

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ecu_sim.codec import TrainDb
+from hil.layout import TrainLayout
 from hil.radio.link import RadioLink
 from hil.scenario.model import RadioConfig
 
@@ -180,3 +181,19 @@ def build_links(cfg: RadioConfig, n_trains: int, rng: np.random.Generator) -> di
             name = link_name(src, dst)
             links[name] = RadioLink(cfg, link_rng(rng, src, dst), name)
     return links
+
+
+def build_gateway(sc, db, radio_rng) -> RadioGateway:
+    """The radio gateway of a scenario's trains (links, routing table, position decoder) in Python: the real-time
+    radio node's (``sc``: the Scenario, ``db``: its TrainDb)."""
+    layout = TrainLayout.from_config(sc.trains)
+    links = build_links(sc.radio, layout.n_trains, radio_rng)
+    routes = standard_routes(layout.n_trains, layout.units_per_train, sc.radio.forward_aux, RadioIds.from_db(db))
+    position_ids = {db.agent_state(k).frame_id for k in range(layout.units_per_train)}
+
+    def position_of(frame_id: int, data: bytes) -> float | None:
+        if frame_id not in position_ids or len(data) != db.by_id[frame_id].dlc:
+            return None  # not a position frame, or a malformed one (receivers count it)
+        return db.by_id[frame_id].decode(data)[0]
+
+    return RadioGateway(routes, links, position_of)

@@ -15,7 +15,7 @@ from typing import Callable
 
 import can
 
-from hil.can.bus import Transmission
+from hil.can.transmission import Transmission
 
 TIME_NOTE = "trainhil {runtime}: timestamps are simulated seconds"
 LOG_FORMATS = ("asc", "blf", "mf4")

@@ -18,14 +18,15 @@ from hil.record.paths import frames_path
 
 if TYPE_CHECKING:
     from ecu_sim.codec import TrainDb
-    from hil.can.bus import CanBusModel, Transmission
+    from hil.can.transmission import Transmission
+    from hil.runtime.network import TrainBus
     from hil.record.rerun_writer import RerunWriter
 
 
 class FrameRecorder:
     """Collects (t_end ns, ID, data, latency ns) per bus; :meth:`write` turns the new ones into text rows."""
 
-    def __init__(self, buses: list["CanBusModel"], db: "TrainDb") -> None:
+    def __init__(self, buses: list["TrainBus"], db: "TrainDb") -> None:
         self.db = db
         self.rows: dict[str, list[tuple[int, int, bytes, int]]] = {}  # not yet written, per bus
         for bus in buses:

@@ -17,7 +17,7 @@ from typing import Any
 import trainhil_engine as engine
 
 from ecu_sim.runtime import Ecu
-from hil.can.bus import Transmission
+from hil.can.transmission import Transmission
 from hil.radio.gateway import RadioIds, link_name, standard_routes
 from hil.radio.link import RadioLink
 from hil.record.runlog import BusLog

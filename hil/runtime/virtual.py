@@ -5,9 +5,11 @@ ECUs exchange AgentState/AgentAux on their bus; the radio gateway forwards the t
 next train's bus and the head's state back; the wayside sends Reference frames to every bus.
 Nothing crosses between these nodes except encoded CAN frames. Same seed, same run, bit for bit.
 
-Two models of the network give the same frame schedule: the compiled frame engine (``trainhil_engine``, the
-default: no Python runs per frame, CAN error confinement and the bus faults included) and the Python bus model
-(``hil/can``, ``network="python"``), the oracle the engine is checked against (tests/test_engine_differential.py).
+The network is the compiled frame engine (``trainhil_engine``): no Python runs per frame, CAN error confinement and
+the bus faults included. The Python bus model it is checked against lives with the tests
+(``tests/oracle/python_rig.py``, a subclass that overrides the network hooks below: ``_make_network``,
+``_make_bus``, ``_attach_plant``, ``_ecu_node``, ``_attach_radio``, ``_plant_tick``, ``_before_run``, ``_collect``,
+``_finish_network``, ``_make_faults``).
 """
 from __future__ import annotations
 
@@ -19,11 +21,8 @@ import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.runtime import Ecu, guarded_cycle, os_exit_stops_the_firmware
-from hil.can.bus import CanNode
 from hil.runtime.plant_step import plant_step
-from hil.runtime.python_bus import VirtualCanBus
-from hil.layout import TrainLayout
-from hil.radio.gateway import RadioGateway, RadioIds, build_links, standard_routes
+from hil.radio.gateway import RadioGateway, RadioIds, build_links
 from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import BusLog, RunLog
 from hil.record.safety import record_violations
@@ -31,11 +30,9 @@ from hil.runtime.assembly import Assembly, assemble
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.firmware import EcuFactory, build_ecu, refuse_external_units
 from hil.runtime.engine_net import EngineBus, EngineKernel, attach_radio, copy_link_stats
-from hil.runtime.kernel import Kernel, to_ns
+from hil.runtime.kernel import to_ns
 from hil.runtime.train_db import bus_packing, check_train_db, load_train_db
 from hil.scenario.model import Scenario
-
-NETWORK_MODELS = ("engine", "python")
 
 ProgressFn = Callable[[float], None]  # called with the simulated time reached (s)
 
@@ -44,13 +41,10 @@ class VirtualRig:
     """One scenario wired up over emulated CAN, ready to run in virtual time."""
 
     def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None,
-                 network: str | None = None, ecu_factory: EcuFactory = build_ecu) -> None:
-        """``network``: "engine" (the default) or "python" (the Python bus model, the oracle). ``ecu_factory``
-        builds each unit's ECU (default: the program the scenario names, :func:`hil.runtime.firmware.build_ecu`)."""
+                 ecu_factory: EcuFactory = build_ecu) -> None:
+        """``ecu_factory`` builds each unit's ECU (default: the program the scenario names,
+        :func:`hil.runtime.firmware.build_ecu`)."""
         refuse_external_units(scenario, "virtual time")
-        self.network = "engine" if network is None else network
-        if self.network not in NETWORK_MODELS:
-            raise ValueError(f"network model must be one of {NETWORK_MODELS}, got {self.network!r}")
         self.sc = scenario
         self.parts: Assembly = assemble(scenario, seed)
         self.layout = self.parts.layout
@@ -61,11 +55,10 @@ class VirtualRig:
             check_train_db(scenario, db)
         self.db = db
         packing = bus_packing(scenario, self.db)
-        self.net = engine.Network() if self.network == "engine" else None
-        self.kernel = EngineKernel(self.net) if self.net is not None else Kernel()
+        self._make_network()
         self.log = RunLog(self.layout)
         self.log.reference_change_times = self.parts.reference.change_times
-        self.buses = [self._make_bus(i) for i in range(self.layout.n_trains)]
+        self.buses = [self._make_bus(i, self._bus_log(i)) for i in range(self.layout.n_trains)]
         if packing is not None:
             for bus in self.buses:
                 bus.set_packing(packing)
@@ -75,56 +68,51 @@ class VirtualRig:
         self._wayside_nodes = [bus.attach("Wayside") for bus in self.buses]
         self.ecus: list[Ecu] = []
         self._train_of = [self.layout.train_unit(u)[0] for u in range(self.layout.n_units)]
-        self._ecu_nodes: list[CanNode] = []
+        self._ecu_nodes: list = []  # each unit's node on its bus
         for u in range(self.layout.n_units):
             self._attach_ecu(u, ecu_factory)
         self.gateway, self._gw_nodes = self._attach_radio()
         self._schedule()
-        self.faults = None  # the fault schedule, its injectors and monitors (hil/faults), if the scenario has one
-        if needs_fault_machinery(scenario):
-            from hil.faults.virtual_faults import VirtualFaults
+        self.faults = self._make_faults() if needs_fault_machinery(scenario) else None  # hil/faults, if any
 
-            self.faults = VirtualFaults(self)
+    # ------------------------------------------------------------------ the network (the oracle overrides these)
+    def _make_network(self) -> None:
+        """The engine's network and its event kernel."""
+        self.net = engine.Network()
+        self.kernel = EngineKernel(self.net)
 
-    # ------------------------------------------------------------------ wiring
-    def _make_bus(self, i: int) -> VirtualCanBus | EngineBus:
-        c = self.sc.can
-        log = BusLog(f"bus{i + 1}", c.bitrate)
+    def _bus_log(self, i: int) -> BusLog:
+        log = BusLog(f"bus{i + 1}", self.sc.can.bitrate)
         self.log.buses.append(log)
-        if self.net is not None:
-            return EngineBus(self.net, f"bus{i + 1}", c, log)
-        return VirtualCanBus(self.kernel, f"bus{i + 1}", c.bitrate, c.queue_policy, c.tx_queue_depth, c.extended_ids, log=log,
-                             fd=c.fd, data_bitrate=c.data_rate, brs=c.brs)
+        return log
 
-    def _attach_plant(self, i: int) -> CanNode | int:
+    def _make_bus(self, i: int, log: BusLog) -> EngineBus:
+        return EngineBus(self.net, f"bus{i + 1}", self.sc.can, log)
+
+    def _make_faults(self):
+        """The fault schedule, its injectors and monitors (hil/faults/virtual_faults.py)."""
+        from hil.faults.virtual_faults import VirtualFaults
+
+        return VirtualFaults(self)
+
+    def _attach_plant(self, i: int) -> int:
         """The plant's node on train i's bus. The engine checks and decodes its TractionCmd frames on delivery and
         queues them; they are applied at the next plant step (a command acts from the first step after its
         arrival, as with a per-frame callback)."""
-        if self.net is not None:
-            commands = [(fid, self.db.by_id[fid], u) for fid, u in self.plant_io.cmd_unit[i].items()]
-            node, table = self.net.attach_commands(self.buses[i].index, "Plant", commands, sorted(int(m) for m in VALID_MODES))
-            self._command_train[table] = i
-            return node
-        command = self.plant_io.command
-
-        def on_rx(frame_id: int, data: bytes, t_ns: int) -> None:
-            command(i, frame_id, data, t_ns * 1e-9)
-
-        return self.buses[i].attach("Plant", on_rx, set(self.plant_io.cmd_unit[i]))
+        commands = [(fid, self.db.by_id[fid], u) for fid, u in self.plant_io.cmd_unit[i].items()]
+        node, table = self.net.attach_commands(self.buses[i].index, "Plant", commands, sorted(int(m) for m in VALID_MODES))
+        self._command_train[table] = i
+        return node
 
     def _attach_ecu(self, u: int, ecu_factory: EcuFactory) -> None:
         ecu = ecu_factory(self.parts, self.db, u)
         self.ecus.append(ecu)
         self._ecu_nodes.append(self._ecu_node(u, ecu))
 
-    def _ecu_node(self, u: int, ecu: Ecu) -> CanNode | int:
-        """Unit u's ECU node on its train's bus, delivering into the ECU (mailboxes, or on_frame per frame)."""
+    def _ecu_node(self, u: int, ecu: Ecu) -> int:
+        """Unit u's ECU node on its train's bus, delivering into the ECU's mailboxes."""
         train, unit = self.layout.train_unit(u)
-        name, bus = f"ECU_U{unit + 1:02d}", self.buses[train]
-        if isinstance(bus, EngineBus):
-            return bus.attach_ecu(name, ecu)
-        on_frame = ecu.on_frame
-        return bus.attach(name, lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
+        return self.buses[train].attach_ecu(f"ECU_U{unit + 1:02d}", ecu)
 
     def disconnect_ecu(self, u: int) -> None:
         """Unit u's ECU leaves its bus (a crash): its queued frames are dropped and counted."""
@@ -136,29 +124,16 @@ class VirtualRig:
         """Unit u's ECU joins its bus again (a restart after a crash), as a new node."""
         self._ecu_nodes[u] = self._ecu_node(u, self.ecus[u])
 
-    def _attach_radio(self) -> tuple[RadioGateway | None, list[CanNode]]:
+    def _attach_radio(self) -> tuple[RadioGateway | None, list]:
+        """The radio between adjacent trains, in the engine: its links carry the statistics."""
         n = self.layout.n_trains
         if n < 2:
             return None, []
-        if self.net is not None:
-            links = build_links(self.sc.radio, n, self.parts.streams["radio"])
-            position_codecs = [self.db.agent_state(k) for k in range(self.layout.units_per_train)]
-            attach_radio(self.net, self.buses, links, self.layout.units_per_train, self.sc.radio.forward_aux,  # type: ignore[arg-type]
-                         position_codecs, RadioIds.from_db(self.db))
-            return RadioGateway([], links, lambda fid, data: None), []  # its links carry the statistics
-        gateway = build_gateway(self.sc, self.db, self.parts.streams["radio"])
-        nodes = []
-        for i, bus in enumerate(self.buses):
-            def on_rx(frame_id: int, data: bytes, t_ns: int, i: int = i) -> None:
-                for dst_bus, dst_id, payload, t_deliver in gateway.on_frame(i, frame_id, data, t_ns):
-                    self.kernel.at(t_deliver, self._gateway_send, (dst_bus, dst_id, payload))
-
-            nodes.append(bus.attach("RadioGW", on_rx, gateway.ids_for_bus(i)))
-        return gateway, nodes
-
-    def _gateway_send(self, item: tuple[int, int, bytes]) -> None:
-        bus, frame_id, data = item
-        self.buses[bus].send(self._gw_nodes[bus], frame_id, data)
+        links = build_links(self.sc.radio, n, self.parts.streams["radio"])
+        position_codecs = [self.db.agent_state(k) for k in range(self.layout.units_per_train)]
+        attach_radio(self.net, self.buses, links, self.layout.units_per_train, self.sc.radio.forward_aux,
+                     position_codecs, RadioIds.from_db(self.db))
+        return RadioGateway([], links, lambda fid, data: None), []
 
     # ------------------------------------------------------------------ periodic tasks
     def _schedule(self) -> None:
@@ -176,10 +151,13 @@ class VirtualRig:
             k.every(phase, cycle, partial(self._ecu_tick, u))
 
     def _plant_tick(self, t_ns: int) -> None:
-        """Apply the commands that arrived, publish sensors and record at their periods (state at t), then
-        integrate to t + step."""
-        if self.net is not None and self.net.has_commands:
+        """Apply the commands that arrived, then the plant's step."""
+        if self.net.has_commands:
             self._apply_commands()
+        self._plant_step(t_ns)
+
+    def _plant_step(self, t_ns: int) -> None:
+        """Publish sensors and record at their periods (state at t), then integrate to t + step."""
         tick, plant = self._tick, self.plant
         self._tick += 1
         if tick % self._sensor_every == 0:
@@ -189,7 +167,7 @@ class VirtualRig:
     def _apply_commands(self) -> None:
         """The TractionCmd frames the engine delivered to the plant since the last step, in arrival order: checked
         and decoded in the engine; the rejected ones go through the plant node, which logs why."""
-        commands, rejected = self.net.drain_commands()  # type: ignore[union-attr]
+        commands, rejected = self.net.drain_commands()
         if commands:
             command, in_sequence = self.plant.command, self.plant_io.in_sequence
             for u, force, mode, t, counter in commands:
@@ -230,9 +208,7 @@ class VirtualRig:
         duration = self.sc.duration_s if duration_s is None else duration_s
         end_ns, chunk_ns = to_ns(duration), to_ns(chunk_s)
         wall0 = time.perf_counter()
-        if self.net is not None:
-            for bus in self.buses:
-                bus.trace_if_listened()  # type: ignore[union-attr]
+        self._before_run()
         try:
             t = self.kernel.now
             while t < end_ns:
@@ -251,25 +227,29 @@ class VirtualRig:
             self._finish(time.perf_counter() - wall0)
         return self.log
 
+    def _before_run(self) -> None:
+        """Keep the completed frames in the engine for the buses someone listens to."""
+        for bus in self.buses:
+            bus.trace_if_listened()
+
     def _collect(self) -> None:
         """Bring the engine's bus statistics and traced frames into the log and the frame listeners, and apply the
         commands that arrived since the last plant step (at the end of a chunk, as a per-frame callback would have:
         no plant step lies between their arrival and now)."""
-        if self.net is not None:
-            self._apply_commands()
-            for bus in self.buses:
-                bus.collect()  # type: ignore[union-attr]
+        self._apply_commands()
+        for bus in self.buses:
+            bus.collect()
+
+    def _finish_network(self, now: int) -> None:
+        """The network's last events to ``now`` and its statistics into the log."""
+        self.net.finish(now)
+        self._collect()
+        if self.gateway is not None:
+            copy_link_stats(self.net, self.gateway.links)
 
     def _finish(self, wall_s: float) -> None:
         log, now = self.log, self.kernel.now
-        if self.net is not None:
-            self.net.finish(now)
-            self._collect()
-            if self.gateway is not None:
-                copy_link_stats(self.net, self.gateway.links)
-        else:
-            for bus in self.buses:
-                bus.finish(now)
+        self._finish_network(now)
         radio = {name: dict(link.stats) for name, link in (self.gateway.links.items() if self.gateway else [])}
         log.radio_stats = radio
         log.tally_frames_lost()
@@ -281,22 +261,6 @@ class VirtualRig:
         if self.faults is not None:
             self.faults.finish(log)
         record_violations(log, self.sc.plant.coupler_band_m)  # every safety violation on the timeline
-
-
-# ---------------------------------------------------------------------- wiring shared with the real-time runtime
-def build_gateway(sc: Scenario, db: TrainDb, radio_rng) -> RadioGateway:
-    """The radio gateway of the scenario's trains (links, routing table, position decoder)."""
-    layout = TrainLayout.from_config(sc.trains)
-    links = build_links(sc.radio, layout.n_trains, radio_rng)
-    routes = standard_routes(layout.n_trains, layout.units_per_train, sc.radio.forward_aux, RadioIds.from_db(db))
-    position_ids = {db.agent_state(k).frame_id for k in range(layout.units_per_train)}
-
-    def position_of(frame_id: int, data: bytes) -> float | None:
-        if frame_id not in position_ids or len(data) != db.by_id[frame_id].dlc:
-            return None  # not a position frame, or a malformed one (receivers count it)
-        return db.by_id[frame_id].decode(data)[0]
-
-    return RadioGateway(routes, links, position_of)
 
 
 def run_virtual(scenario: Scenario, duration_s: float | None = None, seed: int | None = None,

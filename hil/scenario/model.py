@@ -680,7 +680,7 @@ class SelectiveBusFault(BusFault):
 
 class BusCorruptionFault(SelectiveBusFault):
     """Bits flipped on the wire as the receivers sample them: they reject the frame (stuff, CRC or form error),
-    send an error frame, count it (REC), and the sender counts it (TEC) and retransmits (hil/can/errors.py)."""
+    send an error frame, count it (REC), and the sender counts it (TEC) and retransmits (engine/src/errors.rs)."""
 
     kind: Literal["bus_corruption"]
     bits: int = Field(default=1, ge=1, le=16, description="bits flipped per corrupted frame")

@@ -42,7 +42,8 @@ import threading
 import time
 from pathlib import Path
 
-from hil.can.bus import CanBusModel, CanNode, Transmission
+from hil.can.transmission import Transmission
+from tests.oracle.bus_model import CanBusModel, CanNode
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServerStats
 from hil.runtime.realtime.sockets import bind_unix_socket, check_server_args, listen_tcp, remove_endpoints, socket_path
 from hil.runtime.realtime.protocol import (
@@ -378,7 +379,7 @@ class PythonBusServer:
         tx = m.current
         while tx is not None and tx.t_end <= now:
             m.complete()
-            if tx.error is None:  # a frame destroyed by an error frame (hil.can.errors) is not delivered
+            if tx.error is None:  # a frame destroyed by an error frame (tests.oracle.bus_errors) is not delivered
                 self._deliver(tx)
             tx = m.arbitrate(tx.t_end)
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import trainhil_engine as engine
 
-from hil.can.bus import Transmission
+from hil.can.transmission import Transmission
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServerStats
 from hil.runtime.realtime.sockets import bind_unix_socket, check_server_args, listen_tcp, remove_endpoints, socket_path
 from hil.record.runlog import BusLog

@@ -21,7 +21,7 @@ from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import random_streams
-from hil.runtime.virtual import build_gateway
+from hil.radio.gateway import build_gateway
 from hil.runtime.train_db import bus_packing, load_train_db
 
 IDLE_WAIT_S = 0.05  # simulated seconds between stop checks when nothing is due

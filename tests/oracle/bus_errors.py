@@ -1,4 +1,4 @@
-"""CAN errors on one bus: corrupted frames the receivers reject, error frames, retransmission, and fault confinement.
+"""The engine's oracle (test code) for CAN errors on one bus: corrupted frames the receivers reject, error frames, retransmission, and fault confinement.
 
 Fault confinement follows ISO 11898-1 (Bosch CAN 2.0 part A, section 8) for every controller on the bus:
 
@@ -48,13 +48,12 @@ from enum import IntEnum
 
 import numpy as np
 
-from hil.can.bus import CanBusModel, CanNode, Transmission, _Item
+from hil.can.error_events import (BUS_OFF_ABOVE, ERROR_PASSIVE_AT, RECESSIVE_SEQUENCE_BITS, RECOVERY_SEQUENCES,
+                                  event_text)
+from hil.can.transmission import Transmission
+from tests.oracle.bus_model import CanBusModel, CanNode, _Item
 from hil.can.frame import FD_TAIL_BITS, _crc15_bitwise, fd_frame_bits, stuffed_bits
 
-ERROR_PASSIVE_AT = 128
-BUS_OFF_ABOVE = 255
-RECOVERY_SEQUENCES = 128
-RECESSIVE_SEQUENCE_BITS = 11
 ERROR_FLAG_PHASE_BITS = 12  # 6-bit error flag + up to 6 bits of the other nodes' superposed flags (the maximum)
 ERROR_DELIMITER_BITS = 8
 INTERMISSION_BITS = 3
@@ -63,30 +62,6 @@ FD_EOF_IFS_BITS = 7 + 3  # the end of FD_TAIL_BITS: after the ACK delimiter
 EPISODE_GAP_S = 0.1  # error frames less than this apart are one episode (one summary event)
 
 EventSink = Callable[[int, str, str], None]  # (t_ns, level, text)
-
-
-def event_text(kind: str, f: dict) -> tuple[str, str]:
-    """(level, text) of an error-model event of ``kind`` with its fields (from this model or the engine's)."""
-    if kind == "bus_off":
-        return "ERROR", (f"{f['node']}: bus-off (TEC = {f['tec']} > {BUS_OFF_ABOVE}); {f['lost']} queued frames dropped; "
-                         f"recovers after {RECOVERY_SEQUENCES} x {RECESSIVE_SEQUENCE_BITS} recessive bits")
-    if kind == "error_passive":
-        return "WARN", f"{f['node']}: error passive (TEC = {f['tec']}, REC = {f['rec']})"
-    if kind == "error_active":
-        return "INFO", f"{f['node']}: error active again (TEC = {f['tec']}, REC = {f['rec']})"
-    if kind == "recovered":
-        return "INFO", (f"{f['node']}: recovered from bus-off after {f['after_ns'] * 1e-6:.3f} ms "
-                        f"({RECOVERY_SEQUENCES} x {RECESSIVE_SEQUENCE_BITS} recessive bits), error active")
-    if kind == "error_frame":
-        what = "an error flag destroyed" if f["error"] == "error flag" else f"{f['error']} error in"
-        return "WARN", (f"error frame: {what} 0x{f['frame_id']:03X} from {f['node']}; the receivers reject it, "
-                        "the sender retransmits")
-    if kind == "episode":
-        by_error = f["by_error"]
-        kinds = ", ".join(f"{k} {v}" for k, v in sorted(by_error.items()))
-        return "INFO", (f"{sum(by_error.values())} error frames from t = {f['start_ns'] * 1e-9:.4f} s to "
-                        f"{f['last_ns'] * 1e-9:.4f} s (bus time): {kinds}")
-    raise ValueError(f"unknown CAN error event kind {kind!r}")
 
 
 def pick_positions(rng: np.random.Generator, span: int, k: int) -> list[int]:

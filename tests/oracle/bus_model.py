@@ -1,7 +1,7 @@
-"""The CAN bus model: per-node TX queues, arbitration, exact frame durations, load and latency stats.
+"""The engine's oracle (test code): the Python CAN bus model, per-node TX queues, arbitration, exact frame durations, load and latency stats.
 
-``CanBusModel`` is clock-agnostic (it is told the time): the virtual-time runtime drives it from
-the event kernel (``hil.runtime.python_bus.VirtualCanBus``), a real-time bus server from the wall clock.
+``CanBusModel`` is clock-agnostic (it is told the time): the oracle rig drives it from
+the event kernel (``tests.oracle.python_bus.VirtualCanBus``), the oracle bus server from the wall clock.
 Semantics: when the bus goes idle, every node offers the head of its TX queue (the lowest ID it holds
 under the ``priority`` policy, its oldest frame under ``fifo``) and the lowest ID wins arbitration.
 A frame's transmission ends after its last bit including the 3-bit intermission, which is the time
@@ -16,6 +16,7 @@ from typing import Callable
 
 from hil.can.frame import bit_time_ns as _bit_ns, fd_frame_bits, fd_pad, frame_bits
 from hil.can.stats import BusLog
+from hil.can.transmission import Transmission
 
 RxCallback = Callable[[int, bytes, int], None]  # (frame_id, data, t_end_ns)
 # Queue entry: (arbitration key, seq, data, t_enqueue, node, frame_id, extended, format)
@@ -29,22 +30,6 @@ def arbitration_key(frame_id: int, extended: bool) -> int:
     if extended:
         return ((frame_id >> 18) << 20) | (0b11 << 18) | (frame_id & 0x3FFFF)
     return frame_id << 20
-
-
-@dataclass(slots=True)
-class Transmission:
-    """A frame on the wire."""
-
-    node: "CanNode"
-    frame_id: int
-    data: bytes
-    t_enqueue: int
-    t_start: int
-    t_end: int
-    extended: bool = False
-    error: str | None = None  # set by hil.can.errors when the frame is destroyed: not delivered, retransmitted
-    fd: bool = False  # a CAN FD frame
-    brs: bool = False  # ... with its data phase at the data bitrate
 
 
 class CanNode:
@@ -66,7 +51,7 @@ class CanNode:
         self.fifo: deque[_Item] = deque()
         self.sent = 0
         self.dropped = 0
-        self.bus_off = False  # set by hil.can.errors (fault confinement): a bus-off node neither sends nor receives
+        self.bus_off = False  # set by tests.oracle.bus_errors (fault confinement): a bus-off node neither sends nor receives
 
 
 class CanBusModel:
@@ -101,7 +86,7 @@ class CanBusModel:
         self._window_end = self._window_ns
         self._window_busy = 0
         self.frame_listeners: list[Callable[[Transmission], None]] = []  # e.g. CAN log writers
-        self.errors = None  # hil.can.errors.BusErrors when faults or errors are modelled (None: error-free fast path)
+        self.errors = None  # tests.oracle.bus_errors.BusErrors when faults or errors are modelled (None: error-free fast path)
         self.packing = None  # trainhil_engine.Packing: CAN FD containers, unpacked at the receivers (set_packing)
 
     # ---- topology
@@ -218,7 +203,7 @@ class CanBusModel:
         assert tx is not None, "complete() without a transmission"
         self.current = None
         if self.errors is not None and not self.errors.on_complete(tx):
-            return tx  # destroyed (tx.error): not delivered; hil.can.errors requeued it for retransmission
+            return tx  # destroyed (tx.error): not delivered; tests.oracle.bus_errors requeued it for retransmission
         self._account(tx)
         parts = self.packing.unpack(tx.frame_id, tx.data) if self.packing is not None else None
         if parts is None:

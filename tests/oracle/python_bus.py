@@ -1,12 +1,12 @@
 """The Python bus model driven by the Python event kernel: the oracle the engine's virtual-time network is checked
-against (``VirtualRig(..., network="python")``).
+against (``tests/oracle/python_rig.py: PythonNetworkRig``).
 
 The default network is the compiled engine (``hil/runtime/engine_net.py``); both give the same frame schedule
 (``tests/test_engine_differential.py``).
 """
 from __future__ import annotations
 
-from hil.can.bus import CanBusModel, CanNode
+from tests.oracle.bus_model import CanBusModel, CanNode
 from hil.runtime.kernel import Kernel
 
 
