@@ -23,3 +23,16 @@ def test_every_exported_name_and_public_member_is_in_the_stub():
                    {b.target.id for b in node.body if isinstance(b, ast.AnnAssign)}
         public = {a for a in dir(cls) if not a.startswith("_")}
         assert public <= declared, f"{name}: {sorted(public - declared)} not in {STUB.name}"
+
+
+def test_the_stubs_all_is_the_modules():
+    """The stub lists the exports literally, so a type checker sees what ``from trainhil_engine import *`` gives."""
+    import ast
+    from pathlib import Path
+
+    import trainhil_engine as engine
+
+    stub = ast.parse((Path(engine.__file__).parent / "_native.pyi").read_text())
+    listed = next(node.value for node in stub.body if isinstance(node, ast.Assign)
+                  and any(getattr(t, "id", None) == "__all__" for t in node.targets))
+    assert [elt.value for elt in listed.elts] == list(engine.__all__)

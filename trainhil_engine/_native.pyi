@@ -176,7 +176,9 @@ class Network:
     def attached(self, bus: int, node: int) -> bool: ...
     def gateway_ids(self, bus: int) -> list[int]: ...
 
-__all__: list[str]
+__all__ = ["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
+           "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "FrameLink",
+           "wait_readable"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
     """Sleep until one of ``fds`` is readable or ``timeout_s`` (wall) passed, the GIL released (no fds: a sleep)."""
