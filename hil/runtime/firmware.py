@@ -105,6 +105,8 @@ def import_roots(sc: Scenario) -> list[Path]:
 def neighbour_links(db: TrainDb, layout: TrainLayout, forward_aux: bool, u: int) -> list[NeighbourLink]:
     """Where unit u's neighbours' states arrive from: intra-train AgentState/AgentAux, or the radio IDs."""
     links = []
+    state: int
+    aux: int | None
     for q, link, side in layout.neighbours(u):
         if link == "intra":
             unit = layout.train_unit(q)[1]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -34,10 +35,11 @@ Sink = tuple  # (RerunWriter, first signal row it still needs)
 SIGNAL_CHUNK_ROWS = 4096  # signal rows merged at a time (each is 3 + 5 x units values, with their columns)
 
 
-def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: list[BusServer], events: list[Event],
+def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: Sequence[Any], events: list[Event],
                 t0: float | None, pace: float, duration: float, wall: float, stop_reason: str | None,
-                sinks: list[Sink] = (), keep_rows: bool = True):
+                sinks: Sequence[Sink] = (), keep_rows: bool = True):
     """The nodes' files and the servers' spools as one RunLog in simulated time, and the timing metrics.
+    ``servers``: the bus servers (``BusServer``), or anything with their ``log`` and ``epoch0`` (``hil recover``).
 
     The plant's signals and the buses' rows are read chunk by chunk into the log's statistics and into each of
     ``sinks`` (writers, with the first signal row each needs); ``keep_rows=False`` lets each chunk go once it is
@@ -76,7 +78,7 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: lis
     return log, _timing_metrics(plant, ecus, servers)
 
 
-def _stream_signals(log: RunLog, nodes_dir: Path, sinks: list[Sink], keep_rows: bool) -> None:
+def _stream_signals(log: RunLog, nodes_dir: Path, sinks: Sequence[Sink], keep_rows: bool) -> None:
     """The plant's signal rows (its stream, signals.bin; a row cut by a killed plant is left out) into the log."""
     for rows in row_chunks(nodes_dir / SIGNAL_STREAM, log.signals.width, SIGNAL_CHUNK_ROWS):
         start = len(log.signals)
@@ -89,7 +91,7 @@ def _stream_signals(log: RunLog, nodes_dir: Path, sinks: list[Sink], keep_rows: 
             log.release_signals(len(log.signals))
 
 
-def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | None, sinks: list[Sink],
+def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | None, sinks: Sequence[Sink],
                 keep_rows: bool) -> BusLog:
     """A server's spooled rows (hil/runtime/realtime/bus_spool.py) moved to simulated time (model t -> t - shift)
     and cut to [0, duration] (None: as they are), as one BusLog, written to the sinks chunk by chunk."""
@@ -112,7 +114,7 @@ def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | No
     return out
 
 
-def _timing_metrics(plant: dict, ecus: list[dict], servers: list[BusServer]) -> dict[str, Any]:
+def _timing_metrics(plant: dict, ecus: list[dict], servers: Sequence[Any]) -> dict[str, Any]:
     def worst(key: str, rows: list[dict]) -> float | None:
         vals = [r[key] for r in rows if r.get(key) is not None]
         return max(vals) if vals else None

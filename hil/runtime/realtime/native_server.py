@@ -14,6 +14,7 @@ import logging
 import os
 import threading
 from pathlib import Path
+from typing import Any
 
 import trainhil_engine as engine
 
@@ -142,7 +143,7 @@ class NativeBusServer:
     def stats(self) -> BusServerStats:
         """A consistent snapshot (thread-safe); reports the engine's pending log lines first."""
         self._report()
-        s = self._core.stats()
+        s: dict[str, Any] = self._core.stats()
         up = max(s["now_ns"], 1) * 1e-9
         return BusServerStats(
             self.channel, self._core.bitrate, up, s["clients"], s["frames"], s["frames"] / up, s["busy_ns"] / max(s["now_ns"], 1),

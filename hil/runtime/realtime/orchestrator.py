@@ -107,8 +107,11 @@ class Node:
     def start_reader(self) -> None:
         """Drain the node's stdout for as long as it lives: protocol lines ("ready") to ``lines``, the rest to the
         bounded ``printed`` tail (never left in the pipe, where a full pipe would block the node)."""
+        stdout = self.proc.stdout
+        assert stdout is not None  # started with stdout=PIPE
+
         def read() -> None:
-            for line in self.proc.stdout:
+            for line in stdout:
                 line = line.strip()
                 if line.partition(" ")[0] in PROTOCOL_WORDS:
                     self.lines.put(line)
@@ -119,9 +122,12 @@ class Node:
         threading.Thread(target=read, name=f"stdout {self.name}", daemon=True).start()
 
     def tell(self, text: str) -> None:
+        stdin = self.proc.stdin
+        if stdin is None:
+            return
         try:
-            self.proc.stdin.write(text + "\n")
-            self.proc.stdin.flush()
+            stdin.write(text + "\n")
+            stdin.flush()
         except (BrokenPipeError, OSError, ValueError):
             pass
 
@@ -265,7 +271,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None,
                                      spool.tick) if f]
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
-                                         (lambda t: [f(t) for f in ticks]) if ticks else None, join)
+                                         _all_of(ticks) if ticks else None, join)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
             else:
                 stop_reason = stop.requested
@@ -332,6 +338,15 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         raise ExternalUnitMissing(f"{stop_reason or missing} (what ran is in {out_dir}): start the external program "
                                   "once the rig has printed its channels, or raise ecu.join_timeout_s")
     return _run_result(log, metrics, out_dir, files)
+
+
+def _all_of(ticks: list[Callable[[float], None]]) -> Callable[[float], None]:
+    """One tick that runs every one of ``ticks``."""
+    def tick(t: float) -> None:
+        for f in ticks:
+            f(t)
+
+    return tick
 
 
 def _finish_log(log: RunLog, faults, t0: float | None, pace: float, scenario: Scenario) -> None:
@@ -542,7 +557,8 @@ def _kill_all(nodes: list[Node]) -> None:
     for n in nodes:
         for f in (n.proc.stdin, n.proc.stdout):
             try:
-                f.close()
+                if f is not None:
+                    f.close()
             except (OSError, ValueError):
                 pass
 

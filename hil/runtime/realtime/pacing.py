@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -149,7 +149,7 @@ def linger(clock: SimClock, sim_s: float = 0.02, max_wall_s: float = 0.2) -> Non
     time.sleep(min(sim_s / clock.pace, max_wall_s))
 
 
-def drain(buses: Sequence, on_msg: Callable[[int, object], None], timeout_s: float) -> None:
+def drain(buses: Sequence, on_msg: Callable[[int, Any], None], timeout_s: float) -> None:
     """Wait up to ``timeout_s`` wall seconds for any bus to have a frame, then hand every waiting frame to
     ``on_msg(bus_index, msg)`` (bus_index is the position in ``buses``)."""
     ready = select.select(buses, [], [], max(timeout_s, 0.0))[0]  # one syscall, also when polling (timeout 0)
@@ -159,7 +159,7 @@ def drain(buses: Sequence, on_msg: Callable[[int, object], None], timeout_s: flo
             on_msg(i, msg)
 
 
-def wait_until(clock: SimClock, sim_t: float, buses: Sequence, on_msg: Callable[[int, object], None],
+def wait_until(clock: SimClock, sim_t: float, buses: Sequence, on_msg: Callable[[int, Any], None],
                spin_s: float = 0.0, max_wait_s: float = 0.05) -> None:
     """Receive frames until simulated time ``sim_t``: select-sleep to ``spin_s`` before it, then poll (spin).
 

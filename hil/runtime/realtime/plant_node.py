@@ -41,7 +41,7 @@ from hil.record.integrity import write_json_atomic
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_after_s
-from hil.runtime.realtime.frame_io import node_frames
+from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.series_stats import StreamedSeries
@@ -77,9 +77,10 @@ class PlantNode:
         # sensor-to-actuator latencies (s), by the command arrival time they end at
         self.e2e = StreamedSeries(None if out is None else out / "timing_e2e.bin")
         self.extended = sc.can.extended_ids
-        self.clock: SimClock | None = None
-        self.frames = None  # the node's frame I/O (hil/runtime/realtime/frame_io.py), once the clock runs
-        self.kernel: PacedKernel | None = None  # the node's scheduler, once the clock runs (see run)
+        # set once the clock runs (``_schedule``): the clock, the node's frame I/O (frame_io.py), its scheduler
+        self.clock: SimClock
+        self.frames: EngineFrames | PythonCanFrames
+        self.kernel: PacedKernel
         self.stats: LatenessStats | None = None  # publication lateness
         self.n_steps = self.publish_every = 0  # plant steps in the run; steps between publications
         self.save: Callable[[LatenessStats], None] | None = None
@@ -166,6 +167,7 @@ class PlantNode:
         self.log.wall_time_s = time.time() - clock.t0
         if not stop:
             linger(clock)
+        assert self.stats is not None  # set by _schedule
         return self.stats
 
     def _schedule(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float) -> None:
@@ -189,6 +191,7 @@ class PlantNode:
         """A publication tick (kernel event): integrate to it, book its lateness, faults, Sensor and Reference
         frames, the live stream and the periodic save; then schedule the next one."""
         step, stats = self.sc.plant.step_s, self.stats
+        assert stats is not None  # set by _schedule
         t = target * step
         self.advance_to(target)
         stats.add(self.clock.now() - t, t)

@@ -193,7 +193,7 @@ def join_frame(head: Frame, continuation: bytes | memoryview) -> Frame:
     return head._replace(data=bytes(out[:head.dlc]))
 
 
-def unpack_frame(record: bytes | memoryview, offset: int = 0) -> Frame:
+def unpack_frame(record: bytes | bytearray | memoryview, offset: int = 0) -> Frame:
     """The FRAME record at ``offset``; ProtocolError if it is another kind or its dlc exceeds 8."""
     kind, flags, dlc, can_id, timestamp, data = FRAME.unpack_from(record, offset)
     if kind != KIND_FRAME:
@@ -210,7 +210,7 @@ def pack_hello(name: str, receive_own: bool = False, version: int = PROTOCOL_VER
     return HELLO.pack(KIND_HELLO, version, OPTION_RECEIVE_OWN if receive_own else 0, raw)
 
 
-def unpack_hello(record: bytes | memoryview, offset: int = 0) -> Hello:
+def unpack_hello(record: bytes | bytearray | memoryview, offset: int = 0) -> Hello:
     kind, version, options, raw = HELLO.unpack_from(record, offset)
     if kind != KIND_HELLO:
         raise ProtocolError(f"record kind {kind} is not a HELLO ({KIND_HELLO})")
@@ -232,7 +232,7 @@ def pack_welcome(bitrate: int, epoch0: float, client_id: int, version: int = PRO
     return WELCOME.pack(KIND_WELCOME, version, bitrate, epoch0, client_id, fd_data_bitrate)
 
 
-def unpack_welcome(record: bytes | memoryview, offset: int = 0) -> Welcome:
+def unpack_welcome(record: bytes | bytearray | memoryview, offset: int = 0) -> Welcome:
     kind, version, bitrate, epoch0, client_id, fd_data_bitrate = WELCOME.unpack_from(record, offset)
     if kind != KIND_WELCOME:
         raise ProtocolError(f"record kind {kind} is not a WELCOME ({KIND_WELCOME})")
@@ -260,7 +260,7 @@ def pack_filters(filters: list[Filter], generation: int) -> bytes:
     return head + b"".join(FILTER.pack(KIND_FILTER, f.match, f.can_id, f.can_mask) for f in filters)
 
 
-def unpack_filters_head(record: bytes | memoryview, offset: int = 0) -> tuple[int, int]:
+def unpack_filters_head(record: bytes | bytearray | memoryview, offset: int = 0) -> tuple[int, int]:
     """(count, generation) of a FILTERS record."""
     kind, count, generation = FILTERS.unpack_from(record, offset)
     if kind != KIND_FILTERS:
@@ -270,7 +270,7 @@ def unpack_filters_head(record: bytes | memoryview, offset: int = 0) -> tuple[in
     return count, generation
 
 
-def unpack_filter(record: bytes | memoryview, offset: int = 0) -> Filter:
+def unpack_filter(record: bytes | bytearray | memoryview, offset: int = 0) -> Filter:
     kind, match, can_id, can_mask = FILTER.unpack_from(record, offset)
     if kind != KIND_FILTER:
         raise ProtocolError(f"record kind {kind} is not a FILTER ({KIND_FILTER})")
@@ -284,7 +284,7 @@ def pack_refused(why: int) -> bytes:
     return bytes([KIND_REFUSED, why]) + bytes(RECORD_SIZE - 2)
 
 
-def refused_reason(record: bytes | memoryview) -> str | None:
+def refused_reason(record: bytes | bytearray | memoryview) -> str | None:
     """Why the server refused us, if ``record`` is a REFUSED record (else None)."""
     if record[0] != KIND_REFUSED:
         return None
@@ -295,7 +295,7 @@ def pack_filters_ack(generation: int) -> bytes:
     return FILTERS_ACK.pack(KIND_FILTERS_ACK, generation & 0xFFFFFFFF)
 
 
-def unpack_filters_ack(record: bytes | memoryview, offset: int = 0) -> int:
+def unpack_filters_ack(record: bytes | bytearray | memoryview, offset: int = 0) -> int:
     kind, generation = FILTERS_ACK.unpack_from(record, offset)
     if kind != KIND_FILTERS_ACK:
         raise ProtocolError(f"record kind {kind} is not FILTERS_ACK ({KIND_FILTERS_ACK})")
@@ -321,7 +321,7 @@ def pack_auth(token: bytes) -> bytes:
     return AUTH.pack(KIND_AUTH, token)
 
 
-def unpack_auth(record: bytes | memoryview, offset: int = 0) -> bytes:
+def unpack_auth(record: bytes | bytearray | memoryview, offset: int = 0) -> bytes:
     kind, token = AUTH.unpack_from(record, offset)
     if kind != KIND_AUTH:
         raise ProtocolError(f"record kind {kind} is not AUTH ({KIND_AUTH})")
@@ -329,7 +329,7 @@ def unpack_auth(record: bytes | memoryview, offset: int = 0) -> bytes:
 
 
 class FiltersHead(NamedTuple):
-    count: int
+    count: int  # type: ignore[assignment]  # the field shadows tuple.count, as the wire names it
     generation: int
 
 
@@ -350,7 +350,7 @@ class FrameData(NamedTuple):
 Record = Frame | Hello | Welcome | FiltersHead | Filter | FiltersAck | Auth | FrameData
 
 
-def decode_record(record: bytes | memoryview) -> Record:
+def decode_record(record: bytes | bytearray | memoryview) -> Record:
     """Any 24 bytes -> the typed record, or ProtocolError saying what is wrong (never another exception).
 
     A FRAME that decodes but could not go on the bus (bad dlc, flags or id) is still a Frame: ``frame_error``

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from can import BusABC, CanInitializationError, CanOperationError, Message
+from can.typechecking import AutoDetectedConfig
 
 from hil.runtime.realtime.sockets import (
     bus_sockets, check_private_dir, check_private_socket, parse_channel, parse_tcp_channel, read_token_file,
@@ -127,9 +128,11 @@ class TrainhilBus(BusABC):
         raw = bytes.fromhex(token) if isinstance(token, str) else bytes(token)
         if len(raw) != TOKEN_BYTES:
             raise ValueError(f"channel {text!r}: token must be {TOKEN_BYTES} bytes (32 hex digits), got {len(raw)}")
+        assert host is not None and port is not None  # a "tcp://host:port" channel names both
         return text, None, (host, port, raw)
 
     def _connect_tcp(self, timeout: float) -> socket.socket:
+        assert self._tcp is not None
         host, port, _ = self._tcp
         try:
             sock = socket.create_connection((host, port), timeout=timeout)
@@ -140,8 +143,10 @@ class TrainhilBus(BusABC):
         return sock
 
     def _connect(self, timeout: float) -> socket.socket:
+        path = self.path
+        assert path is not None  # a unix-socket channel has its path
         if "/" in self.channel_name and not os.path.isabs(self.channel_name):
-            for d in (self.path.parent.parent, self.path.parent):  # runtime root, run directory
+            for d in (path.parent.parent, path.parent):  # runtime root, run directory
                 try:
                     check_private_dir(d)
                 except FileNotFoundError:
@@ -149,8 +154,8 @@ class TrainhilBus(BusABC):
                 except PermissionError as exc:
                     raise CanInitializationError(f"trainhil: {exc}") from exc
         try:
-            if stat.S_ISSOCK(os.lstat(self.path).st_mode):
-                check_private_socket(self.path)  # ours, owner-only: not a socket someone else planted
+            if stat.S_ISSOCK(os.lstat(path).st_mode):
+                check_private_socket(path)  # ours, owner-only: not a socket someone else planted
         except FileNotFoundError:
             pass  # reported as "no server" below
         except PermissionError as exc:
@@ -326,7 +331,7 @@ class TrainhilBus(BusABC):
         self._sock.close()
 
     @staticmethod
-    def _detect_available_configs() -> list[dict[str, Any]]:
+    def _detect_available_configs() -> list[AutoDetectedConfig]:
         """Every bus of every running rig under the runtime root (a socket that accepts a connection)."""
-        return [{"interface": INTERFACE, "channel": channel}
+        return [AutoDetectedConfig(interface=INTERFACE, channel=channel)
                 for channel, path in bus_sockets() if socket_is_live(path, 0.2)]

@@ -69,7 +69,7 @@ class RadioBridge:
 
     def __init__(self, gateway, faults) -> None:
         self.gateway, self.faults = gateway, faults
-        self.kernel: PacedKernel | None = None
+        self.kernel: PacedKernel  # set before the run starts
         self.in_flight = 0  # deliveries scheduled, not yet sent
 
     def on_frame(self, i: int, frame_id: int, data: bytes, t: float) -> None:
