@@ -54,7 +54,7 @@ def save_log(path: Path, log, scenario_name: str) -> None:
 
 def load_log(path: Path):
     """(RunLog, scenario, extra dict) from a file written by :func:`save_log`."""
-    from hil.layout import TrainLayout
+    from hil.scenario.layout import TrainLayout
     from hil.record.runlog import RunLog
 
     data = np.load(path, allow_pickle=False)

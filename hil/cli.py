@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ecu_sim.references import ReferenceLoadError
-from hil.can.cli import positive_seconds
+from hil.cli_values import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
 from hil.record.safety import ECU_FAILURE
@@ -317,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("scenarios", help="list the packaged scenarios")
     sc.set_defaults(func=_cmd_scenarios)
 
-    from hil.can.cli import add_can_analysis_parser
+    from hil.can_analysis_cli import add_can_analysis_parser
     from hil.runtime.realtime.cli import add_bus_server_parser
     from hil.sweep.cli import add_sweep_parser, add_sweeps_list_parser
 

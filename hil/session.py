@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
@@ -22,21 +21,11 @@ from hil.record.out_dir import disk_full_outcome, write_metrics_when_full
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
 from hil.record.metrics import run_metrics
 from hil.record.rerun_writer import RerunWriter
-from hil.record.runlog import RunLog
+from hil.record.runlog import RunLog, RunResult  # noqa: F401  (RunResult: what run_scenario returns)
 from hil.runtime.ideal import IdealLoop
 from hil.runtime.train_db import load_train_db
 from hil.runtime.virtual import VirtualRig
 from hil.scenario.model import Scenario
-
-
-@dataclass
-class RunResult:
-    """What a run left behind."""
-
-    log: RunLog
-    metrics: dict[str, Any]
-    out_dir: Path
-    files: list[Path] = field(default_factory=list)
 
 
 class IncrementalRecorder:
@@ -237,7 +226,7 @@ def _every(fn, chunk_s: float, min_wall_s: float):
 
 
 def _layout(scenario: Scenario):
-    from hil.layout import TrainLayout
+    from hil.scenario.layout import TrainLayout
 
     return TrainLayout.from_config(scenario.trains)
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hil.compare.multi_train import seed002_metrics, seed003_metrics, settle_time, spacing_overshoot
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.runlog import RunLog
 from hil.scenario.model import TrainsConfig
 

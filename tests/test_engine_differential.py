@@ -331,8 +331,9 @@ def test_bad_bus_fault_arguments_are_refused_and_leave_the_bus_as_it_was():
 
 
 def test_the_network_seams_are_protocols_that_the_engine_and_the_oracle_meet():
-    """hil/runtime/network.py: the engine's kernel and bus, and the oracle's, are the same seam."""
-    from hil.runtime.network import EventKernel, TrainBus
+    """hil/runtime/kernel.py: EventKernel and hil/can/train_bus.py: TrainBus: the engine's and the oracle's meet them."""
+    from hil.can.train_bus import TrainBus
+    from hil.runtime.kernel import EventKernel
     from hil.runtime.kernel import Kernel
     from tests.oracle.python_rig import PythonNetworkRig
 

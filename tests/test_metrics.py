@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.metrics import compute_metrics
 from hil.record.runlog import BusLog, RunLog
 from hil.scenario.model import TrainsConfig

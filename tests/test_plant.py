@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from ecu_sim.view import BrakeMode
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.plant import Plant, PlantDiverged
 from hil.plant import dynamics
 from ecu_sim.track import G

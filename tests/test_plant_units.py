@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.plant import Plant
 from ecu_sim.track import G
 from hil.plant.units import specific_to_per_kg, unit_params

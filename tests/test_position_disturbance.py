@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.plant import Plant
 from hil.scenario import ScenarioError, load_scenario
 from hil.scenario.model import Disturbance, PlantConfig, TrackConfig, TrainsConfig

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.metrics import compute_metrics
 from hil.record.runlog import SUMMARY_BLOCK_ROWS, BusLog
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, BusSpool, spool_paths

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record import paths
 from hil.record.rerun_writer import write_runlog
 from hil.record.series import margin_colors

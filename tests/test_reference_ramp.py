@@ -7,7 +7,7 @@ from pydantic import ValidationError
 from scipy.integrate import quad
 
 from ecu_sim.codec import TrainDb
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.reference import ReferenceProfile
 from hil.runtime.assembly import assemble
 from hil.scenario import load_scenario

@@ -14,7 +14,7 @@ from rerun.chunk import RrdReader
 
 from tests.rrd_reader import read_scalars
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.blueprint import default_blueprint
 from hil.record.rerun_writer import RerunWriter, event_path
 from hil.record.runlog import BusLog, RunLog

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.metrics import compute_metrics
 from hil.record.runlog import RunLog
 from hil.record.safety import KMH, check_safety, ebi_margin, explain, safety_report

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.radio.gateway import RadioIds, standard_routes
 from hil.runtime.ideal import IdealLoop
 from hil.runtime.firmware import neighbour_links

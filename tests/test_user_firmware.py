@@ -16,7 +16,7 @@ from ecu_sim.controllers.base import get_controller
 from ecu_sim.programs import get_program
 from ecu_sim.references import ReferenceLoadError
 from hil.cli import EXIT_UNSAFE, main
-from hil.runtime.firmware import firmware_plan
+from hil.scenario.firmware import firmware_plan
 from hil.scenario import ScenarioError
 from hil.testing import Rig, build_scenario
 from tests.rrd_reader import read_text_rows

@@ -30,7 +30,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.runlog import Event, RunLog
 from hil.faults.schedule import BUS_KINDS, SOURCE, label
 

@@ -11,11 +11,13 @@ Every start and end is an event of source ``faults`` whose text begins ``#k kind
 """
 from __future__ import annotations
 
+from typing import Any
+
 from dataclasses import dataclass
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.scenario.model import Scenario
 
 
@@ -54,7 +56,7 @@ class ScheduledFault:
     """One fault of the schedule and where it stands."""
 
     index: int
-    spec: object  # a hil.scenario.model fault
+    spec: Any  # a hil.scenario.model fault (their union is built at run time)
     start_s: float | None = None
     end_s: float | None = None
 

@@ -1,7 +1,7 @@
 """The ECU watchdog (``ecu.restart_after_s``): which stopped unit is restarted, and when, in both runtimes.
 
-One policy, three callers: the virtual rig (``hil.faults.ecu``, on kernel timers), the real-time orchestrator
-(``hil.faults.realtime``, crashed and hung ECU processes, polled) and a real-time ECU process (controller errors,
+One policy, three callers: the virtual rig (``hil.runtime.ecu_faults``, on kernel timers), the real-time orchestrator
+(``hil.runtime.realtime.faults``, crashed and hung ECU processes, polled) and a real-time ECU process (controller errors,
 polled once per cycle). Each restarts a unit its own way; this decides only whether and when:
 
 * a crash without a ``duration_s``, and a controller error (an exception or a NaN), are restarted after

@@ -34,7 +34,7 @@ import math
 import numpy as np
 
 from ecu_sim.view import BrakeMode
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.plant.units import UnitParams, unit_params
 from hil.scenario.model import PlantConfig
 

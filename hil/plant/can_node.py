@@ -9,7 +9,7 @@ from __future__ import annotations
 from ecu_sim.codec import TrainDb
 from ecu_sim.e2e import counter_of
 from ecu_sim.view import BrakeMode
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.plant.command_streams import CommandStreams
 from hil.plant.dynamics import Plant
 from hil.record.runlog import RunLog

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.scenario.model import Disturbance
 
 

@@ -51,7 +51,7 @@ import math
 import numpy as np
 from scipy.linalg import expm
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.plant.actuators import Actuators
 from hil.plant.disturbances import Disturbances
 from ecu_sim.track import TrackProfile

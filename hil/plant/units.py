@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from ecu_sim.track import G
 from hil.scenario.model import PlantConfig, UnitValues
 

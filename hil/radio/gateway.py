@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ecu_sim.codec import TrainDb
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.radio.link import RadioLink
 from hil.scenario.model import RadioConfig
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import rerun.blueprint as rrb
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.paths import (
     EVENTS, LIMIT_COUPLER_MAX, LIMIT_COUPLER_MIN, LIMIT_EMERGENCY, LIMIT_SPACING, REF_POSITION, REF_SPEED, TIMING,
     TRACK, bus_path, coupler_path, gap_path, unit_path,

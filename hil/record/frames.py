@@ -19,7 +19,7 @@ from hil.record.paths import frames_path
 if TYPE_CHECKING:
     from ecu_sim.codec import TrainDb
     from hil.can.transmission import Transmission
-    from hil.runtime.network import TrainBus
+    from hil.can.train_bus import TrainBus
     from hil.record.rerun_writer import RerunWriter
 
 

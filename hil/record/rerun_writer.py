@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record import paths
 from hil.record.blueprint import default_blueprint
 from hil.record.live import LiveStream, LiveTarget

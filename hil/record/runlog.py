@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from hil.can.stats import BusLog
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.signal_summary import SignalSummary
 from hil.tables import SampleTable
 
@@ -173,3 +175,13 @@ class RunLog:
         tails, heads = L.tails(), L.heads()
         x = self.x
         return (x[:, tails[:-1]] - L.length_m[tails[:-1]][None, :]) - x[:, heads[1:]]
+
+
+@dataclass
+class RunResult:
+    """What a run left behind (either runtime): its log, its metrics, the folder and the files written there."""
+
+    log: RunLog
+    metrics: dict[str, Any]
+    out_dir: Path
+    files: list[Path] = field(default_factory=list)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record import paths as bp
 
 MPS_TO_KMH = 3.6

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 
 MAX_LISTED = 50  # violations kept per verdict (all are counted)
 KMH = 1.0 / 3.6

@@ -9,10 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.plant import Plant
 from hil.reference import ReferenceProfile
-from hil.runtime.firmware import UnitFirmware, firmware_plan
+from hil.scenario.firmware import UnitFirmware, firmware_plan
 from hil.scenario.model import Scenario
 
 

@@ -1,4 +1,5 @@
-"""Which firmware each unit runs, and building it: the one seam for user code in both runtimes.
+"""Building each unit's firmware: the one seam for user code in both runtimes (which firmware each unit runs is the
+scenario's: hil/scenario/firmware.py).
 
 The scenario says it all by name or reference (``controller.law``, ``ecu.program``, ``[[ecu.units]]`` overrides,
 ``ecu.external``); the virtual rig and every real-time ECU node resolve those strings themselves
@@ -7,85 +8,19 @@ The scenario says it all by name or reference (``controller.law``, ``ecu.program
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pydantic import ValidationError
-
 from ecu_sim.codec import TrainDb
-from ecu_sim.controllers.base import get_controller
 from ecu_sim.programs import EcuSetup, get_program
 from ecu_sim.references import FirmwareBuildError, ReferenceLoadError, is_import_reference, module_root, one_line
 from ecu_sim.runtime import Ecu, NeighbourLink
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
+from hil.scenario.firmware import firmware_plan
 from hil.scenario.model import Scenario
 
 
 EcuFactory = Callable[[Any, TrainDb, int], Ecu]  # (assembly, db, flat unit) -> the unit's ECU
-
-
-@dataclass(frozen=True)
-class UnitFirmware:
-    """What one unit runs: its law (name or reference) and parameters, its ECU program, or nothing (external)."""
-
-    law: str
-    params: dict[str, Any]
-    program: str
-    external: bool = False
-
-
-def firmware_plan(sc: Scenario) -> list[UnitFirmware]:
-    """Per flat unit index: the scenario's law and program, with the ``[[ecu.units]]`` overrides applied.
-
-    An override with another law and no ``params`` gets that law's defaults, not the scenario law's parameters."""
-    layout = TrainLayout.from_config(sc.trains)
-    plan = [UnitFirmware(sc.controller.law, dict(sc.controller.params), sc.ecu.program)] * layout.n_units
-    for o in sc.ecu.units:
-        law = o.law or sc.controller.law
-        params = o.params if o.params is not None else (dict(sc.controller.params) if law == sc.controller.law else {})
-        plan[layout.unit_index(o.unit)] = UnitFirmware(law, dict(params), o.program or sc.ecu.program)
-    for name in sc.ecu.external:
-        u = layout.unit_index(name)
-        plan[u] = UnitFirmware(plan[u].law, plan[u].params, plan[u].program, external=True)
-    return plan
-
-
-def firmware_errors(sc: Scenario) -> list[str]:
-    """``field: why`` for every law, parameter set and program of the scenario that does not load or validate
-    (each distinct one is checked once, under the first field that names it)."""
-    fields = [("controller.law", "controller.params", sc.controller.law, sc.controller.params, "ecu.program",
-               sc.ecu.program)]
-    for i, (o, f) in enumerate(zip(sc.ecu.units, _override_plans(sc))):
-        fields.append((f"ecu.units.{i}.law", f"ecu.units.{i}.params", f.law, f.params, f"ecu.units.{i}.program",
-                       f.program))
-    errors: list[str] = []
-    programs_seen: set[str] = set()
-    for law_field, params_field, law, params, program_field, program in fields:
-        try:
-            cls = get_controller(law)
-        except LookupError as exc:
-            errors.append(f"{law_field}: {exc.args[0]}")
-        else:
-            try:
-                cls.Params(**params)
-            except ValidationError as exc:
-                errors += [f"{params_field}.{'.'.join(str(p) for p in e['loc'])}: {e['msg']} (got {e.get('input')!r})"
-                           for e in exc.errors()]
-        if program not in programs_seen:
-            programs_seen.add(program)
-            try:
-                get_program(program)
-            except ReferenceLoadError as exc:
-                errors.append(f"{program_field}: {exc.args[0]}")
-    return errors
-
-
-def _override_plans(sc: Scenario) -> list[UnitFirmware]:
-    """The firmware of each ``[[ecu.units]]`` entry, in order."""
-    plan = firmware_plan(sc)
-    layout = TrainLayout.from_config(sc.trains)
-    return [plan[layout.unit_index(o.unit)] for o in sc.ecu.units]
 
 
 def import_roots(sc: Scenario) -> list[Path]:

@@ -8,7 +8,7 @@ SimPy's ``RealtimeEnvironment`` does.
 from __future__ import annotations
 
 import heapq
-from typing import Any, Callable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 NS = 1_000_000_000
 
@@ -16,6 +16,21 @@ NS = 1_000_000_000
 def to_ns(seconds: float) -> int:
     """Seconds -> integer nanoseconds (rounded)."""
     return int(round(seconds * NS))
+
+
+@runtime_checkable
+class EventKernel(Protocol):
+    """The seam: callbacks at integer-nanosecond times on one queue, ``run`` processing them up to a time. This
+    ``Kernel``, the engine's ``EngineKernel`` (hil/runtime/engine_net.py) and the real-time ``PacedKernel`` meet it."""
+
+    @property
+    def now(self) -> int: ...
+
+    def at(self, t_ns: int, fn: Callable[[Any], None], arg: Any = None) -> None: ...
+
+    def every(self, first_ns: int, period_ns: int, fn: Callable[[int], None]) -> None: ...
+
+    def run(self, until_ns: int) -> None: ...
 
 
 class Kernel:

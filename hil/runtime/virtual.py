@@ -90,8 +90,8 @@ class VirtualRig:
         return EngineBus(self.net, f"bus{i + 1}", self.sc.can, log)
 
     def _make_faults(self):
-        """The fault schedule, its injectors and monitors (hil/faults/virtual_faults.py)."""
-        from hil.faults.virtual_faults import VirtualFaults
+        """The fault schedule, its injectors and monitors (hil/runtime/virtual_faults.py)."""
+        from hil.runtime.virtual_faults import VirtualFaults
 
         return VirtualFaults(self)
 

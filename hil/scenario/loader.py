@@ -57,7 +57,7 @@ def format_validation_errors(source: str, err: ValidationError, what: str = "sce
 def _validate_firmware(source: str, scenario: Scenario) -> None:
     """Every law, its parameters and every ECU program load and validate, so errors surface at load, not mid-run
     (a ``module:QualName`` reference is imported here: the error names the field, the module and the exception)."""
-    from hil.runtime.firmware import firmware_errors
+    from hil.scenario.firmware import firmware_errors
 
     errors = firmware_errors(scenario)
     if len(errors) == 1 and "\n" not in errors[0]:

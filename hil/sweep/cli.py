@@ -11,7 +11,7 @@ from pathlib import Path
 
 from hil.record.out_dir import ensure_writable_dir
 
-from hil.can.cli import positive_seconds
+from hil.cli_values import positive_seconds
 from hil.sweep.spec import SweepError, SweepSpec, load_sweep, packaged_sweeps
 
 

@@ -7,7 +7,7 @@ tests run scenarios through both rigs and compare frames, signals, events and co
 """
 from __future__ import annotations
 
-from hil.faults.virtual_faults import VirtualFaults
+from hil.runtime.virtual_faults import VirtualFaults
 from hil.radio.gateway import RadioGateway, build_gateway
 from hil.record.runlog import BusLog
 from hil.runtime.kernel import Kernel

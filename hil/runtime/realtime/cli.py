@@ -15,7 +15,7 @@ import sys
 import threading
 from pathlib import Path
 
-from hil.can.cli import positive_int, positive_number, positive_seconds
+from hil.cli_values import positive_int, positive_number, positive_seconds
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US
 from hil.runtime.realtime.pacing import set_fifo_priority
 from hil.runtime.realtime.native_server import NativeBusServer

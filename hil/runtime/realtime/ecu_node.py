@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         if not 0 <= u < layout.n_units:
             raise SystemExit(f"--unit {u}: out of range 0..{layout.n_units - 1}")
     ecus = {u: build_ecu(parts, db, u) for u in args.unit}
-    if needs_fault_machinery(sc):  # diagnostics as in virtual time (hil/faults/virtual_faults.py)
+    if needs_fault_machinery(sc):  # diagnostics as in virtual time (hil/runtime/virtual_faults.py)
         from ecu_sim.diagnostics import EcuDiagnostics, neighbour_names
 
         for u, ecu in ecus.items():

@@ -15,7 +15,7 @@ from array import array
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.runlog import Event
 
 JOIN_LINE = "joined"  # the plant node's stdout line "joined <flat unit> <sim t>" when an external unit joins

@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, LOAD_WIDTH, spool_paths

@@ -12,7 +12,7 @@ real-time rig. Steps:
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
-   With ``ecu.restart_after_s`` the watchdog starts it again (``hil.faults.realtime``). A plant or radio
+   With ``ecu.restart_after_s`` the watchdog starts it again (``hil.runtime.realtime.faults``). A plant or radio
    process that dies ends the run early (recorded as an event).
 4. Ctrl-C / SIGTERM: every node is told "stop", finishes its loop and writes its results; stragglers are
    terminated, then killed, after a grace period. What was recorded is written, ``interrupted`` is set.
@@ -44,7 +44,7 @@ from typing import Any, Callable
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.references import USER_PATH_ENV
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
@@ -60,7 +60,7 @@ from hil.record.diskspace import DiskFullError
 from hil.record.integrity import mark_running, write_json_atomic
 from hil.record.out_dir import disk_full_outcome, write_metrics_when_full
 from hil.record.metrics import run_metrics
-from hil.record.runlog import BusLog, Event, RunLog
+from hil.record.runlog import BusLog, Event, RunLog, RunResult
 from hil.record.safety import record_violations
 from hil.runtime.firmware import import_roots
 from hil.runtime.train_db import load_train_db
@@ -79,7 +79,7 @@ RUNNING_NOTE = ("a real-time run writes run.rrd and these metrics when it ends; 
 
 
 # The first words of the lines a node prints for the orchestrator: "ready" (pacing.handshake), the plant's
-# "joined" (an external unit, JoinWait) and "fault" lines (hil/faults/realtime.py); anything else is the node's
+# "joined" (an external unit, JoinWait) and "fault" lines (hil/runtime/realtime/faults.py); anything else is the node's
 # own code printing.
 PROTOCOL_WORDS = frozenset({"ready", JOIN_LINE, "fault"})
 PRINTED_TAIL_LINES = 20
@@ -167,9 +167,7 @@ def run_name(scenario_name: str) -> str:
     return f"{base}-{os.getpid()}-{secrets.token_hex(2)}"
 
 
-def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]):
-    from hil.session import RunResult
-
+def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]) -> RunResult:
     return RunResult(log, metrics, out_dir, files)
 
 
@@ -225,7 +223,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     run_wall = 0.0
     stop_reason = None
     clock = {"t0": math.inf}  # epoch of simulated t = 0, once known (the CAN logs' time origin)
-    faults = None  # hil.faults.realtime.RealtimeFaults when the scenario has faults or a restart policy
+    faults = None  # hil.runtime.realtime.faults.RealtimeFaults when the scenario has faults or a restart policy
     tail = None  # LiveTail, with a live target once the run has started
     spool = None  # BusSpool, once the servers are up
     asc: list = []
@@ -405,8 +403,8 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 
 
 def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int, db: TrainDb):
-    """The run's fault machinery (hil/faults/realtime.py), or None without faults and restart policy."""
-    from hil.faults.realtime import RealtimeFaults
+    """The run's fault machinery (hil/runtime/realtime/faults.py), or None without faults and restart policy."""
+    from hil.runtime.realtime.faults import RealtimeFaults
     from hil.faults.schedule import BUS_KINDS
 
     if not needs_fault_machinery(scenario):

@@ -90,9 +90,9 @@ class PlantNode:
         self.target = 0  # tick of the next publication
         self.every = {"record": max(1, round(sc.recording.period_s / sc.plant.step_s))}
         self.late_commands = 0  # commands that reached the plant after it had integrated past their arrival time
-        self.faults = None  # the fault schedule's clock and the plant-side faults (hil/faults/realtime.py)
+        self.faults = None  # the fault schedule's clock and the plant-side faults (hil/runtime/realtime/faults.py)
         if sc.faults:
-            from hil.faults.realtime import PlantFaults
+            from hil.runtime.realtime.faults import PlantFaults
 
             self.faults = PlantFaults(sc, self.plant, self.layout, seed, self.log)
         self.late_command_max_s = 0.0

@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     db = load_train_db(sc)
     gateway = build_gateway(sc, db, random_streams(args.seed)["radio"])
     faults = None
-    if sc.faults:  # radio faults arrive as "fault <k> start|end" lines (hil/faults/realtime.py)
-        from hil.faults.realtime import RadioNodeFaults
+    if sc.faults:  # radio faults arrive as "fault <k> start|end" lines (hil/runtime/realtime/faults.py)
+        from hil.runtime.realtime.faults import RadioNodeFaults
 
         faults = RadioNodeFaults(sc, gateway, args.seed)
         stop.on_line = faults.on_line

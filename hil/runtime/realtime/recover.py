@@ -17,7 +17,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from hil.layout import TrainLayout
+from hil.scenario.layout import TrainLayout
 from hil.runtime.realtime.node import load_scenario_json
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, spool_paths
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest

@@ -22,6 +22,8 @@ from __future__ import annotations
 import os
 import queue
 import signal
+from collections.abc import Callable
+from typing import Any
 
 from hil.faults.actuator import ActuatorFaults
 from hil.faults.bus import EngineBusFaults, describe_bus_event, e2e_checker
@@ -56,7 +58,7 @@ class PlantFaults:
             if what == "start":
                 self.log.event(t, "WARN", SOURCE, self.schedule.start_text(f))
             else:
-                self.log.event(t, "INFO", SOURCE, f"{f.label}: over after {t - f.start_s:.3f} s")
+                self.log.event(t, "INFO", SOURCE, f"{f.label}: over after {t - (f.start_s or 0.0):.3f} s")
             if spec.kind in ("sensor_stuck", "sensor_noise"):
                 (self.sensors.start if what == "start" else self.sensors.end)(spec)
             elif spec.kind in ("actuator_degradation", "traction_loss"):
@@ -105,19 +107,19 @@ class RealtimeFaults:
         self.buses = [EngineBusFaults(server, i, seed, periods, e2e_ok=ok, packing=packing)
                       for i, server in enumerate(servers)]
         self.events: list[Event] = []
-        self.nodes: list = []
-        self.spawn = None
+        self.nodes: list[Any] = []  # the orchestrator's Nodes
+        self.spawn: Callable[[int], Any] | None = None
         self.t0 = 0.0
         self.pace = 1.0
-        self._hung: dict[int, object] = {}  # unit -> its stopped node
-        self._pending: list[tuple[object, int, float]] = []  # (new node, unit, sim time asked) not yet ready
+        self._hung: dict[int, Any] = {}  # unit -> its stopped node
+        self._pending: list[tuple[Any, int, float]] = []  # (new node, unit, sim time asked) not yet ready
         self.restarts = 0
 
     def go(self, t0: float, pace: float, nodes: list, spawn) -> None:
         """The run started: ``nodes`` is the orchestrator's live list, ``spawn(unit)`` starts a late-joining ECU."""
         self.t0, self.pace, self.nodes, self.spawn = t0, pace, nodes, spawn
 
-    def _node(self, kind: str, name: str | None = None):
+    def _node(self, kind: str, name: str | None = None) -> Any:
         return next((n for n in self.nodes if n.kind == kind and (name is None or n.name == name)
                      and n.proc.poll() is None), None)
 
@@ -202,6 +204,7 @@ class RealtimeFaults:
         if old is not None and old.proc.poll() is None:  # a hung process is replaced by the watchdog
             old.reported = True
             old.proc.kill()
+        assert self.spawn is not None  # set by go() before any fault starts
         node = self.spawn(u)
         self.nodes.append(node)
         self._pending.append((node, u, t))

@@ -11,12 +11,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import re
 import sys
 from pathlib import Path
 
 from ecu_sim.codec import DbcMismatchError, TrainDb, default_dbc_path
+from hil.cli_values import positive_int, positive_seconds
 from hil.can.analysis import CanAnalysisError, TrainBusSetup, analyse_train_bus, forwarded_jitter, format_table
 from hil.scenario import ScenarioError, load_scenario
 from hil.scenario.loader import parse_assignment
@@ -25,37 +25,6 @@ from hil.scenario.model import Scenario
 MEASURED_KEY = "latency_max_by_id"
 DESCRIPTION = ("Every frame of a train bus: worst-case length, WCRT (Davis et al. 2007) and bus utilisation; "
                "with --measured, a run's largest latency of each frame beside its bound.")
-
-
-def positive_int(text: str) -> int:
-    """An argparse type: an integer > 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"{value} must be > 0")
-    return value
-
-
-def _finite_positive(text: str, unit: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text} must be a finite number > 0{unit}")
-    return value
-
-
-def positive_number(text: str) -> float:
-    """An argparse type: a finite number > 0 (a factor such as a pace)."""
-    return _finite_positive(text, "")
-
-
-def positive_seconds(text: str) -> float:
-    """An argparse type: a positive, finite number of seconds (zero, negative, nan and inf are refused)."""
-    return _finite_positive(text, " (seconds)")
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
@@ -211,7 +180,7 @@ def run_can_analysis(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m hil.can.cli ...``, the same as ``hil can-analysis ...``."""
+    """``python -m hil.can_analysis_cli ...``, the same as ``hil can-analysis ...``."""
     p = argparse.ArgumentParser(prog="hil can-analysis", description=DESCRIPTION)
     _add_arguments(p)
     return run_can_analysis(p.parse_args(argv))

@@ -11,7 +11,7 @@ from __future__ import annotations
 from ecu_sim.diagnostics import EcuDiagnostics, neighbour_names
 from hil.faults.actuator import ActuatorFaults
 from hil.faults.bus import EngineBusFaults, describe_bus_event, e2e_checker
-from hil.faults.ecu import EcuFaults
+from hil.runtime.ecu_faults import EcuFaults
 from hil.faults.radio import RadioFaults
 from hil.faults.report import fault_report
 from hil.faults.schedule import BUS_KINDS, RADIO_KINDS, SOURCE, FaultSchedule, ScheduledFault, fault_rng
