@@ -66,6 +66,28 @@ class RadioLink:
         self._jit: list[int] = []
         self.impairment = None  # hil.faults.radio.RadioImpairment: t_ns -> extra delay (ns), or None to drop
 
+    # ---- what another implementation of the link (the engine's radio.rs) needs to continue this one exactly
+    @property
+    def latency_ns(self) -> int:
+        """The fixed latency of every delivery (ns)."""
+        return self._latency_ns
+
+    @property
+    def period_ns(self) -> int | None:
+        """The rate cap's minimum spacing between deliveries (ns), or None without a cap."""
+        return self._period_ns
+
+    @property
+    def starts_bad(self) -> bool:
+        """Whether the Gilbert-Elliott loss chain starts in its bad state (drawn at construction)."""
+        return self._bad
+
+    def next_draws(self) -> tuple[list[float], list[float], list[int]]:
+        """The next block of per-frame draws from this link's numpy stream: (state step, loss, jitter ns), as the
+        link itself would use them."""
+        self._refill()
+        return self._u_step, self._u_loss, self._jit
+
     def _check_blackouts(self, cfg: RadioConfig) -> tuple[tuple[float, float], ...]:
         for k, b in enumerate(cfg.blackouts):
             if not b.end_m > b.start_m:

@@ -167,9 +167,9 @@ def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, R
         cfg = link.cfg
         loss = cfg.loss
         index[name] = net.add_link(
-            name, cfg.range_m, [(b.start_m, b.end_m) for b in cfg.blackouts], link._latency_ns, link._period_ns,
-            loss.model, loss.p, loss.p_good_to_bad, loss.p_bad_to_good, loss.loss_good, loss.loss_bad, link._bad,
-            _refill(link))
+            name, cfg.range_m, [(b.start_m, b.end_m) for b in cfg.blackouts], link.latency_ns, link.period_ns,
+            loss.model, loss.p, loss.p_good_to_bad, loss.p_bad_to_good, loss.loss_good, loss.loss_bad, link.starts_bad,
+            link.next_draws)
     for route in standard_routes(len(buses), units_per_train, forward_aux, ids):
         src, dst = (int(t) - 1 for t in route.link.split(">"))
         net.add_route(route.src_bus, route.src_id, route.dst_bus, route.dst_id, index[route.link],
@@ -178,15 +178,6 @@ def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, R
         net.set_position_codec(codec)
     for bus in buses:
         net.attach_gateway(bus.index, "RadioGW")
-
-
-def _refill(link: RadioLink) -> Callable[[], tuple[list[float], list[float], list[int]]]:
-    """The next block of a link's per-frame draws, from its own numpy stream."""
-    def refill() -> tuple[list[float], list[float], list[int]]:
-        link._refill()
-        return link._u_step, link._u_loss, link._jit
-
-    return refill
 
 
 FAULT_DRAWS_BLOCK = 1024
