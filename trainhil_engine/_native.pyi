@@ -3,6 +3,7 @@ from collections.abc import Callable, Sequence
 
 VERSION: str
 MAX_DATA: int  # bytes a frame can carry (CAN FD); classical frames carry at most 8
+PROTOCOL: dict[str, int | float]  # the bus-server wire protocol's constants by name (engine/src/protocol.rs)
 
 def frame_bits(can_id: int, data: bytes | bytearray, extended: bool = False) -> int:
     """Exact bits on the wire of a classical data frame, SOF through the 3-bit intermission."""
@@ -176,7 +177,7 @@ class Network:
     def attached(self, bus: int, node: int) -> bool: ...
     def gateway_ids(self, bus: int) -> list[int]: ...
 
-__all__ = ["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
+__all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
            "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "FrameLink",
            "wait_readable"]
 

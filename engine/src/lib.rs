@@ -24,6 +24,7 @@ pub mod kernel;
 pub mod mailbox;
 pub mod network;
 pub mod packing;
+pub mod protocol;
 pub mod radio;
 pub mod rng;
 pub mod server;

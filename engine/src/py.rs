@@ -921,6 +921,15 @@ fn wait_readable(py: Python<'_>, fds: Vec<i32>, timeout_s: f64) -> bool {
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("VERSION", env!("CARGO_PKG_VERSION"))?;
     m.add("MAX_DATA", MAX_DATA)?;
+    let protocol = PyDict::new(m.py());
+    for (name, value) in crate::protocol::constants() {
+        if name.ends_with("_S") {
+            protocol.set_item(name, value)?;  // seconds
+        } else {
+            protocol.set_item(name, value as i64)?;
+        }
+    }
+    m.add("PROTOCOL", protocol)?;
     m.add_function(wrap_pyfunction!(frame_bits, m)?)?;
     m.add_function(wrap_pyfunction!(frame_duration_ns, m)?)?;
     m.add_function(wrap_pyfunction!(fd_frame_bits, m)?)?;
@@ -934,7 +943,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Packing>()?;
     m.add_class::<BusServerCore>()?;
     m.add_class::<FrameLink>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing",
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing",
                           "BusServerCore", "FrameLink", "wait_readable"])?;
     Ok(())
 }
@@ -1187,7 +1196,7 @@ impl FrameLink {
     /// Hand the whole frames in `partial` to their mailboxes (or keep them); returns the bytes used. A CAN FD frame
     /// above 8 bytes waits until its FRAME_DATA records are in.
     fn take_records(&mut self) -> usize {
-        const RS: usize = crate::server::RECORD_SIZE;
+        const RS: usize = crate::protocol::RECORD_SIZE;
         let mut off = 0;
         let mut data = [0u8; crate::frame::MAX_DATA];
         while off + RS <= self.partial.len() {
@@ -1276,7 +1285,7 @@ impl FrameLink {
 
     /// Read every record waiting on the socket; returns how many frames went into mailboxes.
     fn pump(&mut self) -> PyResult<u64> {
-        let mut buf = [0u8; 64 * crate::server::RECORD_SIZE];
+        let mut buf = [0u8; 64 * crate::protocol::RECORD_SIZE];
         let before = self.received;
         loop {
             // SAFETY: reading into our own buffer from the node's socket.
@@ -1301,7 +1310,7 @@ impl FrameLink {
     /// the bit-rate switch unless `brs` is false).
     #[pyo3(signature = (frames, extended = false, fd = false, brs = true))]
     fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
-        let mut out = Vec::with_capacity(frames.len() * crate::server::RECORD_SIZE);
+        let mut out = Vec::with_capacity(frames.len() * crate::protocol::RECORD_SIZE);
         let format = Format::of(fd, brs);
         let flags = if extended { 1 } else { 0 } | crate::server::format_flags(format);
         let limit = if fd { crate::frame::MAX_DATA } else { 8 };

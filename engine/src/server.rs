@@ -20,40 +20,8 @@ use std::time::{Duration, Instant};
 use crate::bus::{Bus, Format, Policy, Sink, Transmission};
 use crate::frame::BitTiming;
 
-pub const RECORD_SIZE: usize = 24;
-pub const PROTOCOL_VERSION: u8 = 1;
-const KIND_FRAME: u8 = 1;
-const KIND_HELLO: u8 = 2;
-const KIND_WELCOME: u8 = 3;
-const KIND_FILTERS: u8 = 4;
-const KIND_FILTER: u8 = 5;
-const KIND_FILTERS_ACK: u8 = 6;
-const KIND_AUTH: u8 = 7;
-const KIND_REFUSED: u8 = 8;
-/// The rest of a CAN FD payload above 8 bytes: byte 0 the kind, then 23 payload bytes (the FRAME record carries the
-/// first 8). A 64-byte payload is a FRAME and 3 FRAME_DATA records.
-const KIND_FRAME_DATA: u8 = 9;
-const FRAME_DATA_BYTES: usize = RECORD_SIZE - 1;
-/// The records of the longest frame: FRAME and 3 FRAME_DATA.
-const MAX_FRAME_RECORDS: usize = 4;
-/// Why a connection was refused (byte 1 of a REFUSED record; the client says it in its error).
-pub const REFUSED_FULL: u8 = 1;
-pub const REFUSED_TOKEN: u8 = 2;
-pub const REFUSED_WAITING: u8 = 3;
-pub const REFUSED_TIMEOUT: u8 = 4;
-/// TCP connections that have not shown the token yet: their own small budget and a short deadline, so that they
-/// can never take the slots of authenticated or unix-socket nodes (``max_clients``).
-pub const MAX_UNAUTHENTICATED: usize = 16;
-pub const AUTH_TIMEOUT: Duration = Duration::from_secs(1);
-const FLAG_EXTENDED: u8 = 0x01;
-const FLAG_REMOTE: u8 = 0x02;
-const FLAG_ERROR: u8 = 0x04;
-const FLAG_ECHO: u8 = 0x08;
-/// A CAN FD frame (FDF set); with FLAG_BRS its data phase runs at the bus's data bitrate.
-const FLAG_FD: u8 = 0x10;
-const FLAG_BRS: u8 = 0x20;
-const KNOWN_FLAGS: u8 = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO | FLAG_FD | FLAG_BRS;
-const MAX_FILTERS: usize = 1024;
+use crate::protocol::*;
+
 const READ_RECORDS: usize = 32; // per node and turn: a babbling node cannot stall the loop
 const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames beyond this (overruns)
 const LOG_FIRST: u64 = 10;

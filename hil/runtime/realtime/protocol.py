@@ -38,6 +38,9 @@ Loopback TCP (optional, see ``sockets.listen_tcp``): a TCP client must send AUTH
 very first record, before HELLO; a missing or wrong token ends the connection at once. Unix-socket clients are
 authenticated by the file system (owner-only run directory and socket) and never send AUTH.
 
+The constants (kinds, flags, sizes, reasons, limits) are the engine's, defined once in engine/src/protocol.rs and
+exported as ``trainhil_engine.PROTOCOL``.
+
 ``decode_record`` turns any 24 bytes into one typed record or a ProtocolError naming what is wrong: the
 server's parser and the property tests rely on it never raising anything else.
 """
@@ -47,27 +50,38 @@ import struct
 import unicodedata
 from typing import NamedTuple
 
+import trainhil_engine as engine
+
 from hil.can.frame import FD_LENGTHS, fd_pad
 
-PROTOCOL_VERSION = 1
-RECORD_SIZE = 24
-NAME_BYTES = 20
-MAX_DLC = 8  # data bytes in a FRAME record (and in a classical frame)
-MAX_FILTERS = 1024
+# The constants are the engine's (engine/src/protocol.rs, defined once for the server, FrameLink and this module).
+_WIRE = engine.PROTOCOL
 
-KIND_FRAME = 1
-KIND_HELLO = 2
-KIND_WELCOME = 3
-KIND_FILTERS = 4
-KIND_FILTER = 5
-KIND_FILTERS_ACK = 6
-KIND_AUTH = 7
-KIND_REFUSED = 8  # server -> client, then it closes: byte 1 says why (REFUSED_REASONS)
-KIND_FRAME_DATA = 9  # both ways: 23 more payload bytes of the CAN FD frame before it
-FRAME_DATA_BYTES = RECORD_SIZE - 1
-MAX_FD_DLC = 64
-TOKEN_BYTES = 16
-REFUSED_FULL, REFUSED_TOKEN, REFUSED_WAITING, REFUSED_TIMEOUT = 1, 2, 3, 4
+
+def _int(name: str) -> int:
+    return int(_WIRE[name])
+
+
+PROTOCOL_VERSION = _int("PROTOCOL_VERSION")
+RECORD_SIZE = _int("RECORD_SIZE")
+NAME_BYTES = _int("NAME_BYTES")
+MAX_DLC = _int("MAX_DLC")  # data bytes in a FRAME record (and in a classical frame)
+MAX_FILTERS = _int("MAX_FILTERS")
+
+KIND_FRAME = _int("KIND_FRAME")
+KIND_HELLO = _int("KIND_HELLO")
+KIND_WELCOME = _int("KIND_WELCOME")
+KIND_FILTERS = _int("KIND_FILTERS")
+KIND_FILTER = _int("KIND_FILTER")
+KIND_FILTERS_ACK = _int("KIND_FILTERS_ACK")
+KIND_AUTH = _int("KIND_AUTH")
+KIND_REFUSED = _int("KIND_REFUSED")  # server -> client, then it closes: byte 1 says why (REFUSED_REASONS)
+KIND_FRAME_DATA = _int("KIND_FRAME_DATA")  # both ways: 23 more payload bytes of the CAN FD frame before it
+FRAME_DATA_BYTES = _int("FRAME_DATA_BYTES")
+MAX_FD_DLC = _int("MAX_FD_DLC")
+TOKEN_BYTES = _int("TOKEN_BYTES")
+REFUSED_FULL, REFUSED_TOKEN = _int("REFUSED_FULL"), _int("REFUSED_TOKEN")
+REFUSED_WAITING, REFUSED_TIMEOUT = _int("REFUSED_WAITING"), _int("REFUSED_TIMEOUT")
 REFUSED_REASONS = {
     REFUSED_FULL: "the bus server is full (max_clients connections)",
     REFUSED_TOKEN: "a missing or wrong token (TCP needs the run's token)",
@@ -76,22 +90,22 @@ REFUSED_REASONS = {
 }
 # TCP connections without the token yet: their own small budget and a short deadline, so that they never take
 # the slots (max_clients) of authenticated or unix-socket nodes. The same values as the engine's server.rs.
-MAX_UNAUTHENTICATED = 16
-AUTH_TIMEOUT_S = 1.0
+MAX_UNAUTHENTICATED = _int("MAX_UNAUTHENTICATED")
+AUTH_TIMEOUT_S = float(_WIRE["AUTH_TIMEOUT_S"])
 
-FLAG_EXTENDED = 0x01
-FLAG_REMOTE = 0x02
-FLAG_ERROR = 0x04
-FLAG_ECHO = 0x08
-FLAG_FD = 0x10  # a CAN FD frame
-FLAG_BRS = 0x20  # ... whose data phase runs at the data bitrate
+FLAG_EXTENDED = _int("FLAG_EXTENDED")
+FLAG_REMOTE = _int("FLAG_REMOTE")
+FLAG_ERROR = _int("FLAG_ERROR")
+FLAG_ECHO = _int("FLAG_ECHO")
+FLAG_FD = _int("FLAG_FD")  # a CAN FD frame
+FLAG_BRS = _int("FLAG_BRS")  # ... whose data phase runs at the data bitrate
 KNOWN_FLAGS = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO | FLAG_FD | FLAG_BRS
 
-OPTION_RECEIVE_OWN = 0x01
+OPTION_RECEIVE_OWN = _int("OPTION_RECEIVE_OWN")
 
-MATCH_ANY = 0
-MATCH_STANDARD = 1
-MATCH_EXTENDED = 2
+MATCH_ANY = _int("MATCH_ANY")
+MATCH_STANDARD = _int("MATCH_STANDARD")
+MATCH_EXTENDED = _int("MATCH_EXTENDED")
 
 STD_ID_LIMIT = 1 << 11
 EXT_ID_LIMIT = 1 << 29
