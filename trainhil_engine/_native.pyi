@@ -179,10 +179,18 @@ class Network:
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
            "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "FrameLink",
-           "wait_readable"]
+           "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
     """Sleep until one of ``fds`` is readable or ``timeout_s`` (wall) passed, the GIL released (no fds: a sleep)."""
+
+def frame_error(can_id: int, dlc: int, flags: int, fd_bus: bool = False) -> str | None:
+    """Why a frame from a node cannot go on the emulated bus (None if it can), the bus server's own check; a CAN FD
+    bus (``fd_bus``) carries both formats."""
+
+def filters_accept(filters: Sequence[tuple[int, int, int]] | None, can_id: int, extended: bool) -> bool:
+    """python-can's acceptance: no filters (None or empty) accept every frame, else any (can_id, can_mask, match)
+    that matches the id and format does."""
 
 class BusServerCore:
     """One emulated CAN bus served in wall-clock time by a native thread (engine/src/server.rs).

@@ -5,12 +5,15 @@
 //! * `codec`: the DBC message layouts compiled from cantools (saturate and count, never wrap);
 //! * `mailbox`: an ECU's input mailboxes, read once per cycle;
 //! * `bus`: the CAN bus model (TX queues, arbitration, filters, statistics);
-//! * `errors`: CAN error confinement, corruption with a bit-level receiver, error frames and retransmission, and
-//!   the bus fault injectors; `guardian`: the babbling-idiot monitor; `rng`: numpy's PCG64, to continue its streams;
+//! * `errors`: CAN error confinement and the error model's state, the bus fault injectors' selections;
+//!   `wire`: a frame's bits and the bit-level receiver; `bus/error_path`: error frames and retransmission;
+//!   `guardian`: the babbling-idiot monitor; `rng`: numpy's PCG64, to continue its streams;
 //! * `packing`: CAN FD frame packing (several messages in one container frame, unpacked at the receivers);
 //! * `radio`: the train-to-train links and the routing gateway;
 //! * `kernel` and `network`: the virtual-time event queue and the network it drives;
-//! * `server`: the real-time bus server, one OS thread per bus.
+//! * `protocol`: the wire protocol between a bus server and its nodes (constants, record codec);
+//! * `server`: the real-time bus server, one OS thread per bus (`histogram`: its delay figures); `link`: a node's
+//!   end of its connection.
 //!
 //! `py` (feature `python`) is the Python surface, `trainhil_engine._native`.
 
@@ -20,7 +23,9 @@ pub mod e2e;
 pub mod errors;
 pub mod frame;
 pub mod guardian;
+pub mod histogram;
 pub mod kernel;
+pub mod link;
 pub mod mailbox;
 pub mod network;
 pub mod packing;
@@ -28,6 +33,7 @@ pub mod protocol;
 pub mod radio;
 pub mod rng;
 pub mod server;
+pub mod wire;
 
 #[cfg(feature = "python")]
 mod py;

@@ -1,9 +1,12 @@
 //! The wire protocol between a bus server and its nodes, defined once: record kinds, sizes, flags, refusal reasons
-//! and limits. The server (`server.rs`) and the node-side `FrameLink` (`py.rs`) use them; Python takes them from
-//! the engine (`trainhil_engine.PROTOCOL`, read by `hil/runtime/realtime/protocol.py`), so both sides agree by
-//! construction. The record layouts are described in that Python module's docstring.
+//! and limits, the record codec, the check of a node's frame and python-can's filter rule. The server
+//! (`server.rs`) and a node's end (`link.rs`) use them; Python takes them from the engine
+//! (`trainhil_engine.PROTOCOL`, `frame_error`, `filters_accept`, read by `hil/runtime/realtime/protocol.py`), so
+//! both sides agree by construction. The record layouts are described in that Python module's docstring.
 
 use std::time::Duration;
+
+use crate::bus::Format;
 
 pub const RECORD_SIZE: usize = 24;
 pub const PROTOCOL_VERSION: u8 = 1;
@@ -76,6 +79,154 @@ pub fn constants() -> Vec<(&'static str, f64)> {
     ]
 }
 
+/// python-can acceptance filter: matches when (id ^ can_id) & can_mask == 0 and the format fits `matching`
+/// (0 any, 1 standard only, 2 extended only).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Filter {
+    pub can_id: u32,
+    pub can_mask: u32,
+    pub matching: u8,
+}
+
+pub fn filters_accept(filters: &Option<Vec<Filter>>, can_id: u32, extended: bool) -> bool {
+    let Some(filters) = filters else { return true };
+    filters.iter().any(|f| (f.matching == 0 || (f.matching == 2) == extended) && (can_id ^ f.can_id) & f.can_mask == 0)
+}
+
+/// The format a FRAME record's flags give.
+pub fn record_format(flags: u8) -> Format {
+    Format::of(flags & FLAG_FD != 0, flags & FLAG_BRS != 0)
+}
+
+/// The FRAME record flags of a transmission.
+pub fn format_flags(format: Format) -> u8 {
+    match format {
+        Format::Classical => 0,
+        Format::Fd => FLAG_FD,
+        Format::FdBrs => FLAG_FD | FLAG_BRS,
+    }
+}
+
+/// Why a frame from a node cannot go on the emulated bus (`fd_bus`: a CAN FD bus, which carries both formats).
+pub fn frame_error(can_id: u32, dlc: u8, flags: u8, fd_bus: bool) -> Option<String> {
+    if flags & !KNOWN_FLAGS != 0 {
+        return Some(format!("flags {flags:#04x}: unknown flag bits"));
+    }
+    if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO) != 0 {
+        return Some(format!("flags {flags:#04x}: only data frames can be sent (no remote, error or echo frames)"));
+    }
+    if flags & FLAG_BRS != 0 && flags & FLAG_FD == 0 {
+        return Some(format!("flags {flags:#04x}: a bit-rate switch without the FD flag"));
+    }
+    if flags & FLAG_FD != 0 && !fd_bus {
+        return Some("a CAN FD frame on a classical CAN bus".to_string());
+    }
+    if dlc > 8 && flags & FLAG_FD == 0 {
+        return Some(format!("dlc {dlc} > 8 in a classical frame (set the FD flag for CAN FD payloads up to 64 bytes)"));
+    }
+    if dlc as usize > crate::frame::MAX_DATA || (dlc > 8 && crate::frame::fd_dlc(dlc as usize).is_none()) {
+        return Some(format!("length {dlc} is not a CAN FD payload length (0..8, 12, 16, 20, 24, 32, 48, 64)"));
+    }
+    let extended = flags & FLAG_EXTENDED != 0;
+    let limit = if extended { 1u32 << 29 } else { 1u32 << 11 };
+    if can_id >= limit {
+        return Some(format!("can_id {can_id:#x} out of range for a {}-bit identifier", if extended { 29 } else { 11 }));
+    }
+    None
+}
+
+/// A FRAME record as the server sends it: the first 8 data bytes (`dlc` says how many there are in all).
+pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_FRAME;
+    r[1] = flags;
+    r[2] = data.len() as u8;
+    r[4..8].copy_from_slice(&can_id.to_le_bytes());
+    r[8..16].copy_from_slice(&stamp.to_le_bytes());
+    let head = data.len().min(8);
+    r[16..16 + head].copy_from_slice(&data[..head]);
+    r
+}
+
+/// A frame as records: its FRAME record, then FRAME_DATA records for a payload above 8 bytes.
+pub fn pack_frame_records(can_id: u32, data: &[u8], flags: u8, stamp: f64, out: &mut Vec<u8>) {
+    out.extend_from_slice(&pack_frame(can_id, data, flags, stamp));
+    for chunk in data.get(8..).unwrap_or(&[]).chunks(FRAME_DATA_BYTES) {
+        let mut r = [0u8; RECORD_SIZE];
+        r[0] = KIND_FRAME_DATA;
+        r[1..1 + chunk.len()].copy_from_slice(chunk);
+        out.extend_from_slice(&r);
+    }
+}
+
+/// How many FRAME_DATA records follow a FRAME record of `dlc` data bytes.
+pub fn frame_data_records(dlc: usize) -> usize {
+    dlc.saturating_sub(8).div_ceil(FRAME_DATA_BYTES)
+}
+
+/// The WELCOME record: the bitrate, the bus's epoch, the client's ID and, on a CAN FD bus, its data bitrate
+/// (0: a classical bus).
+pub fn pack_welcome(bitrate: u32, epoch0: f64, client_id: u32, fd_data_bitrate: u32) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_WELCOME;
+    r[1] = PROTOCOL_VERSION;
+    r[4..8].copy_from_slice(&bitrate.to_le_bytes());
+    r[8..16].copy_from_slice(&epoch0.to_le_bytes());
+    r[16..20].copy_from_slice(&client_id.to_le_bytes());
+    r[20..24].copy_from_slice(&fd_data_bitrate.to_le_bytes());
+    r
+}
+
+/// The record a refused connection gets before the server closes it.
+pub fn pack_refused(why: u8) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_REFUSED;
+    r[1] = why;
+    r
+}
+
+pub fn pack_filters_ack(generation: u32) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_FILTERS_ACK;
+    r[4..8].copy_from_slice(&generation.to_le_bytes());
+    r
+}
+
+pub fn u32_at(r: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(r[at..at + 4].try_into().unwrap())
+}
+
+/// Reads the whole frames at the start of `buf`, a stream of records from a bus server, and calls
+/// `each(can_id, flags, stamp, data)` for each; returns the bytes used. Records other than FRAME are skipped; a
+/// CAN FD frame whose FRAME_DATA records are not all in `buf` yet waits for the next call.
+pub fn read_frames(buf: &[u8], mut each: impl FnMut(u32, u8, f64, &[u8])) -> usize {
+    let mut off = 0;
+    let mut data = [0u8; MAX_FD_DLC];
+    while off + RECORD_SIZE <= buf.len() {
+        let r = &buf[off..off + RECORD_SIZE];
+        if r[0] != KIND_FRAME {
+            off += RECORD_SIZE; // FILTERS_ACK and the like: no frame
+            continue;
+        }
+        let dlc = (r[2] as usize).min(MAX_FD_DLC);
+        let extra = frame_data_records(dlc);
+        if off + (1 + extra) * RECORD_SIZE > buf.len() {
+            break; // the rest of a long frame is still on its way
+        }
+        let head = dlc.min(MAX_DLC);
+        data[..head].copy_from_slice(&r[16..16 + head]);
+        for k in 0..extra {
+            let at = MAX_DLC + k * FRAME_DATA_BYTES;
+            let take = (dlc - at).min(FRAME_DATA_BYTES);
+            let rec = off + (1 + k) * RECORD_SIZE;
+            data[at..at + take].copy_from_slice(&buf[rec + 1..rec + 1 + take]);
+        }
+        each(u32_at(r, 4), r[1], f64::from_le_bytes(r[8..16].try_into().unwrap()), &data[..dlc]);
+        off += (1 + extra) * RECORD_SIZE;
+    }
+    off
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -98,5 +249,47 @@ mod tests {
         let flags = [FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_ECHO, FLAG_FD, FLAG_BRS];
         assert_eq!(flags.iter().fold(0u8, |acc, f| { assert_eq!(acc & f, 0); acc | f }), KNOWN_FLAGS);
         assert_eq!(constants().len(), 33);
+    }
+
+    #[test]
+    fn python_can_filter_semantics() {
+        let f = Some(vec![Filter { can_id: 0x100, can_mask: 0x7F0, matching: 1 }]);
+        assert!(filters_accept(&f, 0x10F, false));
+        assert!(!filters_accept(&f, 0x10F, true)); // standard only
+        assert!(!filters_accept(&f, 0x110, false));
+        assert!(filters_accept(&None, 0x123, true));
+    }
+
+    #[test]
+    fn frames_the_bus_cannot_carry_are_named() {
+        assert!(frame_error(0x800, 8, 0, false).unwrap().contains("11-bit"));
+        assert!(frame_error(0x100, 9, 0, true).unwrap().contains("in a classical frame"));
+        assert!(frame_error(0x100, 9, FLAG_FD, true).unwrap().contains("not a CAN FD payload length"));
+        assert!(frame_error(0x100, 64, FLAG_FD, true).is_none());
+        assert!(frame_error(0x100, 8, FLAG_REMOTE, false).is_some());
+        assert!(frame_error(0x1FFF_FFFF, 8, FLAG_EXTENDED, false).is_none());
+        assert!(frame_error(0x100, 8, FLAG_FD, false).unwrap().contains("classical CAN bus"));
+        assert!(frame_error(0x100, 8, FLAG_BRS, true).unwrap().contains("without the FD flag"));
+        assert!(frame_error(0x100, 8, FLAG_FD | FLAG_BRS, true).is_none());
+        assert!(frame_error(0x100, 8, 0, true).is_none()); // a classical frame on an FD bus
+        assert_eq!(record_format(FLAG_FD | FLAG_BRS | FLAG_EXTENDED), Format::FdBrs);
+        assert_eq!(format_flags(record_format(FLAG_FD)), FLAG_FD);
+    }
+
+    #[test]
+    fn frames_are_read_whole_from_a_stream_of_records() {
+        let long: Vec<u8> = (0..64).collect();
+        let mut stream = Vec::new();
+        pack_frame_records(0x123, &[1, 2, 3], 0, 1.5, &mut stream);
+        stream.extend_from_slice(&pack_filters_ack(7));
+        pack_frame_records(0x1ABCDEF, &long, FLAG_FD | FLAG_BRS | FLAG_EXTENDED, 2.5, &mut stream);
+        let mut seen = Vec::new();
+        // Everything but the last record: the long frame waits.
+        let used = read_frames(&stream[..stream.len() - RECORD_SIZE], |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
+        assert_eq!(used, 2 * RECORD_SIZE);
+        assert_eq!(seen, vec![(0x123, 0, 1.5, vec![1, 2, 3])]);
+        let used = read_frames(&stream[used..], |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
+        assert_eq!(used, MAX_FRAME_RECORDS * RECORD_SIZE);
+        assert_eq!(seen[1], (0x1ABCDEF, FLAG_FD | FLAG_BRS | FLAG_EXTENDED, 2.5, long));
     }
 }

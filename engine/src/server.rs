@@ -20,151 +20,12 @@ use std::time::{Duration, Instant};
 use crate::bus::{Bus, Format, Policy, Sink, Transmission};
 use crate::frame::BitTiming;
 
+use crate::histogram::Histogram;
 use crate::protocol::*;
 
 const READ_RECORDS: usize = 32; // per node and turn: a babbling node cannot stall the loop
 const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames beyond this (overruns)
 const LOG_FIRST: u64 = 10;
-
-/// Durations in log-linear bins (1 us wide below 1.024 ms, then 1/512 of the value): bounded memory, exact max.
-#[derive(Debug, Clone)]
-pub struct Histogram {
-    counts: Vec<u64>,
-    pub n: u64,
-    pub max_ns: u64,
-}
-
-impl Default for Histogram {
-    fn default() -> Self {
-        Histogram { counts: vec![0; 1024 + 40 * 512], n: 0, max_ns: 0 }
-    }
-}
-
-impl Histogram {
-    pub fn add(&mut self, ns: i64) {
-        let ns = ns.max(0) as u64;
-        let us = ns / 1000;
-        let i = if us < 1024 {
-            us as usize
-        } else {
-            let e = (64 - us.leading_zeros()) as u64 - 10;
-            (1024 + (e - 1) * 512 + (us >> e) - 512) as usize
-        };
-        let last = self.counts.len() - 1;
-        self.counts[i.min(last)] += 1;
-        self.n += 1;
-        self.max_ns = self.max_ns.max(ns);
-    }
-
-    fn upper_us(i: usize) -> u64 {
-        if i < 1024 {
-            return i as u64 + 1;
-        }
-        let (e, m) = ((i - 1024) / 512, (i - 1024) % 512);
-        ((m + 512 + 1) as u64) << (e + 1)
-    }
-
-    /// Upper edge of the bin holding quantile q (capped at the maximum), in seconds.
-    pub fn quantile_s(&self, q: f64) -> Option<f64> {
-        if self.n == 0 {
-            return None;
-        }
-        let rank = q * self.n as f64;
-        let mut seen = 0u64;
-        for (i, &c) in self.counts.iter().enumerate() {
-            seen += c;
-            if c > 0 && seen as f64 >= rank {
-                return Some((Self::upper_us(i) as f64 * 1e-6).min(self.max_ns as f64 * 1e-9));
-            }
-        }
-        Some(self.max_ns as f64 * 1e-9)
-    }
-}
-
-/// python-can acceptance filter: matches when (id ^ can_id) & can_mask == 0 and the format fits `matching`
-/// (0 any, 1 standard only, 2 extended only).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Filter {
-    pub can_id: u32,
-    pub can_mask: u32,
-    pub matching: u8,
-}
-
-pub fn filters_accept(filters: &Option<Vec<Filter>>, can_id: u32, extended: bool) -> bool {
-    let Some(filters) = filters else { return true };
-    filters.iter().any(|f| (f.matching == 0 || (f.matching == 2) == extended) && (can_id ^ f.can_id) & f.can_mask == 0)
-}
-
-/// The format a FRAME record's flags give.
-pub fn record_format(flags: u8) -> Format {
-    Format::of(flags & FLAG_FD != 0, flags & FLAG_BRS != 0)
-}
-
-/// The FRAME record flags of a transmission.
-pub fn format_flags(format: Format) -> u8 {
-    match format {
-        Format::Classical => 0,
-        Format::Fd => FLAG_FD,
-        Format::FdBrs => FLAG_FD | FLAG_BRS,
-    }
-}
-
-/// Why a frame from a node cannot go on the emulated bus (`fd_bus`: a CAN FD bus, which carries both formats).
-pub fn frame_error(can_id: u32, dlc: u8, flags: u8, fd_bus: bool) -> Option<String> {
-    if flags & !KNOWN_FLAGS != 0 {
-        return Some(format!("flags {flags:#04x}: unknown flag bits"));
-    }
-    if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO) != 0 {
-        return Some(format!("flags {flags:#04x}: only data frames can be sent (no remote, error or echo frames)"));
-    }
-    if flags & FLAG_BRS != 0 && flags & FLAG_FD == 0 {
-        return Some(format!("flags {flags:#04x}: a bit-rate switch without the FD flag"));
-    }
-    if flags & FLAG_FD != 0 && !fd_bus {
-        return Some("a CAN FD frame on a classical CAN bus".to_string());
-    }
-    if dlc > 8 && flags & FLAG_FD == 0 {
-        return Some(format!("dlc {dlc} > 8 in a classical frame (set the FD flag for CAN FD payloads up to 64 bytes)"));
-    }
-    if dlc as usize > crate::frame::MAX_DATA || (dlc > 8 && crate::frame::fd_dlc(dlc as usize).is_none()) {
-        return Some(format!("length {dlc} is not a CAN FD payload length (0..8, 12, 16, 20, 24, 32, 48, 64)"));
-    }
-    let extended = flags & FLAG_EXTENDED != 0;
-    let limit = if extended { 1u32 << 29 } else { 1u32 << 11 };
-    if can_id >= limit {
-        return Some(format!("can_id {can_id:#x} out of range for a {}-bit identifier", if extended { 29 } else { 11 }));
-    }
-    None
-}
-
-/// A FRAME record as the server sends it: the first 8 data bytes (`dlc` says how many there are in all).
-pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECORD_SIZE] {
-    let mut r = [0u8; RECORD_SIZE];
-    r[0] = KIND_FRAME;
-    r[1] = flags;
-    r[2] = data.len() as u8;
-    r[4..8].copy_from_slice(&can_id.to_le_bytes());
-    r[8..16].copy_from_slice(&stamp.to_le_bytes());
-    let head = data.len().min(8);
-    r[16..16 + head].copy_from_slice(&data[..head]);
-    r
-}
-
-/// A frame as records: its FRAME record, then FRAME_DATA records for a payload above 8 bytes.
-pub fn pack_frame_records(can_id: u32, data: &[u8], flags: u8, stamp: f64, out: &mut Vec<u8>) {
-    out.extend_from_slice(&pack_frame(can_id, data, flags, stamp));
-    for chunk in data.get(8..).unwrap_or(&[]).chunks(FRAME_DATA_BYTES) {
-        let mut r = [0u8; RECORD_SIZE];
-        r[0] = KIND_FRAME_DATA;
-        r[1..1 + chunk.len()].copy_from_slice(chunk);
-        out.extend_from_slice(&r);
-    }
-}
-
-/// How many FRAME_DATA records follow a FRAME record of `dlc` data bytes.
-pub fn frame_data_records(dlc: usize) -> usize {
-    dlc.saturating_sub(8).div_ceil(FRAME_DATA_BYTES)
-}
 
 /// A CAN FD frame whose FRAME_DATA records are still coming.
 #[derive(Debug, Clone)]
@@ -175,38 +36,6 @@ struct LongFrame {
     data: Vec<u8>,
     /// False for a refused frame: its FRAME_DATA records are read and dropped.
     keep: bool,
-}
-
-/// The WELCOME record: the bitrate, the bus's epoch, the client's ID and, on a CAN FD bus, its data bitrate
-/// (0: a classical bus).
-fn pack_welcome(bitrate: u32, epoch0: f64, client_id: u32, fd_data_bitrate: u32) -> [u8; RECORD_SIZE] {
-    let mut r = [0u8; RECORD_SIZE];
-    r[0] = KIND_WELCOME;
-    r[1] = PROTOCOL_VERSION;
-    r[4..8].copy_from_slice(&bitrate.to_le_bytes());
-    r[8..16].copy_from_slice(&epoch0.to_le_bytes());
-    r[16..20].copy_from_slice(&client_id.to_le_bytes());
-    r[20..24].copy_from_slice(&fd_data_bitrate.to_le_bytes());
-    r
-}
-
-/// The record a refused connection gets before the server closes it.
-pub fn pack_refused(why: u8) -> [u8; RECORD_SIZE] {
-    let mut r = [0u8; RECORD_SIZE];
-    r[0] = KIND_REFUSED;
-    r[1] = why;
-    r
-}
-
-fn pack_filters_ack(generation: u32) -> [u8; RECORD_SIZE] {
-    let mut r = [0u8; RECORD_SIZE];
-    r[0] = KIND_FILTERS_ACK;
-    r[4..8].copy_from_slice(&generation.to_le_bytes());
-    r
-}
-
-fn u32_at(r: &[u8], at: usize) -> u32 {
-    u32::from_le_bytes(r[at..at + 4].try_into().unwrap())
 }
 
 /// Settings of one server.
@@ -882,44 +711,6 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn histogram_quantiles_and_max() {
-        let mut h = Histogram::default();
-        for us in 1..=100 {
-            h.add(us * 1000);
-        }
-        assert_eq!(h.n, 100);
-        assert!((h.quantile_s(0.5).unwrap() - 50e-6).abs() < 2e-6);
-        assert_eq!(h.quantile_s(1.0).unwrap(), 100e-6);
-        h.add(5_000_000);
-        assert_eq!(h.max_ns, 5_000_000);
-    }
-
-    #[test]
-    fn python_can_filter_semantics() {
-        let f = Some(vec![Filter { can_id: 0x100, can_mask: 0x7F0, matching: 1 }]);
-        assert!(filters_accept(&f, 0x10F, false));
-        assert!(!filters_accept(&f, 0x10F, true)); // standard only
-        assert!(!filters_accept(&f, 0x110, false));
-        assert!(filters_accept(&None, 0x123, true));
-    }
-
-    #[test]
-    fn frames_the_bus_cannot_carry_are_named() {
-        assert!(frame_error(0x800, 8, 0, false).unwrap().contains("11-bit"));
-        assert!(frame_error(0x100, 9, 0, true).unwrap().contains("in a classical frame"));
-        assert!(frame_error(0x100, 9, FLAG_FD, true).unwrap().contains("not a CAN FD payload length"));
-        assert!(frame_error(0x100, 64, FLAG_FD, true).is_none());
-        assert!(frame_error(0x100, 8, FLAG_REMOTE, false).is_some());
-        assert!(frame_error(0x1FFF_FFFF, 8, FLAG_EXTENDED, false).is_none());
-        assert!(frame_error(0x100, 8, FLAG_FD, false).unwrap().contains("classical CAN bus"));
-        assert!(frame_error(0x100, 8, FLAG_BRS, true).unwrap().contains("without the FD flag"));
-        assert!(frame_error(0x100, 8, FLAG_FD | FLAG_BRS, true).is_none());
-        assert!(frame_error(0x100, 8, 0, true).is_none()); // a classical frame on an FD bus
-        assert_eq!(record_format(FLAG_FD | FLAG_BRS | FLAG_EXTENDED), Format::FdBrs);
-        assert_eq!(format_flags(record_format(FLAG_FD)), FLAG_FD);
-    }
 
     /// A server on a socket in its own temporary directory: (handle, socket path, directory).
     fn serve(tag: &str, bitrate: u64, data_bitrate: u64, format: Format) -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {

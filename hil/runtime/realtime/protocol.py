@@ -52,7 +52,7 @@ from typing import NamedTuple
 
 import trainhil_engine as engine
 
-from hil.can.frame import FD_LENGTHS, fd_pad
+from hil.can.frame import fd_pad
 
 # The constants are the engine's (engine/src/protocol.rs, defined once for the server, FrameLink and this module).
 _WIRE = engine.PROTOCOL
@@ -154,23 +154,9 @@ class Filter(NamedTuple):
 
 
 def frame_error(can_id: int, dlc: int, flags: int, fd_bus: bool = False) -> str | None:
-    """Why a frame from a node cannot go on the emulated bus (None if it can); a CAN FD bus carries both formats."""
-    if flags & ~KNOWN_FLAGS:
-        return f"flags {flags:#04x}: unknown flag bits"
-    if flags & (FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO):
-        return f"flags {flags:#04x}: only data frames can be sent (no remote, error or echo frames)"
-    if flags & FLAG_BRS and not flags & FLAG_FD:
-        return f"flags {flags:#04x}: a bit-rate switch without the FD flag"
-    if flags & FLAG_FD and not fd_bus:
-        return "a CAN FD frame on a classical CAN bus"
-    if dlc > MAX_DLC and not flags & FLAG_FD:
-        return f"dlc {dlc} > {MAX_DLC} in a classical frame (set the FD flag for CAN FD payloads up to 64 bytes)"
-    if dlc > MAX_FD_DLC or (dlc > MAX_DLC and dlc not in FD_LENGTHS):
-        return f"length {dlc} is not a CAN FD payload length (0..8, 12, 16, 20, 24, 32, 48, 64)"
-    limit = EXT_ID_LIMIT if flags & FLAG_EXTENDED else STD_ID_LIMIT
-    if not 0 <= can_id < limit:
-        return f"can_id {can_id:#x} out of range for a {'29' if flags & FLAG_EXTENDED else '11'}-bit identifier"
-    return None
+    """Why a frame from a node cannot go on the emulated bus (None if it can); a CAN FD bus carries both formats.
+    The bus server's own check (``protocol::frame_error`` in the engine), so both sides say the same."""
+    return engine.frame_error(can_id, dlc, flags, fd_bus)
 
 
 def frame_data_records(dlc: int) -> int:
@@ -317,15 +303,9 @@ def unpack_filters_ack(record: bytes | bytearray | memoryview, offset: int = 0) 
 
 
 def filters_accept(filters: tuple[Filter, ...] | None, can_id: int, extended: bool) -> bool:
-    """python-can semantics: no filters accept everything, else any filter that matches the id and format."""
-    if not filters:
-        return True
-    for f in filters:
-        if f.match and (f.match == MATCH_EXTENDED) != extended:
-            continue
-        if (can_id ^ f.can_id) & f.can_mask == 0:
-            return True
-    return False
+    """python-can semantics: no filters accept everything, else any filter that matches the id and format (the
+    bus server's own rule, ``protocol::filters_accept`` in the engine)."""
+    return engine.filters_accept(filters, can_id, extended)
 
 
 def pack_auth(token: bytes) -> bytes:

@@ -5,6 +5,8 @@
 //! `Priority` policy, its oldest frame under `Fifo`) and the lowest arbitration key wins. A transmission ends
 //! after its last bit including the 3-bit intermission, which is the time stamped on the received frame.
 
+mod error_path;
+
 use std::cmp::{Ordering, Reverse};
 use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::sync::Arc;

@@ -1,0 +1,138 @@
+//! `FrameLink`: a node's connection to its bus server, its frames routed straight into ECU mailboxes.
+
+use super::*;
+use crate::bus::Payload;
+use crate::link::{Link, LinkError};
+use crate::protocol::{format_flags, FLAG_EXTENDED};
+
+/// Sleep until one of `fds` is readable or `timeout_s` (wall) passed, the GIL released; whether one is.
+#[pyfunction]
+pub(super) fn wait_readable(py: Python<'_>, fds: Vec<i32>, timeout_s: f64) -> bool {
+    let timeout = timeout_s.max(0.0);
+    py.allow_threads(move || {
+        let mut pfds: Vec<libc::pollfd> = fds.iter().map(|&fd| libc::pollfd { fd, events: libc::POLLIN, revents: 0 }).collect();
+        let ts = libc::timespec { tv_sec: timeout as libc::time_t, tv_nsec: (timeout.fract() * 1e9) as libc::c_long };
+        // SAFETY: an array of pollfd we own, for the duration of the call.
+        unsafe { libc::ppoll(pfds.as_mut_ptr(), pfds.len() as libc::nfds_t, &ts, std::ptr::null()) > 0 }
+    })
+}
+
+
+/// A node's receive path without python-can: frames read from a bus server's socket go straight into ECU
+/// mailboxes (stamped in simulated time); the node sends its frames through it too.
+#[pyclass(module = "trainhil_engine._native")]
+pub struct FrameLink {
+    link: Link,
+    t0: f64,
+    pace: f64,
+    routes: std::collections::HashMap<u32, Vec<Arc<Mutex<core_mailbox::Mailbox>>>>,
+    received: u64,
+    /// Keep the frames that have no route for `take` (a node that handles its frames itself).
+    keep: bool,
+    kept: Vec<(u32, Payload, f64)>,
+    /// Container frames: packed on send, unpacked on receipt.
+    packing: Option<Arc<CorePacking>>,
+}
+
+fn link_err(e: LinkError) -> PyErr {
+    match e {
+        LinkError::Closed => pyo3::exceptions::PyConnectionError::new_err(e.to_string()),
+        LinkError::TooLong(..) => PyValueError::new_err(e.to_string()),
+        LinkError::Io(_) => pyo3::exceptions::PyOSError::new_err(e.to_string()),
+    }
+}
+
+impl FrameLink {
+    /// One received frame (a container's parts each) into its mailboxes, else kept (or dropped when nothing
+    /// takes it).
+    fn hand_over(&mut self, id: u32, data: &[u8], stamp: f64) {
+        let t = (stamp - self.t0) * self.pace;
+        match self.packing.clone().as_deref().and_then(|p| p.unpack(id, data)) {
+            Some(parts) => parts.for_each(|(part, bytes)| self.hand_over_one(part, bytes, t)),
+            None => self.hand_over_one(id, data, t),
+        }
+    }
+
+    fn hand_over_one(&mut self, id: u32, data: &[u8], t: f64) {
+        if let Some(boxes) = self.routes.get(&id) {
+            for mb in boxes {
+                mb.lock().unwrap().put(id, data, t);
+            }
+            self.received += 1;
+        } else if self.keep {
+            self.kept.push((id, Payload::new(data), t));
+            self.received += 1;
+        }
+    }
+}
+
+#[pymethods]
+impl FrameLink {
+    /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). A frame's
+    /// simulated time is (its epoch stamp - t0) * pace. `keep`: frames without a route are kept for `take`.
+    #[new]
+    #[pyo3(signature = (fd, t0, pace, keep = false))]
+    fn new(fd: i32, t0: f64, pace: f64, keep: bool) -> PyResult<Self> {
+        if !(pace.is_finite() && pace > 0.0) {
+            return Err(PyValueError::new_err(format!("pace={pace} must be positive")));
+        }
+        Ok(FrameLink { link: Link::new(fd), t0, pace, routes: Default::default(), received: 0, keep,
+                       kept: Vec::new(), packing: None })
+    }
+
+    /// Pack each `send` batch into `packing`'s containers, and unpack the containers received.
+    fn set_packing(&mut self, packing: &Packing) {
+        self.packing = Some(packing.inner.clone());
+    }
+
+    /// The socket's file descriptor (for `wait_readable`).
+    #[getter]
+    fn fd(&self) -> i32 {
+        self.link.fd()
+    }
+
+    /// The kept frames received since the last call, in arrival order: [(frame_id, data, t_sim)].
+    fn take<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+        self.pump()?;
+        let kept = std::mem::take(&mut self.kept);
+        let items: Vec<Bound<'py, PyTuple>> = kept.iter()
+            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        PyList::new(py, items)
+    }
+
+    /// Deliver frames of `frame_id` into `mailbox` (several mailboxes may take one ID).
+    fn route(&mut self, frame_id: u32, mailbox: &Mailbox) {
+        self.routes.entry(frame_id).or_default().push(mailbox.inner.clone());
+    }
+
+    /// Read every record waiting on the socket; returns how many frames went into mailboxes.
+    fn pump(&mut self) -> PyResult<u64> {
+        let before = self.received;
+        let mut frames = Vec::new();
+        let result = self.link.pump(|id, _, stamp, data| frames.push((id, stamp, Payload::new(data))));
+        for (id, stamp, data) in frames {
+            self.hand_over(id, data.as_slice(), stamp);
+        }
+        result.map_err(link_err)?;
+        Ok(self.received - before)
+    }
+
+    /// Send frames [(frame_id, data)] as FRAME records: `extended` for 29-bit IDs, `fd` for CAN FD frames (with
+    /// the bit-rate switch unless `brs` is false).
+    #[pyo3(signature = (frames, extended = false, fd = false, brs = true))]
+    fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
+        let flags = if extended { FLAG_EXTENDED } else { 0 } | format_flags(Format::of(fd, brs));
+        let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
+        let limit = if fd { MAX_DATA } else { crate::protocol::MAX_DLC };
+        if let Some((id, data)) = batch.iter().find(|(_, d)| d.len() > limit) {
+            return Err(link_err(LinkError::TooLong(*id, data.len(), limit)));
+        }
+        let packed = match &self.packing {
+            Some(p) => p.pack(&batch),
+            None => batch.iter().map(|&(id, d)| (id, Payload::new(d))).collect(),
+        };
+        let parts: Vec<(u32, &[u8])> = packed.iter().map(|(id, d)| (*id, d.as_slice())).collect();
+        self.link.send(&parts, flags).map_err(link_err)
+    }
+}
