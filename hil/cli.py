@@ -150,7 +150,7 @@ def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict) -> i
     if live is not None and not args.quiet:
         print(f"hil: {live.describe()}", file=sys.stderr)
     if args.realtime:
-        from hil.runtime.realtime.cli import run_realtime_from_args
+        from hil.runtime.realtime.command_line import run_realtime_from_args
 
         result = run_realtime_from_args(args, scenario, out, live, _given(args, overrides))
     else:
@@ -309,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "`rerun --connect rerun+http://127.0.0.1:PORT/proxy`; keeps serving after the run until Ctrl-C")
     run.add_argument("--check", action="store_true",
                      help=f"exit {EXIT_UNSAFE} if the run's safety verdict is unsafe, naming the violated verdicts (for CI)")
-    from hil.runtime.realtime.cli import add_realtime_arguments
+    from hil.runtime.realtime.command_line import add_realtime_arguments
 
     add_realtime_arguments(run)
     run.set_defaults(func=_cmd_run)
@@ -317,13 +317,13 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("scenarios", help="list the packaged scenarios")
     sc.set_defaults(func=_cmd_scenarios)
 
-    from hil.can_analysis_cli import add_can_analysis_parser
-    from hil.runtime.realtime.cli import add_bus_server_parser
-    from hil.sweep.cli import add_sweep_parser, add_sweeps_list_parser
+    from hil.commands.can_analysis import add_can_analysis_parser
+    from hil.runtime.realtime.command_line import add_bus_server_parser
+    from hil.commands.sweep import add_sweep_parser, add_sweeps_list_parser
 
     add_sweep_parser(sub)
     add_sweeps_list_parser(sub)
-    from hil.compare.cli import add_compare_parser
+    from hil.commands.compare import add_compare_parser
 
     add_compare_parser(sub)
     add_can_analysis_parser(sub)

@@ -20,7 +20,7 @@ from hil.can.analysis import (
     train_bus_messages,
     utilisation,
 )
-from hil.can_analysis_cli import add_can_analysis_parser
+from hil.commands.can_analysis import add_can_analysis_parser
 from hil.scenario import load_scenario
 
 US = 1e-6
@@ -216,7 +216,7 @@ def test_cli_measured_from_a_real_run_stays_under_the_bounds(tmp_path, capsys):
 
 
 def test_python_dash_m_entry_point():
-    proc = subprocess.run([sys.executable, "-m", "hil.can_analysis_cli", "--bitrate", "250000", "--units", "2"],
+    proc = subprocess.run([sys.executable, "-m", "hil.commands.can_analysis", "--bitrate", "250000", "--units", "2"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "Sensor_U02" in proc.stdout and "Sensor_U03" not in proc.stdout

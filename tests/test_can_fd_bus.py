@@ -131,7 +131,7 @@ def test_a_classical_bus_is_unchanged():
 
 def test_can_analysis_of_the_packaged_fd_scenario_bounds_its_run(tmp_path, capsys):
     """`hil can-analysis --scenario seed001-fd --measured RUN` after a run of it: every frame under its bound."""
-    from hil.can_analysis_cli import main as can_analysis
+    from hil.commands.can_analysis import main as can_analysis
 
     sc = load_scenario("seed001-fd")
     assert sc.can.fd and sc.can.data_rate == 5_000_000

@@ -142,7 +142,7 @@ def test_a_packed_dbc_needs_an_fd_bus(tmp_path):
 def test_can_analysis_of_the_packed_scenario_bounds_its_run(tmp_path, capsys):
     """`hil can-analysis --scenario seed001-fd-packed --measured RUN`: seed 001's own 1 ms exchange, eight frames per
     period on FD 1M/5M, each under its worst-case bound in the run."""
-    from hil.can_analysis_cli import main as can_analysis
+    from hil.commands.can_analysis import main as can_analysis
 
     sc = load_scenario("seed001-fd-packed")
     assert sc.ecu.cycle_s == 0.001 and sc.can.dbc == "train_fd.dbc"

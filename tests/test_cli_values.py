@@ -27,7 +27,7 @@ def test_options_that_would_do_nothing_are_errors(args, needle, capsys, tmp_path
 
 
 def test_can_analysis_given_a_scenario_file_says_what_it_expected(capsys):
-    rc = main(["can-analysis", "hil/scenarios/seed000.toml"])
+    rc = main(["can-analysis", "hil/packaged/scenarios/seed000.toml"])
     err = capsys.readouterr().err
     assert rc == 2 and "looks like a scenario file" in err and "--scenario" in err
 

@@ -203,7 +203,7 @@ def test_the_bus_model_is_a_leaf_and_node_processes_do_not_import_the_server():
     import subprocess
     import sys
 
-    code = ("import sys, hil.can.transmission, hil.can.error_events, hil.can.frame, hil.can.stats, hil.can.wcrt; "
+    code = ("import sys, hil.can.transmission, hil.can.error_events, hil.can.frame, hil.can.bus_log, hil.can.wcrt; "
             "bad = [m for m in sys.modules if m.startswith(('hil.record', 'hil.runtime'))]; assert not bad, bad; "
             "import hil.runtime.realtime.ecu_node, hil.runtime.realtime.plant_node, hil.runtime.realtime.radio_node; "
             "assert 'tests.oracle.python_server' not in sys.modules")

@@ -13,14 +13,15 @@ LAYERS: list[list[str]] = [
     ["ecu_sim"],
     ["hil"],  # the package root: its version
     ["hil.scenario"],  # the data model, the loader, the train layout, which firmware each unit runs
-    ["hil.tables", "hil.reference", "hil.radio", "hil.cli_values"],
+    ["hil.sample_table", "hil.reference_profile", "hil.radio", "hil.cli_values"],
     ["hil.can"],
     ["hil.record"],
     ["hil.plant"],
     ["hil.faults"],
     ["hil.runtime"],  # virtual time, the ideal loop, what both runtimes share, the virtual fault machinery
     ["hil.session", "hil.runtime.realtime"],  # a run to files, in virtual and in real time
-    ["hil.compare", "hil.sweep", "hil.testing", "hil.viewer", "hil.can_analysis_cli"],
+    ["hil.compare", "hil.sweep", "hil.testing", "hil.viewer"],
+    ["hil.commands"],  # the sub-commands of `hil` (compare, sweep, can-analysis),
     ["hil.cli"],
 ]
 

@@ -420,7 +420,7 @@ def test_latency_histogram_quantiles_are_upper_bounds_within_a_bin():
 def test_bus_server_parser_registers_on_the_hil_parser():
     import argparse
 
-    from hil.runtime.realtime.cli import add_bus_server_parser, cmd_bus_server
+    from hil.runtime.realtime.command_line import add_bus_server_parser, cmd_bus_server
 
     p = argparse.ArgumentParser(prog="hil")
     add_bus_server_parser(p.add_subparsers(dest="command", required=True))
@@ -433,7 +433,7 @@ def test_bus_server_parser_registers_on_the_hil_parser():
                                          (["--depth", "0"], "--depth"), (["--duration", "-1"], "--duration"),
                                          (["--pace", "0"], "--pace"), (["--pace", "nan"], "--pace")])
 def test_bus_server_command_refuses_values_that_cannot_work(rt, capsys, args, named):
-    from hil.runtime.realtime.cli import bus_server_main
+    from hil.runtime.realtime.command_line import bus_server_main
 
     with pytest.raises(SystemExit) as exc:
         bus_server_main(["--run", "v1", "--bus", "bus1", *args])

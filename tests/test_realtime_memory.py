@@ -11,7 +11,7 @@ from hil.scenario.layout import TrainLayout
 from hil.record.metrics import compute_metrics
 from hil.record.runlog import SUMMARY_BLOCK_ROWS, BusLog
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, BusSpool, spool_paths
-from hil.tables import row_chunks
+from hil.sample_table import row_chunks
 from hil.runtime.realtime.merge import merge_nodes
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.scenario import load_scenario

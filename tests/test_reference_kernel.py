@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from hil.reference import ReferenceProfile
+from hil.reference_profile import ReferenceProfile
 from hil.runtime.kernel import Kernel, to_ns
 from hil.scenario import load_scenario
 from hil.scenario.model import ReferenceConfig

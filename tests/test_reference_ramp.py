@@ -8,7 +8,7 @@ from scipy.integrate import quad
 
 from ecu_sim.codec import TrainDb
 from hil.scenario.layout import TrainLayout
-from hil.reference import ReferenceProfile
+from hil.reference_profile import ReferenceProfile
 from hil.runtime.assembly import assemble
 from hil.scenario import load_scenario
 from hil.scenario.model import ReferenceConfig, TrainsConfig

@@ -1,4 +1,4 @@
-"""The real-time nodes' per-cycle series (hil/runtime/realtime/series_stats.py): streamed to a file as they come,
+"""The real-time nodes' per-cycle series (hil/runtime/realtime/streamed_series.py): streamed to a file as they come,
 their percentiles to the microsecond from bin counts, their maximum and count exact."""
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from hil.runtime.realtime.pacing import LatenessStats
-from hil.runtime.realtime.series_stats import FLUSH_ROWS, StreamedSeries, read_series
-from hil.tables import row_chunks
+from hil.runtime.realtime.streamed_series import FLUSH_ROWS, StreamedSeries, read_series
+from hil.sample_table import row_chunks
 
 
 def test_rows_go_to_the_file_and_only_the_unwritten_ones_stay(tmp_path):

@@ -230,7 +230,7 @@ def test_interrupted_sweep_resumes_where_it_stopped(tmp_path):
     latencies = ", ".join(str(0.01 * i) for i in range(6))
     path = write(tmp_path, f'name = "resume"\nbase = "seed000"\nduration_s = 4\n[axes]\n"radio.latency_s" = [{latencies}]\n')
     out = tmp_path / "out"
-    code = ("import argparse, sys\nfrom hil.sweep.cli import add_sweep_parser\np = argparse.ArgumentParser()\n"
+    code = ("import argparse, sys\nfrom hil.commands.sweep import add_sweep_parser\np = argparse.ArgumentParser()\n"
             "add_sweep_parser(p.add_subparsers(required=True))\na = p.parse_args(sys.argv[1:])\nsys.exit(a.func(a))\n")
     proc = subprocess.Popen([sys.executable, "-c", code, "sweep", str(path), "--out", str(out), "--workers", "1", "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)

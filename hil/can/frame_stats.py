@@ -17,7 +17,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from hil.tables import SampleTable
+from hil.sample_table import SampleTable
 
 WIDTH = 4
 MAX_DISTINCT = 1 << 16

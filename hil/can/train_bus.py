@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Protocol, runtime_checkable
 
-from hil.can.stats import BusLog
+from hil.can.bus_log import BusLog
 from hil.can.transmission import Transmission
 
 

@@ -13,7 +13,7 @@ from hil.scenario.layout import TrainLayout
 from hil.plant.command_streams import CommandStreams
 from hil.plant.dynamics import Plant
 from hil.record.runlog import RunLog
-from hil.reference import ReferenceProfile
+from hil.reference_profile import ReferenceProfile
 
 VALID_MODES = frozenset(float(m) for m in BrakeMode)
 

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from hil.can.stats import BusLog
+from hil.can.bus_log import BusLog
 from hil.scenario.layout import TrainLayout
 from hil.record.signal_summary import SignalSummary
-from hil.tables import SampleTable
+from hil.sample_table import SampleTable
 
 SETTLE_BAND_MPS = 0.5 / 3.6  # the metrics' default settling band: 0.5 km/h
 SUMMARY_BLOCK_ROWS = 512  # the signal summary takes rows in blocks this long, at fixed row numbers

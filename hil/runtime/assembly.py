@@ -11,7 +11,7 @@ import numpy as np
 from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
 from hil.scenario.layout import TrainLayout
 from hil.plant import Plant
-from hil.reference import ReferenceProfile
+from hil.reference_profile import ReferenceProfile
 from hil.scenario.firmware import UnitFirmware, firmware_plan
 from hil.scenario.model import Scenario
 

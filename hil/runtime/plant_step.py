@@ -6,7 +6,7 @@ the plant alike."""
 from __future__ import annotations
 
 from hil.plant.dynamics import Plant
-from hil.reference import ReferenceProfile
+from hil.reference_profile import ReferenceProfile
 from hil.record.runlog import RunLog
 
 

@@ -16,8 +16,8 @@ class ScenarioError(ValueError):
 
 
 def packaged_files(folder: str) -> dict[str, Path]:
-    """Packaged TOML files of ``hil/<folder>/`` by name (scenarios, sweeps)."""
-    return {p.stem: p for p in sorted(Path(str(resources.files("hil") / folder)).glob("*.toml"))}
+    """Packaged TOML files of ``hil/packaged/<folder>/`` by name (scenarios, sweeps)."""
+    return {p.stem: p for p in sorted(Path(str(resources.files("hil") / "packaged" / folder)).glob("*.toml"))}
 
 
 def resolve_packaged(name_or_path: str | Path, folder: str, kind: str, error: type[ValueError]) -> Path:

@@ -225,7 +225,7 @@ class SweepSpec(Section):
 
 
 def packaged_sweeps() -> dict[str, Path]:
-    """Packaged sweep name -> file (hil/sweeps/*.toml)."""
+    """Packaged sweep name -> file (hil/packaged/sweeps/*.toml)."""
     return packaged_files("sweeps")
 
 

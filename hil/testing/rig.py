@@ -198,7 +198,7 @@ class Rig:
 def _timing_series(nodes_dir: Path) -> dict[str, Series]:
     """The real-time timing series the nodes left (ms), on the entity paths the orchestrator records them under."""
     from hil.runtime.realtime.merge import timing_series as timing_files  # one definition of those paths
-    from hil.runtime.realtime.series_stats import read_series
+    from hil.runtime.realtime.streamed_series import read_series
 
     out = {}
     for entity, f in timing_files(nodes_dir):

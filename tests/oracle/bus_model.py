@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from hil.can.frame import bit_time_ns as _bit_ns, fd_frame_bits, fd_pad, frame_bits
-from hil.can.stats import BusLog
+from hil.can.bus_log import BusLog
 from hil.can.transmission import Transmission
 
 RxCallback = Callable[[int, bytes, int], None]  # (frame_id, data, t_end_ns)

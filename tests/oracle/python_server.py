@@ -53,7 +53,7 @@ from hil.runtime.realtime.protocol import (
     filters_accept, frame_data_records, frame_error, join_frame, pack_filters_ack, pack_frame, pack_refused, pack_welcome,
     unpack_auth, unpack_filter, unpack_filters_head, unpack_hello,
 )
-from hil.can.stats import BusLog
+from hil.can.bus_log import BusLog
 from hil.runtime.realtime.pacing import set_timer_slack
 
 LOG = logging.getLogger("hil.runtime.realtime.bus_server")  # the native server's logger too
@@ -680,6 +680,6 @@ class PythonBusServer:
 if __name__ == "__main__":  # python -m tests.oracle.python_server: `hil bus-server` on this server (benchmarks)
     import sys
 
-    from hil.runtime.realtime.cli import bus_server_main
+    from hil.runtime.realtime.command_line import bus_server_main
 
     sys.exit(bus_server_main(server_cls=PythonBusServer))

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol, runtime_checkable
 
-from hil.can.stats import BusLog
+from hil.can.bus_log import BusLog
 
 DEFAULT_SPIN_US = 200
 MAX_CLIENTS = 256  # connections beyond this are refused and counted
@@ -83,6 +83,6 @@ class BusServer(Protocol):
 if __name__ == "__main__":  # python -m hil.runtime.realtime.bus_server: the same as `hil bus-server`
     import sys
 
-    from hil.runtime.realtime.cli import bus_server_main
+    from hil.runtime.realtime.command_line import bus_server_main
 
     sys.exit(bus_server_main())

@@ -3,7 +3,7 @@
 Every SPOOL_EVERY_WALL_S the orchestrator moves each server's new rows into ``nodes/<bus>.frames.bin`` (rows of
 ``hil.can.frame_stats``: t_end, frame id, latency, queueing) and ``nodes/<bus>.load.bin`` (t_window_end, load),
 native float64, and lets them go from the server's BusLog; so its memory does not grow with the frames. At the end
-the merge reads them back chunk by chunk (``hil.tables.row_chunks``), in bus time, into the recording and the bus statistics.
+the merge reads them back chunk by chunk (``hil.sample_table.row_chunks``), in bus time, into the recording and the bus statistics.
 """
 from __future__ import annotations
 

@@ -16,11 +16,11 @@ from hil.scenario.layout import TrainLayout
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, LOAD_WIDTH, spool_paths
-from hil.tables import row_chunks
+from hil.sample_table import row_chunks
 from hil.record import paths
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
-from hil.reference import ReferenceProfile
+from hil.reference_profile import ReferenceProfile
 from hil.scenario.model import Scenario
 
 
@@ -158,7 +158,7 @@ def write_rest(w: RerunWriter, log: RunLog, nodes_dir: Path) -> None:
 
 
 def timing_series(nodes_dir: Path) -> list[tuple[str, Path]]:
-    """(entity path, file of (sim time, value s) rows, hil/runtime/realtime/series_stats.py) of every timing series
+    """(entity path, file of (sim time, value s) rows, hil/runtime/realtime/streamed_series.py) of every timing series
     the nodes left."""
     out = [(paths.TIMING + "/plant/lateness_ms", nodes_dir / "timing_plant.bin"),
            (paths.TIMING + "/e2e_latency_ms", nodes_dir / "timing_e2e.bin")]

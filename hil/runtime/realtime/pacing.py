@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from hil.runtime.realtime.series_stats import StreamedSeries
+from hil.runtime.realtime.streamed_series import StreamedSeries
 
 __all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "handshake", "linger", "wait_until", "set_timer_slack",
            "set_fifo_priority"]

@@ -44,7 +44,7 @@ from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_afte
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
-from hil.runtime.realtime.series_stats import StreamedSeries
+from hil.runtime.realtime.streamed_series import StreamedSeries
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog

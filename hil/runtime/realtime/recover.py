@@ -27,7 +27,7 @@ from hil.record.metrics import run_metrics
 from hil.record.runlog import BusLog, Event
 from hil.record.safety import record_violations
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
-from hil.tables import row_chunks
+from hil.sample_table import row_chunks
 
 MAX_PLAUSIBLE = 1e9  # no position (m), speed, acceleration or force (N) of a train comes near this
 NODES_GRACE_S = 10.0  # how long the nodes of a killed rig may still be writing their results

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.tables import row_chunks
+from hil.sample_table import row_chunks
 
 RESOLUTION_S = 1e-6
 FLUSH_ROWS = 1024

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hil.can.frame_stats import FrameTable
-from hil.tables import SampleTable
+from hil.sample_table import SampleTable
 
 
 class LoadTable(SampleTable):

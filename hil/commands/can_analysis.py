@@ -180,7 +180,7 @@ def run_can_analysis(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m hil.can_analysis_cli ...``, the same as ``hil can-analysis ...``."""
+    """``python -m hil.commands.can_analysis ...``, the same as ``hil can-analysis ...``."""
     p = argparse.ArgumentParser(prog="hil can-analysis", description=DESCRIPTION)
     _add_arguments(p)
     return run_can_analysis(p.parse_args(argv))
