@@ -7,13 +7,18 @@ period late), plant publication lateness p99, sensor-to-actuator latency p99, fr
 the rig used per simulated second once every node was ready (all processes; psutil). A configuration "keeps up" when ECU
 p99 lateness is below a tenth of the 10 ms cycle and fewer than 0.1 % of cycles miss.
 
-    python bench/bench_realtime_scale.py [--ecus 12 24 48 64] [--per-process 1 8] [--duration 10] [--pace 1]
+    python bench/bench_realtime_scale.py [--ecus 12 24 48 64] [--per-process 0 1 8] [--duration 10] [--pace 1]
+                                         [--plant-spin-us 0 200]
+
+Each configuration also prints the CPU per simulated second by role (ECU, plant and radio processes, the bus
+servers' threads, the orchestrator), the profile the real-time cost is read from.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -22,7 +27,8 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.runtime.realtime.orchestrator import run_realtime  # noqa: E402
+from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
+from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 
 CYCLE_S = 0.01
@@ -56,16 +62,90 @@ def cpu_seconds() -> float:
     return total
 
 
-def one(n_ecus: int, per_process: int, duration: float, pace: float) -> dict:
+ROLES = ("ecu_node", "plant_node", "radio_node")
+
+
+def role_of(proc: psutil.Process) -> str:
+    """A rig process's role from its command line (the node module it runs)."""
+    try:
+        cmd = " ".join(proc.cmdline())
+    except psutil.Error:
+        return "other"
+    return next((r.removesuffix("_node") for r in ROLES if r in cmd), "other")
+
+
+class CpuByRole:
+    """CPU seconds per role once every node is ready: the ECU, plant and radio processes (sampled every
+    ``every_s``, so a process's last fraction of a second is missed), and this process's threads: the bus
+    servers' native threads and the orchestrator's Python."""
+
+    def __init__(self, every_s: float = 0.25) -> None:
+        self.every_s = every_s
+        self.me = psutil.Process()
+        self.roles: dict[int, str] = {}
+        self.cpu: dict[int, float] = {}
+        self.threads: dict[int, float] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    def _sample(self) -> None:
+        for c in self.me.children(recursive=True):
+            try:
+                t = c.cpu_times()
+            except psutil.Error:
+                continue
+            self.roles.setdefault(c.pid, role_of(c))
+            self.cpu[c.pid] = t.user + t.system
+        self.threads.update({t.id: t.user_time + t.system_time for t in self.me.threads()})  # ended ones stay
+
+    def start(self) -> None:
+        self._sample()
+        self.cpu0, self.threads0 = dict(self.cpu), dict(self.threads)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.every_s):
+            self._sample()
+
+    def stop(self) -> dict[str, float]:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        out: dict[str, float] = {}
+        for pid, cpu in self.cpu.items():
+            role = self.roles[pid]
+            out[role] = out.get(role, 0.0) + cpu - self.cpu0.get(pid, 0.0)
+        main_id = threading.main_thread().native_id
+        for tid, cpu in self.threads.items():
+            if tid == self._thread.native_id:
+                continue
+            key = "orchestrator" if tid == main_id else "bus servers"
+            out[key] = out.get(key, 0.0) + cpu - self.threads0.get(tid, 0.0)
+        return out
+
+
+def virtual_cpu_per_sim_s(n_ecus: int, duration: float) -> float:
+    """CPU seconds per simulated second of the same scenario in virtual time (one process, no recording)."""
+    rig = VirtualRig(scaled_scenario(n_ecus))
+    c0 = time.process_time()
+    rig.run(duration)
+    return (time.process_time() - c0) / duration
+
+
+def one(n_ecus: int, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0) -> dict:
     sc = scaled_scenario(n_ecus)
     cpu0 = [0.0]
+    by_role = CpuByRole()
 
     def started(_t0: float) -> None:  # every node is ready: CPU spent on start-up (imports) is not counted
         cpu0[0] = cpu_seconds()
+        by_role.start()
 
     with tempfile.TemporaryDirectory() as d:
         res = run_realtime(sc, Path(d), pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
+                           plant_spin_us=plant_spin_us,
                            on_start=started)
+    roles = by_role.stop()
     m = res.metrics
     ecus = m["realtime"]["ecus"].values()
     cycles = sum(e["cycles"] for e in ecus) or 1
@@ -77,13 +157,16 @@ def one(n_ecus: int, per_process: int, duration: float, pace: float) -> dict:
             "p99_ms": 1e3 * (p99 or 0), "misses": misses, "skipped": skipped, "cycles": cycles,
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
             "lost": m["frames_lost"], "cpu_per_sim_s": (cpu_seconds() - cpu0[0]) / duration, "keeps_up": keeps_up,
-            "interrupted": m["interrupted"]}
+            "interrupted": m["interrupted"], "cpu_by_role": {k: v / duration for k, v in sorted(roles.items())}}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ecus", type=int, nargs="+", default=[12, 24, 48, 64])
-    ap.add_argument("--per-process", type=int, nargs="+", default=[1, 8])
+    ap.add_argument("--per-process", type=int, nargs="+", default=[0, 1],
+                    help="ECUs per process; 0: the rig's default layout (default_ecus_per_process)")
+    ap.add_argument("--plant-spin-us", type=float, nargs="+", default=[200.0],
+                    help="the plant's polling before each publication, µs (several: side by side)")
     ap.add_argument("--duration", type=float, default=10.0, help="simulated seconds per run")
     ap.add_argument("--pace", type=float, default=1.0)
     args = ap.parse_args()
@@ -94,13 +177,19 @@ def main() -> None:
     print(head)
     best = 0
     for n in args.ecus:
-        for k in args.per_process:
+        for k, spin in [(k, spin) for k in args.per_process for spin in args.plant_spin_us]:
             t = time.monotonic()
-            r = one(n, k, args.duration, args.pace)
+            r = one(n, k or None, args.duration, args.pace, spin)
+            r["per_process"] = k or default_ecus_per_process(n)
+            virtual = virtual_cpu_per_sim_s(n, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "
                   f"{r['cpu_per_sim_s']:11.2f}  {'yes' if r['keeps_up'] else 'no'}"
+                  f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
+            print("      CPU s/sim s by role: " + ", ".join(f"{k} {v:.3f}" for k, v in r["cpu_by_role"].items()))
+            print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
+                  f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
             if r["keeps_up"]:
                 best = max(best, n)
     print(f"largest ECU count that keeps up: {best or 'none'} (target 64)")

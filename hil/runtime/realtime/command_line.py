@@ -114,7 +114,8 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
     g.add_argument("--pace", type=float, default=None,
                    help="with --realtime: simulated seconds per wall second (default 1.0 = wall clock; 0.5 slower, 10 faster)")
     g.add_argument("--ecus-per-process", type=int, default=None, metavar="N",
-                   help="with --realtime: host N ECUs per process (default 1: one process per ECU)")
+                   help="with --realtime: host N ECUs per process (default: one ECU process per core left after "
+                        "the bus servers, plant and radio; on 2 cores every ECU in one process)")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")
@@ -132,10 +133,10 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
     if getattr(args, "ideal", False):
         raise ScenarioError("--ideal cannot be combined with --realtime (the ideal loop has no network to run in real time)")
     pace = 1.0 if args.pace is None else args.pace
-    per_process = 1 if args.ecus_per_process is None else args.ecus_per_process
+    per_process = args.ecus_per_process
     if not (math.isfinite(pace) and pace > 0):
         raise ScenarioError(f"--pace {args.pace}: must be a positive finite number")
-    if per_process < 1:
+    if per_process is not None and per_process < 1:
         raise ScenarioError(f"--ecus-per-process {args.ecus_per_process}: must be >= 1")
     if scenario.can.transport == "socketcan":
         if getattr(args, "can_log", False):

@@ -8,7 +8,8 @@ real-time rig. Steps:
    outside the interpreter lock, CAN errors and bus faults included). Sleep-only
    (``spin_us = 0``), so the plant stays the rig's only spinner.
 2. Node processes (same Python): the radio bridge, the plant + wayside, and the ECUs (``ecus_per_process``
-   units per process). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
+   units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
+   leaves, on 2 cores one process for every ECU). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
@@ -171,8 +172,25 @@ def _run_result(log: RunLog, metrics: dict, out_dir: Path, files: list[Path]) ->
     return RunResult(log, metrics, out_dir, files)
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def default_ecus_per_process(n_ecus: int, cores: int | None = None) -> int:
+    """ECUs per process when the user does not say: one ECU process per core left after the bus servers, the
+    plant and the radio take one, so the ECUs of a process share its wake-ups and no more Python processes start
+    than the cores can run (on 2 cores: every ECU in one process). ``bench/bench_realtime_scale.py`` measures the
+    layouts side by side."""
+    ecu_processes = max(1, (usable_cores() if cores is None else cores) - 1)
+    return max(1, math.ceil(n_ecus / ecu_processes))
+
+
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
-                 seed: int | None = None, ecus_per_process: int = 1, record: bool = True, progress: bool = False,
+                 seed: int | None = None, ecus_per_process: int | None = None, record: bool = True, progress: bool = False,
                  plant_spin_us: float = 200.0, on_start: Callable[[float], None] | None = None,
                  can_log: str | bool | None = None,
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
@@ -190,7 +208,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     recording to a viewer as the run goes (hil/runtime/realtime/live_tail.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
-    if ecus_per_process < 1:
+    if ecus_per_process is not None and ecus_per_process < 1:
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
     socketcan = scenario.can.transport == "socketcan"
     fmt = log_format(can_log)
@@ -241,7 +259,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if on_channels is not None:
                 on_channels(channels(run, scenario))
             env = node_environment(scenario)
-            nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, ecus_per_process, plant_spin_us,
+            per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external))
+            nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
