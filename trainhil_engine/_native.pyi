@@ -231,8 +231,15 @@ class FrameLink:
 
     fd: int
     received: int
+    synced: float
 
-    def __init__(self, fd: int, t0: float, pace: float, keep: bool = False) -> None: ...
+    def __init__(self, fd: int, t0: float, pace: float, keep: bool = False, lazy: bool = False) -> None:
+        """``lazy``: the connection said OPTION_LAZY; frames come in at ``sync_to``, sent frames carry their time."""
+    def read_every(self, first: float, period: float) -> None:
+        """A lazy link's read times: ``first`` (epoch s), then every ``period`` s (0: once)."""
+    def sync_to(self, t: float, timeout_s: float) -> bool:
+        """Hand over every frame that ended by read time ``t`` (epoch s), waiting up to ``timeout_s`` (wall) for the
+        server's SYNC of it; whether it came."""
     def route(self, frame_id: int, mailbox: Mailbox) -> None: ...
     def set_packing(self, packing: Packing) -> None:
         """Pack each ``send`` batch into containers; unpack the containers received into their parts."""

@@ -1,10 +1,13 @@
 //! A node's end of a connection to a bus server (the client side of `protocol`): whole frames read from the
 //! non-blocking socket, frames written as records. No Python here; `FrameLink` (`py/link.rs`) routes the frames it
 //! reads into ECU mailboxes.
+//!
+//! A lazy link (HELLO option `OPTION_LAZY`) reads only up to its horizon: `wait_synced(t)` waits for the server's
+//! SYNC of read time `t` and hands over the frames that ended by then, never one that ended later.
 
 use std::os::fd::RawFd;
 
-use crate::protocol::{pack_frame_records, read_frames, RECORD_SIZE};
+use crate::protocol::{pack_frame_records, pack_read_every, read_frames, RECORD_SIZE};
 
 /// Why the link cannot go on.
 #[derive(Debug)]
@@ -30,6 +33,10 @@ impl std::fmt::Display for LinkError {
 pub struct Link {
     fd: RawFd,
     partial: Vec<u8>,
+    /// Records are handed over until a SYNC at or after this time (epoch s) is read: +inf for an eager link.
+    horizon: f64,
+    /// The latest SYNC read (epoch s).
+    synced: f64,
 }
 
 fn would_block(err: &std::io::Error) -> bool {
@@ -39,16 +46,54 @@ fn would_block(err: &std::io::Error) -> bool {
 impl Link {
     /// `fd`: a connected, handshaken, non-blocking socket.
     pub fn new(fd: RawFd) -> Link {
-        Link { fd, partial: Vec::new() }
+        Link { fd, partial: Vec::new(), horizon: f64::INFINITY, synced: f64::NEG_INFINITY }
+    }
+
+    /// A lazy link: nothing is handed over before the first `wait_synced`.
+    pub fn lazy(fd: RawFd) -> Link {
+        Link { horizon: f64::NEG_INFINITY, ..Link::new(fd) }
+    }
+
+    /// The latest read time the server has synced this link to (epoch s).
+    pub fn synced(&self) -> f64 {
+        self.synced
+    }
+
+    /// Ask for read times: `first` (epoch s), then every `period` s (0: once).
+    pub fn read_every(&self, first: f64, period: f64) -> Result<(), LinkError> {
+        self.write_all(&pack_read_every(first, period))
+    }
+
+    /// Hand over every frame that ended by read time `t` (epoch s), waiting up to `timeout_s` (wall) for the
+    /// server's SYNC of it; whether it came.
+    pub fn wait_synced(&mut self, t: f64, timeout_s: f64, mut each: impl FnMut(u32, u8, f64, &[u8])) -> Result<bool, LinkError> {
+        self.horizon = self.horizon.max(t);
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(timeout_s.max(0.0));
+        loop {
+            self.pump(&mut each)?;
+            if self.synced >= t - crate::protocol::SYNC_TOLERANCE_S {
+                return Ok(true);
+            }
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return Ok(false);
+            }
+            let mut pfd = libc::pollfd { fd: self.fd, events: libc::POLLIN, revents: 0 };
+            let ts = libc::timespec { tv_sec: left.as_secs() as libc::time_t, tv_nsec: left.subsec_nanos() as libc::c_long };
+            // SAFETY: one pollfd we own, for the duration of the call.
+            unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) };
+        }
     }
 
     pub fn fd(&self) -> RawFd {
         self.fd
     }
 
-    /// Read every record waiting and call `each(can_id, flags, stamp, data)` for each whole frame.
+    /// Read every record waiting and call `each(can_id, flags, stamp, data)` for each whole frame (up to the
+    /// horizon, on a lazy link).
     pub fn pump(&mut self, mut each: impl FnMut(u32, u8, f64, &[u8])) -> Result<(), LinkError> {
         let mut buf = [0u8; 64 * RECORD_SIZE];
+        self.hand_over(&mut each); // what an earlier horizon held back
         loop {
             // SAFETY: reading into our own buffer from the node's socket.
             let n = unsafe { libc::recv(self.fd, buf.as_mut_ptr() as *mut libc::c_void, buf.len(), libc::MSG_DONTWAIT) };
@@ -60,14 +105,20 @@ impl Link {
                 return Err(LinkError::Closed);
             }
             self.partial.extend_from_slice(&buf[..n as usize]);
-            let used = read_frames(&self.partial, &mut each);
-            self.partial.drain(..used);
+            self.hand_over(&mut each);
         }
     }
 
-    /// Write `frames` as FRAME records with `flags`; an FD frame's payload is padded to a CAN FD length. Waits
-    /// while the socket is full.
-    pub fn send(&self, frames: &[(u32, &[u8])], flags: u8) -> Result<(), LinkError> {
+    /// The records read so far, up to the horizon.
+    fn hand_over(&mut self, each: &mut impl FnMut(u32, u8, f64, &[u8])) {
+        let used = read_frames(&self.partial, self.horizon, &mut self.synced, each);
+        self.partial.drain(..used);
+    }
+
+    /// Write `frames` as FRAME records with `flags`, stamped `stamp` (the epoch second they were sent, which a lazy
+    /// link's server queues them at; 0: when the server reads them); an FD frame's payload is padded to a CAN FD
+    /// length. Waits while the socket is full.
+    pub fn send(&self, frames: &[(u32, &[u8])], flags: u8, stamp: f64) -> Result<(), LinkError> {
         let fd = flags & crate::protocol::FLAG_FD != 0;
         let limit = if fd { crate::frame::MAX_DATA } else { crate::protocol::MAX_DLC };
         if let Some((id, data)) = frames.iter().find(|(_, d)| d.len() > limit) {
@@ -78,7 +129,7 @@ impl Link {
             let padded = if fd { crate::frame::fd_padded_len(data.len()).unwrap_or(data.len()) } else { data.len() };
             let mut payload = data.to_vec();
             payload.resize(padded, 0);
-            pack_frame_records(id, &payload, flags, 0.0, &mut out);
+            pack_frame_records(id, &payload, flags, stamp, &mut out);
         }
         self.write_all(&out)
     }
@@ -117,15 +168,37 @@ mod tests {
         a.set_nonblocking(true).unwrap();
         b.set_nonblocking(true).unwrap();
         let (tx, mut rx) = (Link::new(a.as_raw_fd()), Link::new(b.as_raw_fd()));
-        tx.send(&[(0x10, &[1, 2]), (0x11, &[3; 8])], 0).unwrap();
-        tx.send(&[(0x12, &[7; 13])], FLAG_FD | FLAG_BRS).unwrap(); // padded to 16
+        tx.send(&[(0x10, &[1, 2]), (0x11, &[3; 8])], 0, 0.0).unwrap();
+        tx.send(&[(0x12, &[7; 13])], FLAG_FD | FLAG_BRS, 0.0).unwrap(); // padded to 16
         let mut got = Vec::new();
         rx.pump(|id, flags, _, d| got.push((id, flags, d.to_vec()))).unwrap();
         let mut long = vec![7; 13];
         long.resize(16, 0);
         assert_eq!(got, vec![(0x10, 0, vec![1, 2]), (0x11, 0, vec![3; 8]), (0x12, FLAG_FD | FLAG_BRS, long)]);
-        assert!(matches!(tx.send(&[(0x13, &[0; 9])], 0), Err(LinkError::TooLong(0x13, 9, 8))));
+        assert!(matches!(tx.send(&[(0x13, &[0; 9])], 0, 0.0), Err(LinkError::TooLong(0x13, 9, 8))));
         drop(a);
         assert!(matches!(rx.pump(|_, _, _, _| {}), Err(LinkError::Closed)));
+    }
+
+    #[test]
+    fn a_lazy_link_hands_over_only_what_ended_by_its_read_time() {
+        let (a, b) = UnixStream::pair().unwrap();
+        b.set_nonblocking(true).unwrap();
+        let mut rx = Link::lazy(b.as_raw_fd());
+        let mut stream = Vec::new();
+        crate::protocol::pack_frame_records(0x10, &[1], 0, 1.0, &mut stream);
+        stream.extend_from_slice(&crate::protocol::pack_sync(1.5));
+        crate::protocol::pack_frame_records(0x11, &[2], 0, 1.7, &mut stream);
+        use std::io::Write;
+        (&a).write_all(&stream).unwrap();
+        let mut got = Vec::new();
+        rx.pump(|id, _, _, _| got.push(id)).unwrap();
+        assert!(got.is_empty()); // no read time yet
+        assert!(rx.wait_synced(1.5, 1.0, |id, _, _, _| got.push(id)).unwrap());
+        assert_eq!(got, vec![0x10]);
+        rx.pump(|id, _, _, _| got.push(id)).unwrap();
+        assert_eq!(got, vec![0x10]); // 0x11 ended after the read time
+        assert!(!rx.wait_synced(2.0, 0.01, |id, _, _, _| got.push(id)).unwrap()); // no SYNC of 2.0: timed out
+        assert_eq!(got, vec![0x10, 0x11]); // what came before the missing SYNC is handed over
     }
 }

@@ -52,6 +52,18 @@ pub const MAX_FD_DLC: usize = 64;
 pub const TOKEN_BYTES: usize = 16;
 /// HELLO options: bit 0, the node hears its own frames back.
 pub const OPTION_RECEIVE_OWN: u8 = 0x01;
+/// HELLO options: bit 1, a lazy reader. It reads its frames only at its read times (READ_EVERY), so the server
+/// hands them over then, with a SYNC record, rather than at each frame's end; its FRAME records carry the epoch
+/// second they were sent, and are queued at that instant.
+pub const OPTION_LAZY: u8 = 0x02;
+/// A lazy reader's read times: the first (epoch s, bytes 8..16) and the period (s, bytes 16..24; 0: once).
+pub const KIND_READ_EVERY: u8 = 10;
+/// Server to a lazy reader: every frame for it that ended by the epoch second in bytes 8..16 came before this.
+pub const KIND_SYNC: u8 = 11;
+/// A SYNC within this of a read time is that read time's: epoch seconds in an f64 resolve about 0.24 µs.
+pub const SYNC_TOLERANCE_S: f64 = 1e-6;
+/// Read schedules one lazy reader may hold at once.
+pub const MAX_READ_SCHEDULES: usize = 256;
 /// A FILTER's format match: any, standard IDs only, extended IDs only.
 pub const MATCH_ANY: u8 = 0;
 pub const MATCH_STANDARD: u8 = 1;
@@ -75,7 +87,9 @@ pub fn constants() -> Vec<(&'static str, f64)> {
         ("FLAG_ERROR", FLAG_ERROR as f64), ("FLAG_ECHO", FLAG_ECHO as f64), ("FLAG_FD", FLAG_FD as f64),
         ("FLAG_BRS", FLAG_BRS as f64), ("OPTION_RECEIVE_OWN", OPTION_RECEIVE_OWN as f64),
         ("MATCH_ANY", MATCH_ANY as f64), ("MATCH_STANDARD", MATCH_STANDARD as f64),
-        ("MATCH_EXTENDED", MATCH_EXTENDED as f64),
+        ("MATCH_EXTENDED", MATCH_EXTENDED as f64), ("OPTION_LAZY", OPTION_LAZY as f64),
+        ("KIND_READ_EVERY", KIND_READ_EVERY as f64), ("KIND_SYNC", KIND_SYNC as f64),
+        ("MAX_READ_SCHEDULES", MAX_READ_SCHEDULES as f64),
     ]
 }
 
@@ -196,15 +210,41 @@ pub fn u32_at(r: &[u8], at: usize) -> u32 {
     u32::from_le_bytes(r[at..at + 4].try_into().unwrap())
 }
 
+/// A lazy reader's READ_EVERY record: read at `first` (epoch s), then every `period` s (0: once).
+pub fn pack_read_every(first: f64, period: f64) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_READ_EVERY;
+    r[8..16].copy_from_slice(&first.to_le_bytes());
+    r[16..24].copy_from_slice(&period.to_le_bytes());
+    r
+}
+
+/// The SYNC record a lazy reader gets at its read time `stamp` (epoch s).
+pub fn pack_sync(stamp: f64) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_SYNC;
+    r[8..16].copy_from_slice(&stamp.to_le_bytes());
+    r
+}
+
+/// The f64 in bytes 8..16 of a record (a FRAME's stamp, a SYNC's or READ_EVERY's time).
+pub fn stamp_of(r: &[u8]) -> f64 {
+    f64::from_le_bytes(r[8..16].try_into().unwrap())
+}
+
 /// Reads the whole frames at the start of `buf`, a stream of records from a bus server, and calls
-/// `each(can_id, flags, stamp, data)` for each; returns the bytes used. Records other than FRAME are skipped; a
-/// CAN FD frame whose FRAME_DATA records are not all in `buf` yet waits for the next call.
-pub fn read_frames(buf: &[u8], mut each: impl FnMut(u32, u8, f64, &[u8])) -> usize {
+/// `each(can_id, flags, stamp, data)` for each; returns the bytes used. A SYNC record sets `synced` to its time;
+/// reading stops once `synced` reaches `horizon` (a lazy reader's read time; an eager reader passes infinity).
+/// Other records are skipped; a CAN FD frame whose FRAME_DATA records are not all in `buf` yet waits.
+pub fn read_frames(buf: &[u8], horizon: f64, synced: &mut f64, mut each: impl FnMut(u32, u8, f64, &[u8])) -> usize {
     let mut off = 0;
     let mut data = [0u8; MAX_FD_DLC];
-    while off + RECORD_SIZE <= buf.len() {
+    while off + RECORD_SIZE <= buf.len() && *synced < horizon - SYNC_TOLERANCE_S {
         let r = &buf[off..off + RECORD_SIZE];
         if r[0] != KIND_FRAME {
+            if r[0] == KIND_SYNC {
+                *synced = synced.max(stamp_of(r));
+            }
             off += RECORD_SIZE; // FILTERS_ACK and the like: no frame
             continue;
         }
@@ -221,7 +261,7 @@ pub fn read_frames(buf: &[u8], mut each: impl FnMut(u32, u8, f64, &[u8])) -> usi
             let rec = off + (1 + k) * RECORD_SIZE;
             data[at..at + take].copy_from_slice(&buf[rec + 1..rec + 1 + take]);
         }
-        each(u32_at(r, 4), r[1], f64::from_le_bytes(r[8..16].try_into().unwrap()), &data[..dlc]);
+        each(u32_at(r, 4), r[1], stamp_of(r), &data[..dlc]);
         off += (1 + extra) * RECORD_SIZE;
     }
     off
@@ -241,14 +281,14 @@ mod tests {
     #[test]
     fn kinds_and_flags_are_distinct() {
         let kinds = [KIND_FRAME, KIND_HELLO, KIND_WELCOME, KIND_FILTERS, KIND_FILTER, KIND_FILTERS_ACK, KIND_AUTH,
-                     KIND_REFUSED, KIND_FRAME_DATA];
+                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC];
         let mut sorted = kinds.to_vec();
         sorted.sort();
         sorted.dedup();
         assert_eq!(sorted.len(), kinds.len());
         let flags = [FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_ECHO, FLAG_FD, FLAG_BRS];
         assert_eq!(flags.iter().fold(0u8, |acc, f| { assert_eq!(acc & f, 0); acc | f }), KNOWN_FLAGS);
-        assert_eq!(constants().len(), 33);
+        assert_eq!(constants().len(), 37);
     }
 
     #[test]
@@ -284,12 +324,29 @@ mod tests {
         stream.extend_from_slice(&pack_filters_ack(7));
         pack_frame_records(0x1ABCDEF, &long, FLAG_FD | FLAG_BRS | FLAG_EXTENDED, 2.5, &mut stream);
         let mut seen = Vec::new();
+        let mut synced = f64::NEG_INFINITY;
         // Everything but the last record: the long frame waits.
-        let used = read_frames(&stream[..stream.len() - RECORD_SIZE], |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
+        let used = read_frames(&stream[..stream.len() - RECORD_SIZE], f64::INFINITY, &mut synced,
+                               |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
         assert_eq!(used, 2 * RECORD_SIZE);
         assert_eq!(seen, vec![(0x123, 0, 1.5, vec![1, 2, 3])]);
-        let used = read_frames(&stream[used..], |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
+        let used = read_frames(&stream[used..], f64::INFINITY, &mut synced, |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
         assert_eq!(used, MAX_FRAME_RECORDS * RECORD_SIZE);
         assert_eq!(seen[1], (0x1ABCDEF, FLAG_FD | FLAG_BRS | FLAG_EXTENDED, 2.5, long));
+    }
+
+    #[test]
+    fn a_lazy_reader_reads_up_to_the_sync_of_its_read_time_and_no_further() {
+        let mut stream = Vec::new();
+        pack_frame_records(0x10, &[1], 0, 1.0, &mut stream);
+        stream.extend_from_slice(&pack_sync(1.5));
+        pack_frame_records(0x11, &[2], 0, 1.7, &mut stream);
+        stream.extend_from_slice(&pack_sync(2.0));
+        let (mut synced, mut seen) = (f64::NEG_INFINITY, Vec::new());
+        let used = read_frames(&stream, 1.5, &mut synced, |id, _, _, _| seen.push(id));
+        assert_eq!((used, synced, seen.clone()), (2 * RECORD_SIZE, 1.5, vec![0x10]));
+        assert_eq!(read_frames(&stream[used..], 1.5, &mut synced, |id, _, _, _| seen.push(id)), 0); // reached
+        let used = read_frames(&stream[used..], 2.0, &mut synced, |id, _, _, _| seen.push(id));
+        assert_eq!((used, synced, seen), (2 * RECORD_SIZE, 2.0, vec![0x10, 0x11]));
     }
 }

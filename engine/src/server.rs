@@ -36,6 +36,8 @@ struct LongFrame {
     data: Vec<u8>,
     /// False for a refused frame: its FRAME_DATA records are read and dropped.
     keep: bool,
+    /// When it was queued (bus ns).
+    t: u64,
 }
 
 /// Settings of one server.
@@ -127,6 +129,29 @@ struct Client {
     authed: bool,
     t_open: Instant,
     long: Option<LongFrame>,
+    /// Records of `rx` already processed this turn.
+    rx_off: usize,
+    /// Bytes at the front of `out` to write now (a lazy reader's frames wait for its next SYNC).
+    flush_to: usize,
+    /// A lazy reader (`OPTION_LAZY`): its frames go out at its read times, its FRAME records carry their times.
+    lazy: bool,
+    /// Its read times: (next, period) in bus ns, period 0 for a single read.
+    reads: Vec<(u64, u64)>,
+}
+
+impl Client {
+    /// Queue bytes the node must get now (handshake answers), with everything before them.
+    fn push_now(&mut self, bytes: &[u8]) {
+        self.out.extend_from_slice(bytes);
+        self.flush_to = self.out.len();
+    }
+
+    fn next_read(&self) -> Option<u64> {
+        if self.closed || self.node.is_none() {
+            return None;
+        }
+        self.reads.iter().map(|&(next, _)| next).min()
+    }
 }
 
 enum Fault {
@@ -150,6 +175,10 @@ pub struct Server {
     ended: Vec<u64>,
     rx_cache: std::collections::HashMap<(u32, bool), Vec<usize>>,
     pollfds: Vec<libc::pollfd>,
+    /// Bus time up to which the bus has been run: arrivals are queued at or after it.
+    floor: u64,
+    /// A frame was queued on an idle bus at this time: arbitrate there.
+    arbitrate_at: Option<u64>,
 }
 
 /// A handle to a running server: stop it, read its state.
@@ -228,7 +257,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> st
     let mut server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        pollfds: Vec::new(),
+        pollfds: Vec::new(), floor: 0, arbitrate_at: None,
     };
     let name = format!("bus-server {}", server.cfg.channel);
     let thread = std::thread::Builder::new().name(name).spawn(move || server.serve())?;
@@ -248,6 +277,10 @@ impl Server {
         }
         let shared_arc = self.shared.clone();
         let mut shared = shared_arc.lock().unwrap();
+        for c in self.clients.iter_mut() {
+            c.flush_to = c.out.len(); // a lazy reader's last frames too
+        }
+        self.flush(&mut shared);
         for i in 0..self.clients.len() {
             self.drop_client(&mut shared, i, "server closing");
         }
@@ -255,19 +288,59 @@ impl Server {
         Self::close_windows(&mut shared, now, self.cfg.keep_log);
     }
 
-    fn timeout_ns(&self, shared: &Shared) -> i64 {
-        match shared.bus.current {
-            None => (self.cfg.load_window_ns as f64 / self.cfg.pace) as i64,
-            Some(tx) => {
-                let remaining = ((tx.t_end as f64 - self.now() as f64) / self.cfg.pace) as i64;
-                if remaining > self.cfg.spin_ns as i64 { remaining - self.cfg.spin_ns as i64 } else { 0 }
+    /// How long to sleep: to the end of the frame on the wire when someone must have it then (an eager node,
+    /// or the error model, which acts at every frame), to the next read time of a lazy reader, else a load window.
+    fn timeout_ns(&mut self, shared: &Shared) -> i64 {
+        let now = self.now();
+        let mut wake = now + self.cfg.load_window_ns;
+        if let Some(tx) = shared.bus.current {
+            if self.wakes_at_frame_ends(shared) {
+                wake = wake.min(tx.t_end.saturating_sub(self.cfg.spin_ns));
             }
         }
+        if let Some(r) = self.next_read() {
+            wake = wake.min(r);
+        }
+        (wake.saturating_sub(now) as f64 / self.cfg.pace) as i64
+    }
+
+    /// Whether the loop must wake at frame ends: always, unless every node that could take the frames on the
+    /// wire and in the queues is a lazy reader (and the bus has no error model or guardian, which act per frame).
+    fn wakes_at_frame_ends(&mut self, shared: &Shared) -> bool {
+        if shared.bus.errors.is_some() || shared.bus.guardian.is_some() || !self.clients.iter().any(|c| c.lazy) {
+            return true;
+        }
+        if !self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed) {
+            return false;
+        }
+        let mut keys: Vec<(u32, bool)> = shared.bus.queued_ids().collect();
+        keys.extend(shared.bus.current.map(|tx| (tx.frame_id, tx.extended)));
+        keys.into_iter().any(|key| {
+            let receivers = self.receivers(key).clone();
+            receivers.iter().any(|&i| !self.clients[i].lazy)
+        })
+    }
+
+    /// The clients whose filters take frames of `key`, cached until the clients or their filters change.
+    fn receivers(&mut self, key: (u32, bool)) -> &Vec<usize> {
+        if !self.rx_cache.contains_key(&key) {
+            let found: Vec<usize> = (0..self.clients.len())
+                .filter(|&i| self.clients[i].node.is_some() && !self.clients[i].closed
+                        && filters_accept(&self.clients[i].filters, key.0, key.1))
+                .collect();
+            self.rx_cache.insert(key, found);
+        }
+        &self.rx_cache[&key]
+    }
+
+    fn next_read(&self) -> Option<u64> {
+        self.clients.iter().filter_map(Client::next_read).min()
     }
 
     fn turn(&mut self) {
         let timeout = {
-            let shared = self.shared.lock().unwrap();
+            let shared_arc = self.shared.clone();
+            let shared = shared_arc.lock().unwrap();
             self.timeout_ns(&shared)
         };
         let mut fds = std::mem::take(&mut self.pollfds);
@@ -276,7 +349,7 @@ impl Server {
         fds.push(libc::pollfd { fd: self.listener.as_raw_fd(), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.tcp.as_ref().map_or(-1, |l| l.as_raw_fd()), events: libc::POLLIN, revents: 0 });
         for c in &self.clients {
-            let events = libc::POLLIN | if c.out.is_empty() { 0 } else { libc::POLLOUT };
+            let events = libc::POLLIN | if c.flush_to == 0 { 0 } else { libc::POLLOUT };
             fds.push(libc::pollfd { fd: c.stream.fd(), events, revents: 0 });
         }
         let ts = libc::timespec { tv_sec: (timeout / 1_000_000_000) as libc::time_t, tv_nsec: (timeout % 1_000_000_000) as libc::c_long };
@@ -288,8 +361,6 @@ impl Server {
         let shared_arc = self.shared.clone();
         let mut shared = shared_arc.lock().unwrap();
         shared.now_ns = now;
-        self.advance(&mut shared, now);
-        self.flush(&mut shared);
         if fds[0].revents != 0 {
             let mut buf = [0u8; 64];
             while let Ok(n) = self.wake.read(&mut buf) {
@@ -302,7 +373,7 @@ impl Server {
         for (k, pfd) in fds.iter().enumerate().skip(3).take(n_clients) {
             let i = k - 3;
             if pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 && !self.clients[i].closed {
-                self.read(&mut shared, i, now);
+                self.receive(&mut shared, i);
             }
         }
         if fds[1].revents != 0 {
@@ -311,6 +382,8 @@ impl Server {
         if fds[2].revents != 0 {
             self.accept(&mut shared, true);
         }
+        self.process_records(&mut shared, now);
+        self.advance(&mut shared, now, true);
         if shared.bus.current.is_none() {
             let _ = shared.bus.arbitrate(now);
         }
@@ -326,18 +399,84 @@ impl Server {
         self.pollfds = fds;
     }
 
-    /// Complete every transmission that ended by `now`; frames waiting at an end start right at it.
-    fn advance(&mut self, shared: &mut Shared, now: u64) {
-        while let Some(tx) = shared.bus.current {
-            if tx.t_end > now {
-                break;
+    /// Run the bus to `until` (`inclusive`: events at `until` too): complete every transmission that ended and
+    /// hand it over, arbitrate at each end and where a frame was queued on an idle bus, and give each lazy reader
+    /// its SYNC at its read times, all in time order.
+    fn advance(&mut self, shared: &mut Shared, until: u64, inclusive: bool) {
+        let due = |t: u64| if inclusive { t <= until } else { t < until };
+        loop {
+            if shared.bus.current.is_none() {
+                if let Some(ta) = self.arbitrate_at.filter(|&ta| due(ta)) {
+                    self.arbitrate_at = None;
+                    let _ = shared.bus.arbitrate(ta.max(shared.bus.busy_until));
+                    continue;
+                }
             }
-            let done = shared.bus.complete();
-            if done.error.is_none() {
-                self.deliver(shared, &done); // a frame destroyed by an error frame (errors.rs) is not delivered
+            let end = shared.bus.current.map(|tx| tx.t_end).filter(|&e| due(e));
+            let read = self.next_read().filter(|&r| due(r));
+            match (end, read) {
+                (Some(e), r) if r.is_none_or(|r| e <= r) => {
+                    let done = shared.bus.complete();
+                    if done.error.is_none() {
+                        self.deliver(shared, &done); // a frame destroyed by an error frame (errors.rs) is not delivered
+                    }
+                    self.arbitrate_at = None; // whatever is queued competes at this end
+                    let _ = shared.bus.arbitrate(e);
+                }
+                (_, Some(r)) => self.sync_readers(r),
+                _ => break,
             }
-            let _ = shared.bus.arbitrate(tx.t_end);
         }
+        if shared.bus.current.is_none() && shared.bus.pending() && self.arbitrate_at.is_none() {
+            self.arbitrate_at = Some(until.max(shared.bus.busy_until)); // e.g. the end of an error frame
+        }
+        self.floor = self.floor.max(until);
+    }
+
+    /// Read time `r` of lazy readers: a SYNC after the frames that ended by then, written out now.
+    fn sync_readers(&mut self, r: u64) {
+        let stamp = (self.epoch0_ns as f64 + r as f64 / self.cfg.pace) / 1e9;
+        for c in self.clients.iter_mut().filter(|c| c.next_read() == Some(r)) {
+            c.push_now(&pack_sync(stamp));
+            c.reads.retain_mut(|(next, period)| {
+                if *next > r {
+                    return true;
+                }
+                if *period == 0 {
+                    return false;
+                }
+                *next += (r - *next) / *period * *period + *period; // the first read after r
+                true
+            });
+        }
+    }
+
+    /// READ_EVERY from a lazy reader: its read times from `first` (epoch s) every `period` s (0: once).
+    fn read_every(&mut self, i: usize, r: &[u8], now: u64) -> Result<(), Fault> {
+        let (first, period) = (stamp_of(r), f64::from_le_bytes(r[16..24].try_into().unwrap()));
+        let c = &self.clients[i];
+        if !(first.is_finite() && period.is_finite() && period >= 0.0) {
+            return Err(Fault::Protocol(format!("READ_EVERY: first {first}, period {period} s from node {}", c.name)));
+        }
+        if c.reads.len() >= MAX_READ_SCHEDULES {
+            return Err(Fault::Protocol(format!("READ_EVERY: more than {MAX_READ_SCHEDULES} read schedules from node {}", c.name)));
+        }
+        let period_ns = (period * 1e9 * self.cfg.pace) as u64;
+        if period > 0.0 && period_ns < 10_000 {
+            return Err(Fault::Protocol(format!("READ_EVERY: a period of {period} s (bus time) is below 10 µs")));
+        }
+        let mut next = self.bus_ns(first).unwrap_or(0);
+        if period_ns > 0 && next < now {
+            next += (now - next).div_ceil(period_ns) * period_ns; // the first read time still to come
+        }
+        self.clients[i].reads.push((next.max(self.floor), period_ns));
+        Ok(())
+    }
+
+    /// An epoch second in bus ns (None before the bus's zero or not finite).
+    fn bus_ns(&self, epoch_s: f64) -> Option<u64> {
+        let ns = (epoch_s * 1e9 - self.epoch0_ns as f64) * self.cfg.pace;
+        (ns.is_finite() && ns >= 0.0).then_some(ns as u64)
     }
 
     fn deliver(&mut self, shared: &mut Shared, tx: &Transmission) {
@@ -349,14 +488,9 @@ impl Server {
         let size = packed.len();
         record[..size].copy_from_slice(&packed);
         let key = (tx.frame_id, tx.extended);
-        if !self.rx_cache.contains_key(&key) {
-            let found: Vec<usize> = (0..self.clients.len())
-                .filter(|&i| self.clients[i].node.is_some() && !self.clients[i].closed
-                        && filters_accept(&self.clients[i].filters, tx.frame_id, tx.extended))
-                .collect();
-            self.rx_cache.insert(key, found);
-        }
+        self.receivers(key);
         let receivers = self.rx_cache.remove(&key).unwrap_or_default();
+        let mut eager = false;
         for &i in &receivers {
             let c = &mut self.clients[i];
             let mut rec = record;
@@ -371,23 +505,30 @@ impl Server {
                 continue;
             }
             c.out.extend_from_slice(&rec[..size]);
+            if !c.lazy {
+                c.flush_to = c.out.len();
+                eager = true;
+            }
         }
         self.rx_cache.insert(key, receivers);
         shared.frames += 1;
         shared.busy_ns += tx.t_end - tx.t_start;
         shared.latency.add((tx.t_end - tx.t_enqueue) as i64);
-        self.ended.push(tx.t_end);
+        if eager {
+            self.ended.push(tx.t_end); // delivery lateness: of the frames handed over at their end
+        }
     }
 
     fn flush(&mut self, shared: &mut Shared) {
         for i in 0..self.clients.len() {
-            if self.clients[i].closed || self.clients[i].out.is_empty() {
+            if self.clients[i].closed || self.clients[i].flush_to == 0 {
                 continue;
             }
             let c = &mut self.clients[i];
-            match c.stream.write(&c.out) {
+            match c.stream.write(&c.out[..c.flush_to]) {
                 Ok(n) => {
                     c.out.drain(..n);
+                    c.flush_to -= n;
                 }
                 Err(e) if e.kind() == ErrorKind::WouldBlock || e.kind() == ErrorKind::Interrupted => {}
                 Err(e) => self.drop_client(shared, i, &format!("send failed: {e}")),
@@ -478,7 +619,7 @@ impl Server {
             self.clients.push(Client {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
-                authed: !tcp, t_open: Instant::now(), long: None,
+                authed: !tcp, t_open: Instant::now(), long: None, rx_off: 0, flush_to: 0, lazy: false, reads: Vec::new(),
             });
         }
     }
@@ -508,7 +649,9 @@ impl Server {
         }
     }
 
-    fn read(&mut self, shared: &mut Shared, i: usize, now: u64) {
+    /// Read what a node sent into its buffer (at most READ_RECORDS records a turn: a babbling node cannot stall
+    /// the loop); a closed connection drops it.
+    fn receive(&mut self, shared: &mut Shared, i: usize) {
         let mut chunk = [0u8; READ_RECORDS * RECORD_SIZE];
         let n = match self.clients[i].stream.read(&mut chunk) {
             Ok(n) => n,
@@ -520,32 +663,84 @@ impl Server {
         };
         if n == 0 {
             let c = &self.clients[i];
-            if !c.rx.is_empty() {
-                let text = format!("node {} (#{}) disconnected inside a record ({} of {RECORD_SIZE} bytes, discarded)",
-                                   c.name, c.cid, c.rx.len());
+            let partial = c.rx.len() % RECORD_SIZE;
+            if partial != 0 {
+                let text = format!("node {} (#{}) disconnected inside a record ({partial} of {RECORD_SIZE} bytes, discarded)",
+                                   c.name, c.cid);
                 self.bad_input(shared, "truncated_records", text);
             }
+            self.process_client(shared, i); // its whole records still count
             self.drop_client(shared, i, "disconnected");
             return;
         }
-        let mut buf = std::mem::take(&mut self.clients[i].rx);
-        buf.extend_from_slice(&chunk[..n]);
-        let end = buf.len() - buf.len() % RECORD_SIZE;
-        for off in (0..end).step_by(RECORD_SIZE) {
-            if let Err(fault) = self.record(shared, i, &buf[off..off + RECORD_SIZE], now) {
-                match fault {
-                    Fault::Protocol(why) => {
-                        let c = &self.clients[i];
-                        let text = format!("node {} (#{}) dropped: {why}", c.name, c.cid);
-                        self.bad_input(shared, "protocol_errors", text);
-                        self.drop_client(shared, i, &format!("protocol error: {why}"));
-                    }
-                    Fault::Refused(why) => self.drop_client(shared, i, &format!("refused: {why}")),
+        self.clients[i].rx.extend_from_slice(&chunk[..n]);
+    }
+
+    /// The nodes' whole records, in time order across the nodes: a lazy reader's FRAME at the time it carries
+    /// (not before the bus's floor, not after now), anyone else's when read; the bus is run up to each.
+    fn process_records(&mut self, shared: &mut Shared, now: u64) {
+        loop {
+            let mut best: Option<(u64, usize)> = None;
+            for (i, c) in self.clients.iter().enumerate() {
+                if c.closed || c.rx.len() - c.rx_off < RECORD_SIZE {
+                    continue;
                 }
-                return;
+                let t = self.record_time(c, &c.rx[c.rx_off..c.rx_off + RECORD_SIZE], now);
+                if best.is_none_or(|(bt, _)| t < bt) {
+                    best = Some((t, i));
+                }
             }
+            let Some((t, i)) = best else { break };
+            self.advance(shared, t, false);
+            self.process_one(shared, i, t);
         }
-        self.clients[i].rx = buf[end..].to_vec();
+        for c in self.clients.iter_mut() {
+            c.rx.drain(..c.rx_off.min(c.rx.len()));
+            c.rx_off = 0;
+        }
+    }
+
+    /// Every whole record of one node, at once (a node that is leaving).
+    fn process_client(&mut self, shared: &mut Shared, i: usize) {
+        let now = self.now();
+        while !self.clients[i].closed && self.clients[i].rx.len() - self.clients[i].rx_off >= RECORD_SIZE {
+            let t = { let c = &self.clients[i]; self.record_time(c, &c.rx[c.rx_off..c.rx_off + RECORD_SIZE], now) };
+            self.advance(shared, t, false);
+            self.process_one(shared, i, t);
+        }
+    }
+
+    fn process_one(&mut self, shared: &mut Shared, i: usize, t: u64) {
+        let off = self.clients[i].rx_off;
+        let mut r = [0u8; RECORD_SIZE];
+        r.copy_from_slice(&self.clients[i].rx[off..off + RECORD_SIZE]);
+        self.clients[i].rx_off += RECORD_SIZE;
+        if let Err(fault) = self.record(shared, i, &r, t) {
+            match fault {
+                Fault::Protocol(why) => {
+                    let c = &self.clients[i];
+                    let text = format!("node {} (#{}) dropped: {why}", c.name, c.cid);
+                    self.bad_input(shared, "protocol_errors", text);
+                    self.drop_client(shared, i, &format!("protocol error: {why}"));
+                }
+                Fault::Refused(why) => self.drop_client(shared, i, &format!("refused: {why}")),
+            }
+            let c = &mut self.clients[i];
+            c.rx.clear();
+            c.rx_off = 0;
+        }
+    }
+
+    /// When a record takes effect: a lazy reader's FRAME at its stamp (kept within [floor, now]), a FRAME_DATA
+    /// with its FRAME, anything else now or, for a lazy reader, as soon as possible.
+    fn record_time(&self, c: &Client, r: &[u8], now: u64) -> u64 {
+        let floor = self.floor.min(now);
+        match r[0] {
+            KIND_FRAME if c.lazy => self.bus_ns(stamp_of(r)).map_or(now, |t| t.clamp(floor, now)),
+            KIND_FRAME_DATA if c.long.is_some() => c.long.as_ref().unwrap().t,
+            _ if c.lazy => floor,
+            _ => now,
+        }
     }
 
     fn record(&mut self, shared: &mut Shared, i: usize, r: &[u8], now: u64) -> Result<(), Fault> {
@@ -584,8 +779,11 @@ impl Server {
                         return Ok(());
                     }
                     let node = self.clients[i].node.unwrap();
-                    shared.bus.enqueue_as(node, long.can_id, &long.data, now, Some(long.flags & FLAG_EXTENDED != 0),
+                    shared.bus.enqueue_as(node, long.can_id, &long.data, long.t, Some(long.flags & FLAG_EXTENDED != 0),
                                           record_format(long.flags));
+                    if shared.bus.current.is_none() {
+                        self.arbitrate_at.get_or_insert(long.t); // else it competes at the end of the frame on the wire
+                    }
                 }
                 Ok(())
             }
@@ -593,17 +791,20 @@ impl Server {
                 let (flags, dlc, can_id) = (r[1], r[2], u32_at(r, 4));
                 match frame_error(can_id, dlc, flags, shared.bus.format.is_fd()) {
                     None if dlc > 8 => {
-                        self.clients[i].long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: true });
+                        self.clients[i].long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: true, t: now });
                     }
                     None => {
                         let node = self.clients[i].node.unwrap();
                         shared.bus.enqueue_as(node, can_id, &r[16..16 + dlc as usize], now, Some(flags & FLAG_EXTENDED != 0),
                                               record_format(flags));
+                        if shared.bus.current.is_none() {
+                            self.arbitrate_at.get_or_insert(now);
+                        }
                     }
                     Some(why) => {
                         let c = &mut self.clients[i];
                         if dlc > 8 {
-                            c.long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: false });
+                            c.long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: false, t: now });
                         }
                         c.rejected += 1;
                         shared.rejected += 1;
@@ -617,6 +818,7 @@ impl Server {
                 Ok(())
             }
             KIND_HELLO if !has_node => self.hello(shared, i, r),
+            KIND_READ_EVERY if has_node && self.clients[i].lazy => self.read_every(i, r, now),
             KIND_FILTERS if has_node && self.clients[i].pending.is_none() => {
                 let count = u16::from_le_bytes([r[2], r[3]]) as usize;
                 if count > MAX_FILTERS {
@@ -663,9 +865,10 @@ impl Server {
         let node = shared.bus.attach(&name, Sink::None, None, false);
         let c = &mut self.clients[i];
         c.name = name;
-        c.receive_own = options & 1 != 0;
+        c.receive_own = options & OPTION_RECEIVE_OWN != 0;
+        c.lazy = options & OPTION_LAZY != 0;
         c.node = Some(node);
-        c.out.extend_from_slice(&welcome);
+        c.push_now(&welcome);
         self.rx_cache.clear();
         shared.messages.push(("INFO".into(), format!("bus {}: node {} (#{}) joined", self.cfg.channel, c.name, c.cid)));
         Ok(())
@@ -675,7 +878,7 @@ impl Server {
         let c = &mut self.clients[i];
         let set = c.pending.take().unwrap_or_default();
         c.filters = if set.is_empty() { None } else { Some(set) };
-        c.out.extend_from_slice(&pack_filters_ack(c.pending_gen));
+        c.push_now(&pack_filters_ack(c.pending_gen));
         self.rx_cache.clear();
     }
 
@@ -734,6 +937,44 @@ mod tests {
         r[1] = PROTOCOL_VERSION;
         r[4..4 + name.len()].copy_from_slice(name.as_bytes());
         r
+    }
+
+    /// Two lazy nodes send at the same instant (their frames carry it); a lazy reader asks to read 20 ms on. The
+    /// lower ID wins, the other ends exactly one frame later, and the reader gets both then, before its SYNC.
+    #[test]
+    fn a_lazy_reader_gets_the_frames_that_ended_by_its_read_time_with_a_sync() {
+        let (mut handle, path, dir) = serve("lazy", 500_000, 500_000, Format::Classical);
+        let lazy_hello = |name: &str| { let mut r = hello(name); r[2] = OPTION_LAZY; r };
+        let mut socks: Vec<UnixStream> = ["A", "B", "R"].iter().map(|n| {
+            let mut s = UnixStream::connect(&path).unwrap();
+            s.write_all(&lazy_hello(n)).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_WELCOME);
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            s
+        }).collect();
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let t_send = epoch0 + handle.now_ns() as f64 * 1e-9 + 0.005;
+        socks[2].write_all(&pack_read_every(t_send + 0.02, 0.0)).unwrap();
+        std::thread::sleep(Duration::from_millis(10));
+        socks[1].write_all(&pack_frame(0x200, &[2; 8], 0, t_send)).unwrap();
+        socks[0].write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        let mut got = Vec::new();
+        let mut rec = [0u8; RECORD_SIZE];
+        while got.len() < 3 {
+            socks[2].read_exact(&mut rec).unwrap();
+            got.push((rec[0], u32_at(&rec, 4), stamp_of(&rec)));
+        }
+        let timing = BitTiming::new(500_000, 500_000).unwrap();
+        let one_frame = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        let other = timing.frame_ns(0x200, &[2; 8], false, false, false).unwrap() as f64 * 1e-9;
+        assert_eq!((got[0].0, got[0].1, got[1].0, got[1].1, got[2].0), (KIND_FRAME, 0x100, KIND_FRAME, 0x200, KIND_SYNC));
+        assert!((got[0].2 - (t_send + one_frame)).abs() < 2e-6, "{got:?}"); // queued at the instant it carries
+        assert!((got[1].2 - got[0].2 - other).abs() < 2e-6, "{got:?}"); // it waited for the winner, then ran
+        assert!((got[2].2 - (t_send + 0.02)).abs() < 2e-6, "{got:?}");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -339,6 +339,13 @@ impl Bus {
         }
     }
 
+    /// The (frame ID, extended) of every queued frame, in no order.
+    pub fn queued_ids(&self) -> impl Iterator<Item = (u32, bool)> + '_ {
+        let heap = self.heap.iter().map(|Reverse(item)| (item.frame_id, item.extended));
+        let fifos = self.nodes.iter().flat_map(|n| n.fifo.iter().map(|item| (item.frame_id, item.extended)));
+        heap.chain(fifos)
+    }
+
     /// Whether any frame is queued.
     pub fn pending(&self) -> bool {
         match self.policy {

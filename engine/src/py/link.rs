@@ -32,6 +32,13 @@ pub struct FrameLink {
     kept: Vec<(u32, Payload, f64)>,
     /// Container frames: packed on send, unpacked on receipt.
     packing: Option<Arc<CorePacking>>,
+    /// A lazy reader's link: frames come in at `sync_to`, sent frames carry the epoch second they were sent.
+    lazy: bool,
+}
+
+/// Seconds since the Unix epoch now (the stamp of a lazy link's frames; the server's time base is the epoch).
+fn epoch_now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64())
 }
 
 fn link_err(e: LinkError) -> PyErr {
@@ -70,14 +77,42 @@ impl FrameLink {
 impl FrameLink {
     /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). A frame's
     /// simulated time is (its epoch stamp - t0) * pace. `keep`: frames without a route are kept for `take`.
+    /// `lazy`: the connection said OPTION_LAZY; frames come in at `sync_to`, and sent frames carry their time.
     #[new]
-    #[pyo3(signature = (fd, t0, pace, keep = false))]
-    fn new(fd: i32, t0: f64, pace: f64, keep: bool) -> PyResult<Self> {
+    #[pyo3(signature = (fd, t0, pace, keep = false, lazy = false))]
+    fn new(fd: i32, t0: f64, pace: f64, keep: bool, lazy: bool) -> PyResult<Self> {
         if !(pace.is_finite() && pace > 0.0) {
             return Err(PyValueError::new_err(format!("pace={pace} must be positive")));
         }
-        Ok(FrameLink { link: Link::new(fd), t0, pace, routes: Default::default(), received: 0, keep,
-                       kept: Vec::new(), packing: None })
+        let link = if lazy { Link::lazy(fd) } else { Link::new(fd) };
+        Ok(FrameLink { link, t0, pace, routes: Default::default(), received: 0, keep, kept: Vec::new(), packing: None,
+                       lazy })
+    }
+
+    /// A lazy link's read times: `first` (epoch s), then every `period` s (0: once).
+    fn read_every(&self, first: f64, period: f64) -> PyResult<()> {
+        if !self.lazy {
+            return Err(PyValueError::new_err("read_every is for a lazy link"));
+        }
+        self.link.read_every(first, period).map_err(link_err)
+    }
+
+    /// Hand over every frame that ended by read time `t` (epoch s): wait up to `timeout_s` (wall, the interpreter
+    /// lock released) for the server's SYNC of it. Whether it came; frames that came before are handed over anyway.
+    fn sync_to(&mut self, py: Python<'_>, t: f64, timeout_s: f64) -> PyResult<bool> {
+        let mut frames = Vec::new();
+        let link = &mut self.link;
+        let result = py.allow_threads(|| link.wait_synced(t, timeout_s, |id, _, stamp, data| frames.push((id, stamp, Payload::new(data)))));
+        for (id, stamp, data) in frames {
+            self.hand_over(id, data.as_slice(), stamp);
+        }
+        result.map_err(link_err)
+    }
+
+    /// The latest read time the server synced this link to (epoch s; -inf before the first).
+    #[getter]
+    fn synced(&self) -> f64 {
+        self.link.synced()
     }
 
     /// Pack each `send` batch into `packing`'s containers, and unpack the containers received.
@@ -133,6 +168,7 @@ impl FrameLink {
             None => batch.iter().map(|&(id, d)| (id, Payload::new(d))).collect(),
         };
         let parts: Vec<(u32, &[u8])> = packed.iter().map(|(id, d)| (*id, d.as_slice())).collect();
-        self.link.send(&parts, flags).map_err(link_err)
+        let stamp = if self.lazy { epoch_now() } else { 0.0 };
+        self.link.send(&parts, flags, stamp).map_err(link_err)
     }
 }

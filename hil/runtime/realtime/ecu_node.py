@@ -60,12 +60,12 @@ def main(argv: list[str] | None = None) -> int:
         ids = set().union(*(e.rx_ids for e in mine))
         first = min(layout.train_unit(u)[1] for u in ecus if layout.train_unit(u)[0] == train)
         buses.append(open_bus(args.run, train, ids, sc.can, f"ECU_T{train + 1}_U{first + 1:02d}x{len(mine)}",
-                              receive_own=len(mine) > 1, packing=packing))
+                              receive_own=len(mine) > 1, packing=packing, lazy=True))
         routes.append({i: [e for e in mine if i in e.rx_ids] for i in ids})
     bus_of = {u: trains.index(layout.train_unit(u)[0]) for u in ecus}
     try:
         clock = SimClock(handshake(stop), args.pace)
-        io = node_frames(clock, buses, sc.can, packing)
+        io = node_frames(clock, buses, sc.can, packing, lazy=True)
         for i, table in enumerate(routes):
             for frame_id, listeners in table.items():
                 for ecu in listeners:
@@ -97,7 +97,9 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
     start = clock.now() if join_late else 0.0
     for u in ecus:
         phase = sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s
-        cycles.schedule(u, phase + max(0, math.ceil((start - phase) / sc.ecu.cycle_s)) * sc.ecu.cycle_s)
+        first = phase + max(0, math.ceil((start - phase) / sc.ecu.cycle_s)) * sc.ecu.cycle_s
+        io.read_every(first, sc.ecu.cycle_s, [bus_of[u]])  # a lazy reader: its bus syncs us at each cycle start
+        cycles.schedule(u, first)
     try:
         kernel.run(to_ns(duration))
     except (ConnectionError, OSError) as exc:  # the bus server went away (its rig died): keep what we have

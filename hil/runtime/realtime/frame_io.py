@@ -5,7 +5,14 @@ SocketCAN. Both have one interface, so the node loops do not care which:
   wall seconds polled), handing every frame to ``on_frame(bus, frame_id, data, t_sim)`` or, for ECU mailboxes
   routed with ``route``, straight into the mailbox;
 * ``drain(on_frame)``: whatever waits now; ``wait_any(wall_s, on_frame)``: the first frames within ``wall_s``;
-* ``send(bus, frames)``: queue ``[(frame_id, data)]`` on bus ``bus``.
+* ``send(bus, frames)``: queue ``[(frame_id, data)]`` on bus ``bus``;
+* ``read_every(first, period, buses)``: the node's read times (simulated s) on some buses, for a lazy reader.
+
+A lazy reader (``lazy=True``, the ECU and plant nodes on the emulated buses) tells its bus servers when it reads
+(``read_every``; an unforeseen wait asks once), and the servers hand its frames over only then, with a SYNC: no
+server wakes at each frame end for it, and ``wait`` blocks on the sockets until the SYNC of its time, so it sees
+exactly the frames that ended by then. Its sent frames carry the instant they were sent, at which the server
+queues them.
 
 With a CAN FD frame packing (``can.dbc = "train_fd.dbc"``), each ``send`` batch goes as its containers and every
 container received is handed over as the frames it carries (``trainhil_engine.Packing``), in both classes.
@@ -16,6 +23,7 @@ frame. Frame times are the bus's end-of-transmission stamps in simulated seconds
 """
 from __future__ import annotations
 
+import heapq
 import time
 from typing import Callable
 
@@ -26,15 +34,17 @@ from hil.runtime.realtime.pacing import SimClock, drain, wait_until
 
 FrameHandler = Callable[[int, int, bytes, float], None]  # (bus index, frame id, data, simulated arrival time)
 MAX_SLEEP_S = 0.05  # wall seconds between stop checks
+SYNC_GRACE_S = 0.05  # wall seconds a lazy reader waits past its read time for the server's SYNC
 
 
 class EngineFrames:
     """The engine's FrameLink on each bus socket."""
 
     def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True,
-                 packing: engine.Packing | None = None) -> None:
-        self.clock, self.extended, self.fd, self.brs = clock, extended, fd, brs
-        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True) for bus in buses]
+                 packing: engine.Packing | None = None, lazy: bool = False) -> None:
+        self.clock, self.extended, self.fd, self.brs, self.lazy = clock, extended, fd, brs, lazy
+        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True, lazy=lazy) for bus in buses]
+        self._schedules: list[tuple[int, int, int]] = []  # a lazy reader's (next read, period, bus), µs: a heap
         if packing is not None:
             for link in self.links:
                 link.set_packing(packing)
@@ -64,11 +74,42 @@ class EngineFrames:
         engine.wait_readable(self._fds, max(wall_s, 0.0))
         self.drain(on_frame)
 
+    def read_every(self, first: float, period: float, buses: list[int] | None = None) -> None:
+        """A lazy reader's read times ``first + k * period`` (simulated s) on ``buses`` (default: every bus);
+        nothing for an eager one. A wait at such a time waits for those buses' SYNCs only."""
+        if self.lazy:
+            for i in range(len(self.links)) if buses is None else buses:
+                self.links[i].read_every(self._epoch(first), period / self.clock.pace)
+                if period > 0:  # a single read is asked for at its wait
+                    heapq.heappush(self._schedules, (round(first * 1e6), round(period * 1e6), i))
+
+    def _epoch(self, sim_t: float) -> float:
+        return self.clock.t0 + sim_t / self.clock.pace
+
+    def _foreseen(self, sim_t: float) -> set[int]:
+        """The buses that have ``sim_t`` among the read times given to their servers (to within 1 µs); the
+        schedules move on past it (a heap of (next read, period, bus) in µs: one look per wait)."""
+        now_us, due, heap = round(sim_t * 1e6), set(), self._schedules
+        while heap and heap[0][0] <= now_us + 1:
+            next_us, period_us, bus = heapq.heappop(heap)
+            if next_us < now_us - 1:  # read times passed without a wait (skipped cycles): catch up
+                next_us += -(-(now_us - 1 - next_us) // period_us) * period_us
+            if next_us <= now_us + 1:
+                due.add(bus)
+                next_us += period_us
+            heapq.heappush(heap, (next_us, period_us, bus))
+        return due
+
     def wait(self, sim_t: float, on_frame: FrameHandler | None, stop, spin_s: float = 0.0) -> None:
         """Sleep to ``sim_t`` (the last ``spin_s`` polled), then hand over every frame that arrived meanwhile.
 
         No wake-up per frame: mailboxes keep the latest frame of each stream, and a handler gets the frames in
-        time order with their bus timestamps, so taking them at once is the same as taking them one by one."""
+        time order with their bus timestamps, so taking them at once is the same as taking them one by one.
+        A lazy reader blocks on its sockets until each server's SYNC of ``sim_t`` instead (no spin)."""
+        if self.lazy:
+            self._wait_synced(sim_t, stop)
+            self.drain(on_frame)
+            return
         clock = self.clock
         while not stop:
             rem = clock.wall_until(sim_t) - spin_s
@@ -78,6 +119,21 @@ class EngineFrames:
         while clock.wall_until(sim_t) > 0 and not stop:
             pass
         self.drain(on_frame)
+
+    def _wait_synced(self, sim_t: float, stop) -> None:
+        """Until every bus server has synced us to ``sim_t`` (asking once if it is not a foreseen read time), or
+        SYNC_GRACE_S past it (a server that does not answer: go on with what came)."""
+        t = self._epoch(sim_t)
+        buses = self._foreseen(sim_t)
+        if not buses:
+            buses = set(range(len(self.links)))
+            for link in self.links:
+                link.read_every(t, 0.0)
+        for link in (self.links[i] for i in sorted(buses)):
+            while not stop:
+                left = self.clock.wall_until(sim_t)
+                if link.sync_to(t, min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S)) or left < -SYNC_GRACE_S:
+                    break
 
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
         self.links[bus].send(frames, self.extended, self.fd, self.brs)
@@ -95,6 +151,9 @@ class PythonCanFrames:
 
     def route(self, bus: int, frame_id: int, mailbox: engine.Mailbox) -> None:
         self._routes[bus].setdefault(frame_id, []).append(mailbox)
+
+    def read_every(self, first: float, period: float, buses: list[int] | None = None) -> None:
+        """Nothing: python-can delivers every frame at its end."""
 
     def _on_msg(self, i: int, msg: can.Message) -> None:
         t, fid, data = self.clock.from_epoch(msg.timestamp), msg.arbitration_id, bytes(msg.data)
@@ -129,7 +188,9 @@ class PythonCanFrames:
 
 
 def node_frames(clock: SimClock, buses: list[can.BusABC], can_cfg,
-                packing: engine.Packing | None = None) -> EngineFrames | PythonCanFrames:
-    """The engine on the rig's emulated buses, python-can on SocketCAN; ``packing``: CAN FD containers."""
-    cls = EngineFrames if can_cfg.transport == "emulated" else PythonCanFrames
-    return cls(clock, buses, can_cfg.extended_ids, can_cfg.fd, can_cfg.brs, packing)
+                packing: engine.Packing | None = None, lazy: bool = False) -> EngineFrames | PythonCanFrames:
+    """The engine on the rig's emulated buses, python-can on SocketCAN; ``packing``: CAN FD containers; ``lazy``:
+    a lazy reader (the buses were opened with ``open_bus(lazy=True)``; emulated buses only)."""
+    if can_cfg.transport == "emulated":
+        return EngineFrames(clock, buses, can_cfg.extended_ids, can_cfg.fd, can_cfg.brs, packing, lazy)
+    return PythonCanFrames(clock, buses, can_cfg.extended_ids, can_cfg.fd, can_cfg.brs, packing)

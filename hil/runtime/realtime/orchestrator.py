@@ -5,8 +5,9 @@ the same ``run.rrd`` and ``metrics.json`` (same keys, ``runtime = "realtime"``) 
 real-time rig. Steps:
 
 1. One bus server per train bus, paced by ``pace``: the engine's ``NativeBusServer`` (a native thread each,
-   outside the interpreter lock, CAN errors and bus faults included). Sleep-only
-   (``spin_us = 0``), so the plant stays the rig's only spinner.
+   outside the interpreter lock, CAN errors and bus faults included). Sleep-only (``spin_us = 0``). The ECU
+   and plant nodes are lazy readers: a server hands them their frames at their read times, with a SYNC
+   (``hil/runtime/realtime/protocol.py``), and wakes at frame ends only for eager nodes (the radio, python-can).
 2. Node processes (same Python): the radio bridge, the plant + wayside, and the ECUs (``ecus_per_process``
    units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
    leaves, on 2 cores one process for every ECU). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
@@ -198,7 +199,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  keep_signals: bool = True):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
-    ``plant_spin_us``: the plant polls this long before each publication (0: sleep only). ``on_start(t0)`` is
+    ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
+    emulated buses it waits for its servers' SYNC instead. ``on_start(t0)`` is
     called with the epoch time of simulated t = 0 once every node is ready (tools, tests). ``can_log``: write
     ``<bus>.<asc|blf|mf4>`` per bus, frames stamped in simulated seconds as in a virtual-time run. ``run``: the run name
     (the python-can channel prefix; default: a fresh one); ``on_channels(channels)`` is called once the buses are

@@ -173,7 +173,7 @@ class PlantNode:
     def _schedule(self, clock: SimClock, duration: float, stop: StopFlag, spin_s: float) -> None:
         """The node's paced kernel, with the first publication and the end of the run on it."""
         self.clock = clock
-        self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can, self.packing)
+        self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can, self.packing, lazy=True)
         self.kernel = PacedKernel(clock, self.frames, stop, self.on_frame, spin_s)
         sc, step = self.sc, self.sc.plant.step_s
         self.every = {name: max(1, round(period / step)) for name, period in
@@ -185,6 +185,7 @@ class PlantNode:
         self.target = 0
         if self.n_steps > 0:
             self.kernel.at(0, self.publish, 0)
+            self.frames.read_every(0.0, self.publish_every * step)  # a lazy reader: synced at each publication
         self.kernel.at(to_ns(self.n_steps * step), self.finish)
 
     def publish(self, target: int) -> None:
@@ -262,7 +263,8 @@ class SignalStream:
 
 def main(argv: list[str] | None = None) -> int:
     p = node_parser("python -m hil.runtime.realtime.plant_node", "Run the plant and the wayside on the real-time rig's buses.")
-    p.add_argument("--spin-us", type=float, default=200.0, help="poll the last microseconds before a step (0: sleep only)")
+    p.add_argument("--spin-us", type=float, default=200.0, help="on SocketCAN, poll the last microseconds before a publication (0: sleep only); "
+                        "on the emulated buses the plant waits for its bus servers' SYNC instead")
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
@@ -273,8 +275,8 @@ def main(argv: list[str] | None = None) -> int:
     node = PlantNode(sc, args.seed, db, [], [], out)
     try:
         for i in range(n):
-            node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can, "Plant", packing=node.packing))
-            node.wayside.append(open_bus(args.run, i, (), sc.can, "Wayside"))
+            node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can, "Plant", packing=node.packing, lazy=True))
+            node.wayside.append(open_bus(args.run, i, (), sc.can, "Wayside", lazy=True))
         clock = SimClock(handshake(stop), args.pace)
         stats = LatenessStats(sc.plant.step_s, args.pace)
 

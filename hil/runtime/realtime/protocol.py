@@ -13,6 +13,8 @@ kind    name             way       layout (struct, after the common "<")
 5       FILTER           c -> s    ``B B x x I I 12x``: kind, match, -, -, can_id, can_mask
 6       FILTERS_ACK      s -> c    ``B x x x I 16x``: kind, generation
 7       AUTH             c -> s    ``B x x x 16s 4x``: kind, -, the run's token (16 bytes); TCP only, first record
+10      READ_EVERY       c -> s    ``B 7x d d``: kind, first read time (epoch s), period (s; 0: one read); lazy only
+11      SYNC             s -> c    ``B 7x d 8x``: kind, read time (epoch s): every frame that ended by then came before
 ======  ===============  ========  ==================================================================
 
 FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
@@ -20,10 +22,18 @@ asked for its own messages; python-can ``is_rx=False``), FD (a CAN FD frame) and
 data bitrate; only with FD). ``data`` is always 8 bytes, the first ``min(dlc, 8)`` count. A CAN FD frame with
 more than 8 data bytes (``dlc`` = 12, 16, 20, 24, 32, 48 or 64, its payload length) is followed at once by
 FRAME_DATA records (kind 9, ``B 23s``: kind, the next 23 payload bytes, zero-padded): 64 bytes take 4 records.
-From a node, ``timestamp`` is ignored (the frame is queued when the server reads it); from the server it is
+From a node, ``timestamp`` is ignored (the frame is queued when the server reads it) unless the node is a lazy
+reader, whose frames are queued at the epoch second they carry (kept between what the bus has run to and now);
+from the server it is
 the end of the frame's transmission (last bit of the intermission) in epoch seconds. Only classical data
 frames are emulated: a node must not send REMOTE, ERROR or ECHO (the server counts and drops them); ERROR
 frames are reserved for the server's fault hooks.
+
+Lazy readers (HELLO options bit 1, OPTION_LAZY; the rig's ECU and plant nodes): the node says when it reads
+(READ_EVERY, up to MAX_READ_SCHEDULES schedules), and the server hands its frames over only then: at each read
+time, every frame for it that ended by then and a SYNC of that time, written at once. The server wakes at frame
+ends only for eager nodes (python-can clients, the radio) and the error model; a lazy node blocks on its socket
+until the SYNC of its read time, so it sees exactly the frames that ended by then (``link.rs``).
 
 Session: the node sends HELLO (protocol version, options bit 0 = receive own messages, its name); the server
 answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id,
@@ -102,6 +112,9 @@ FLAG_BRS = _int("FLAG_BRS")  # ... whose data phase runs at the data bitrate
 KNOWN_FLAGS = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR | FLAG_ECHO | FLAG_FD | FLAG_BRS
 
 OPTION_RECEIVE_OWN = _int("OPTION_RECEIVE_OWN")
+OPTION_LAZY = _int("OPTION_LAZY")  # a lazy reader: its frames come at its read times (READ_EVERY), then a SYNC
+KIND_READ_EVERY = _int("KIND_READ_EVERY")  # lazy reader -> server: first read time (epoch s), period (s; 0: once)
+KIND_SYNC = _int("KIND_SYNC")  # server -> lazy reader: every frame that ended by this epoch second came before
 
 MATCH_ANY = _int("MATCH_ANY")
 MATCH_STANDARD = _int("MATCH_STANDARD")
@@ -203,11 +216,13 @@ def unpack_frame(record: bytes | bytearray | memoryview, offset: int = 0) -> Fra
     return Frame(can_id, data[:min(dlc, MAX_DLC)], flags, timestamp, dlc)
 
 
-def pack_hello(name: str, receive_own: bool = False, version: int = PROTOCOL_VERSION) -> bytes:
+def pack_hello(name: str, receive_own: bool = False, version: int = PROTOCOL_VERSION, lazy: bool = False) -> bytes:
+    """HELLO: the node's name and options (``receive_own``; ``lazy``: a lazy reader, see OPTION_LAZY)."""
     raw = name.encode()
     if not raw or len(raw) > NAME_BYTES or b"\0" in raw:
         raise ValueError(f"node name {name!r}: must be 1-{NAME_BYTES} bytes of UTF-8 without NUL")
-    return HELLO.pack(KIND_HELLO, version, OPTION_RECEIVE_OWN if receive_own else 0, raw)
+    options = (OPTION_RECEIVE_OWN if receive_own else 0) | (OPTION_LAZY if lazy else 0)
+    return HELLO.pack(KIND_HELLO, version, options, raw)
 
 
 def unpack_hello(record: bytes | bytearray | memoryview, offset: int = 0) -> Hello:

@@ -58,7 +58,7 @@ class TrainhilBus(BusABC):
 
     def __init__(self, channel: Any, can_filters=None, receive_own_messages: bool = False,
                  node_name: str | None = None, connect_timeout: float = 2.0, token: str | bytes | None = None,
-                 **kwargs: Any) -> None:
+                 lazy_reader: bool = False, **kwargs: Any) -> None:
         self.fd = bool(kwargs.get("fd", False))
         self._tcp: tuple[str, int, bytes] | None = None
         try:
@@ -72,7 +72,8 @@ class TrainhilBus(BusABC):
         except (ValueError, OSError) as exc:
             raise CanInitializationError(f"trainhil: {exc}") from exc
         name = node_name or f"pid{os.getpid()}.{next(_node_seq)}"
-        hello = pack_hello(name, receive_own_messages)  # ValueError names a bad node name
+        # lazy_reader: for the rig's own nodes, whose engine FrameLink then reads at the node's read times only
+        hello = pack_hello(name, receive_own_messages, lazy=lazy_reader)  # ValueError names a bad node name
         if self._tcp is not None:
             hello = pack_auth(self._tcp[2]) + hello  # the token goes first, or the server hangs up
         self._sock = self._connect_tcp(connect_timeout) if self._tcp is not None else self._connect(connect_timeout)
