@@ -528,10 +528,11 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                 code = n.proc.poll()
                 if code is not None and not n.reported and (code != 0 or now < end_wall - 0.5):
                     n.reported = True
-                    level = "ERROR"
-                    text = f"{'ECU' if n.kind == 'ecu' else n.kind} process {n.name} exited with code {code}"
                     tail = n.stderr_tail(10)
-                    events.append(Event(sim_now, level, "rig", text + (f": {tail}" if tail and code > 0 else "")))
+                    # an ECU process's every unit stopped: one event each (the safety verdict counts units)
+                    for name in n.name.split(",") if n.kind == "ecu" else [n.name]:
+                        text = f"{'ECU' if n.kind == 'ecu' else n.kind} process {name} exited with code {code}"
+                        events.append(Event(sim_now, "ERROR", "rig", text + (f": {tail}" if tail and code > 0 else "")))
                     if n.kind != "ecu":
                         return f"{n.kind} node exited"
             if all(n.proc.poll() is not None for n in nodes):
