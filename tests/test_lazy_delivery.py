@@ -1,0 +1,85 @@
+"""Lazy readers on the engine's bus server (issue 25): a node that says when it reads gets, at each read time,
+exactly the frames that ended by then and a SYNC, while an eager python-can node on the same bus still gets every
+frame at its end."""
+from __future__ import annotations
+
+import time
+
+import can
+import pytest
+import trainhil_engine as engine
+
+from hil.can.bus_log import BusLog
+from hil.can.frame import frame_bits
+from hil.runtime.realtime.native_server import NativeBusServer
+from hil.runtime.realtime.pycan_bus import TrainhilBus
+
+BITRATE = 125_000  # 8 µs bits: a frame of 8 bytes lasts about 1 ms
+PERIOD_S = 0.02
+
+
+@pytest.fixture
+def server(rt):
+    with NativeBusServer("lz", "bus1", BITRATE, log=BusLog("bus1", BITRATE)) as srv:
+        yield srv
+
+
+def lazy_link(name: str) -> tuple[TrainhilBus, engine.FrameLink]:
+    bus = TrainhilBus("lz/bus1", node_name=name, lazy_reader=True)
+    return bus, engine.FrameLink(bus.fileno(), 0.0, 1.0, keep=True, lazy=True)
+
+
+def test_a_lazy_reader_gets_exactly_the_frames_that_ended_by_each_read_time(server):
+    sender = TrainhilBus("lz/bus1", node_name="S")
+    reader_bus, reader = lazy_link("R")
+    eager = TrainhilBus("lz/bus1", node_name="E")
+    first = time.time() + 0.05
+    reader.read_every(first, PERIOD_S)
+    try:
+        sent_at = []
+        for k in range(6):  # one frame every half period: half of them end after a read time they precede
+            time.sleep(max(0.0, first + k * PERIOD_S / 2 - 0.004 - time.time()))
+            sender.send(can.Message(arbitration_id=0x100 + k, data=bytes(8), is_extended_id=False))
+            sent_at.append(time.time())
+        seen: list[tuple[int, float, float]] = []
+        for j in range(4):
+            t_read = first + j * PERIOD_S
+            assert reader.sync_to(t_read, 1.0), f"no SYNC of read time {j}"
+            assert abs(reader.synced - t_read) < 2e-6
+            got = reader.take()
+            assert all(stamp <= t_read + 1e-6 for _, _, stamp in got), (j, got)  # nothing from after the read time
+            seen += [(fid, stamp, t_read) for fid, _, stamp in got]
+        ids = [fid for fid, _, _ in seen]
+        assert ids == sorted(ids) == [0x100 + k for k in range(len(ids))]  # in order, none twice, none skipped
+        assert len(ids) == 6
+        # each frame at the first read time after its end (not a read later)
+        for fid, stamp, t_read in seen:
+            assert t_read - PERIOD_S < stamp <= t_read + 1e-6, (hex(fid), stamp - t_read)
+        # an eager node on the same bus still hears every frame, each within milliseconds of its end
+        heard = []
+        while (m := eager.recv(0.2)) is not None:
+            heard.append((m.arbitration_id, m.timestamp))
+        assert [fid for fid, _ in heard] == ids
+        assert [round(ts, 6) for _, ts in heard] == [round(stamp, 6) for _, stamp, _ in seen]
+        bits = frame_bits(0x100, bytes(8))
+        for (fid, stamp), t_sent in zip(heard, sent_at):
+            assert stamp - t_sent >= bits / BITRATE - 1e-4  # not before it could have ended
+    finally:
+        for b in (sender, reader_bus, eager):
+            b.shutdown()
+
+
+def test_a_read_time_nobody_foresaw_is_asked_for_once(server):
+    sender = TrainhilBus("lz/bus1", node_name="S")
+    reader_bus, reader = lazy_link("R")
+    try:
+        sender.send(can.Message(arbitration_id=0x123, data=bytes(8), is_extended_id=False))
+        time.sleep(0.01)
+        t_read = time.time() + 0.01
+        assert not reader.sync_to(t_read, 0.05)  # no read time was given: no SYNC comes
+        reader.read_every(t_read, 0.0)
+        assert reader.sync_to(t_read, 1.0)
+        assert [fid for fid, _, _ in reader.take()] == [0x123]
+    finally:
+        sender.shutdown()
+        reader_bus.shutdown()
