@@ -299,7 +299,7 @@ impl Server {
             }
         }
         if let Some(r) = self.next_read() {
-            wake = wake.min(r);
+            wake = wake.min((r + 1).saturating_sub(self.shortest_frame_ns(shared))); // see `anticipate`
         }
         (wake.saturating_sub(now) as f64 / self.cfg.pace) as i64
     }
@@ -372,7 +372,9 @@ impl Server {
         let n_clients = self.clients.len();
         for (k, pfd) in fds.iter().enumerate().skip(3).take(n_clients) {
             let i = k - 3;
-            if pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 && !self.clients[i].closed {
+            // a lazy reader's frames carry their time: read what came since the poll too, so fewer are late
+            let readable = pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 || self.clients[i].lazy;
+            if readable && !self.clients[i].closed {
                 self.receive(&mut shared, i);
             }
         }
@@ -384,6 +386,7 @@ impl Server {
         }
         self.process_records(&mut shared, now);
         self.advance(&mut shared, now, true);
+        self.anticipate(&mut shared, now);
         if shared.bus.current.is_none() {
             let _ = shared.bus.arbitrate(now);
         }
@@ -431,6 +434,27 @@ impl Server {
             self.arbitrate_at = Some(until.max(shared.bus.busy_until)); // e.g. the end of an error frame
         }
         self.floor = self.floor.max(until);
+    }
+
+    /// The shortest frame this bus can carry (an empty one; on a CAN FD bus the shorter of classical and FD).
+    fn shortest_frame_ns(&self, shared: &Shared) -> u64 {
+        let t = &shared.bus.timing;
+        let classical = t.frame_ns(0, &[], false, false, false).unwrap_or(0);
+        if self.cfg.format.is_fd() { classical.min(t.frame_ns(0, &[], false, true, true).unwrap_or(0)) } else { classical }
+    }
+
+    /// SYNC read times that are less than one shortest frame away, when the bus's state settles them: a frame
+    /// not yet on the wire cannot end by then, so if the frame on the wire (if any) ends after it, every frame
+    /// that ends by it has been handed over. The lazy reader has its SYNC before its read time (and waits for
+    /// that time itself), so it does not wait for this loop's wake-up after it.
+    fn anticipate(&mut self, shared: &mut Shared, now: u64) {
+        let horizon = now + self.shortest_frame_ns(shared);
+        while let Some(r) = self.next_read().filter(|&r| r < horizon) {
+            if shared.bus.current.is_some_and(|tx| tx.t_end <= r) {
+                return; // that frame ends first: the SYNC comes after it, at its time
+            }
+            self.sync_readers(r);
+        }
     }
 
     /// Read time `r` of lazy readers: a SYNC after the frames that ended by then, written out now.
@@ -958,8 +982,11 @@ mod tests {
         let t_send = epoch0 + handle.now_ns() as f64 * 1e-9 + 0.005;
         socks[2].write_all(&pack_read_every(t_send + 0.02, 0.0)).unwrap();
         std::thread::sleep(Duration::from_millis(10));
-        socks[1].write_all(&pack_frame(0x200, &[2; 8], 0, t_send)).unwrap();
-        socks[0].write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        {
+            let _hold = handle.shared.lock().unwrap(); // the loop reads both before it runs the bus
+            socks[1].write_all(&pack_frame(0x200, &[2; 8], 0, t_send)).unwrap();
+            socks[0].write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        }
         let mut got = Vec::new();
         let mut rec = [0u8; RECORD_SIZE];
         while got.len() < 3 {

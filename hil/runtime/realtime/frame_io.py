@@ -129,6 +129,10 @@ class EngineFrames:
             buses = set(range(len(self.links)))
             for link in self.links:
                 link.read_every(t, 0.0)
+        # sleep to the read time first: a server that can settle it sends the SYNC a little before (its
+        # `anticipate`), so the node wakes once, on its own timer, rather than after the server's wake-up
+        while not stop and (rem := self.clock.wall_until(sim_t)) > 0:
+            time.sleep(min(rem, MAX_SLEEP_S))
         for link in (self.links[i] for i in sorted(buses)):
             while not stop:
                 left = self.clock.wall_until(sim_t)
