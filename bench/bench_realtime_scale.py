@@ -180,7 +180,7 @@ def main() -> None:
         for k, spin in [(k, spin) for k in args.per_process for spin in args.plant_spin_us]:
             t = time.monotonic()
             r = one(n, k or None, args.duration, args.pace, spin)
-            r["per_process"] = k or default_ecus_per_process(n)
+            r["per_process"] = k or default_ecus_per_process(n, units_per_train=scaled_scenario(n).trains.units)
             virtual = virtual_cpu_per_sim_s(n, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "

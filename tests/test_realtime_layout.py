@@ -19,6 +19,16 @@ def test_one_ecu_process_per_core_the_rest_of_the_rig_leaves(n_ecus: int, cores:
     assert default_ecus_per_process(n_ecus, cores) == expected
 
 
+@pytest.mark.parametrize("n_ecus, cores, units_per_train, expected", [
+    (12, 2, 4, 4),     # seed000 on 2 cores: one process per train
+    (12, 2, 12, 12),   # one train of 12: one process
+    (64, 2, 16, 16),   # four trains of 16
+    (12, 8, 12, 2),    # many cores: a train spread over processes
+])
+def test_no_process_hosts_units_of_two_trains(n_ecus: int, cores: int, units_per_train: int, expected: int) -> None:
+    assert default_ecus_per_process(n_ecus, cores, units_per_train) == expected
+
+
 def test_the_cores_are_this_process_s_affinity(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(orchestrator.os, "sched_getaffinity", lambda _pid: {0, 3, 5}, raising=False)
     assert usable_cores() == 3
@@ -36,9 +46,10 @@ def test_ecu_processes_are_started_in_groups_of_the_layout(tmp_path, monkeypatch
     from hil.scenario import load_scenario
     from hil.scenario.layout import TrainLayout
 
-    layout = TrainLayout.from_config(load_scenario("seed000").trains)
-    per_process = default_ecus_per_process(layout.n_units, cores=2)
+    sc = load_scenario("seed000")
+    layout = TrainLayout.from_config(sc.trains)
+    per_process = default_ecus_per_process(layout.n_units, cores=2, units_per_train=sc.trains.units)
     orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, per_process, 0.0)
-    ecu_groups = [argv.count("--unit") for kind, *argv in started if kind == "ecu"]
-    assert ecu_groups == [layout.n_units]  # 2 cores: one ECU process for every unit
+    groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
+    assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # one ECU process per train
     assert [kind for kind, *_ in started][:2] == ["plant", "radio"]

@@ -10,7 +10,7 @@ real-time rig. Steps:
    (``hil/runtime/realtime/protocol.py``), and wakes at frame ends only for eager nodes (the radio, python-can).
 2. Node processes (same Python): the radio bridge, the plant + wayside, and the ECUs (``ecus_per_process``
    units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
-   leaves, on 2 cores one process for every ECU). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
+   leaves, but one train's units at most in each). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
@@ -181,13 +181,16 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def default_ecus_per_process(n_ecus: int, cores: int | None = None) -> int:
+def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_train: int | None = None) -> int:
     """ECUs per process when the user does not say: one ECU process per core left after the bus servers, the
     plant and the radio take one, so the ECUs of a process share its wake-ups and no more Python processes start
-    than the cores can run (on 2 cores: every ECU in one process). ``bench/bench_realtime_scale.py`` measures the
+    than the cores can run; but no process hosts units of two trains (``units_per_train``), since each unit waits
+    for its own bus's read time and units of several trains share their deadlines. On 2 cores: seed000's 3
+    trains x 4 units in 3 processes, one train of 12 in one. ``bench/bench_realtime_scale.py`` measures the
     layouts side by side."""
     ecu_processes = max(1, (usable_cores() if cores is None else cores) - 1)
-    return max(1, math.ceil(n_ecus / ecu_processes))
+    per_process = max(1, math.ceil(n_ecus / ecu_processes))
+    return per_process if units_per_train is None else max(1, min(per_process, units_per_train))
 
 
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
@@ -261,7 +264,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if on_channels is not None:
                 on_channels(channels(run, scenario))
             env = node_environment(scenario)
-            per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external))
+            per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
+                                                                        units_per_train=scenario.trains.units)
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
