@@ -521,8 +521,7 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
             now = time.time()
             sim_now = max((now - t0) * pace, 0.0)
             if bar is not None:
-                bar.n = round(min(sim_now, duration), 1)
-                bar.refresh()
+                bar.update(round(min(sim_now, duration), 1) - bar.n)  # drawn at most every mininterval
             if stop.requested:
                 return stop.requested
             if join is not None and (why := join.poll(now - t0)):
@@ -590,7 +589,9 @@ def _kill_all(nodes: list[Node]) -> None:
 def _progress_bar(total: float):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="s", desc="real time (sim s)", bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}]")
+    # a terminal redraws in place; a file or pipe gets a line per redraw, so fewer of them there
+    return tqdm(total=total, unit="s", desc="real time (sim s)", mininterval=0.1 if sys.stderr.isatty() else 5.0,
+                bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}]")
 
 
 # --------------------------------------------------------------------------- merging
