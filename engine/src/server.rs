@@ -179,6 +179,8 @@ pub struct Server {
     floor: u64,
     /// A frame was queued on an idle bus at this time: arbitrate there.
     arbitrate_at: Option<u64>,
+    /// The shortest frame this bus can carry (see `anticipate`).
+    shortest_frame_ns: u64,
 }
 
 /// A handle to a running server: stop it, read its state.
@@ -226,6 +228,12 @@ fn set_timer_slack() {
 }
 
 /// Start serving on already-listening sockets (raw fds the server takes ownership of).
+/// The shortest frame a bus can carry (an empty one; on a CAN FD bus the shorter of classical and FD).
+fn shortest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
+    let classical = timing.frame_ns(0, &[], false, false, false).unwrap_or(0);
+    if format.is_fd() { classical.min(timing.frame_ns(0, &[], false, true, true).unwrap_or(0)) } else { classical }
+}
+
 pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> std::io::Result<ServerHandle> {
     let timing = BitTiming::new(cfg.bitrate, cfg.data_bitrate).ok_or_else(|| {
         std::io::Error::new(ErrorKind::InvalidInput, format!("bitrate {} (data {}) has no whole-ns bit time", cfg.bitrate, cfg.data_bitrate))
@@ -245,6 +253,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> st
     let (wake_r, wake_w) = UnixStream::pair()?;
     wake_r.set_nonblocking(true)?;
     wake_w.set_nonblocking(true)?;
+    let shortest_frame_ns = shortest_frame_ns(&timing, cfg.format);
     let bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
@@ -257,7 +266,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> st
     let mut server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        pollfds: Vec::new(), floor: 0, arbitrate_at: None,
+        pollfds: Vec::new(), floor: 0, arbitrate_at: None, shortest_frame_ns,
     };
     let name = format!("bus-server {}", server.cfg.channel);
     let thread = std::thread::Builder::new().name(name).spawn(move || server.serve())?;
@@ -299,7 +308,7 @@ impl Server {
             }
         }
         if let Some(r) = self.next_read() {
-            wake = wake.min((r + 1).saturating_sub(self.shortest_frame_ns(shared))); // see `anticipate`
+            wake = wake.min((r + 1).saturating_sub(self.shortest_frame_ns)); // see `anticipate`
         }
         (wake.saturating_sub(now) as f64 / self.cfg.pace) as i64
     }
@@ -313,16 +322,16 @@ impl Server {
         if !self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed) {
             return false;
         }
-        let mut keys: Vec<(u32, bool)> = shared.bus.queued_ids().collect();
-        keys.extend(shared.bus.current.map(|tx| (tx.frame_id, tx.extended)));
-        keys.into_iter().any(|key| {
-            let receivers = self.receivers(key).clone();
-            receivers.iter().any(|&i| !self.clients[i].lazy)
+        let current = shared.bus.current.map(|tx| (tx.frame_id, tx.extended));
+        shared.bus.queued_ids().chain(current).any(|key| {
+            self.receivers(key);
+            self.rx_cache[&key].iter().any(|&i| !self.clients[i].lazy)
         })
     }
 
-    /// The clients whose filters take frames of `key`, cached until the clients or their filters change.
-    fn receivers(&mut self, key: (u32, bool)) -> &Vec<usize> {
+    /// Cache the clients whose filters take frames of `key` (in `rx_cache`, until the clients or their filters
+    /// change).
+    fn receivers(&mut self, key: (u32, bool)) {
         if !self.rx_cache.contains_key(&key) {
             let found: Vec<usize> = (0..self.clients.len())
                 .filter(|&i| self.clients[i].node.is_some() && !self.clients[i].closed
@@ -330,7 +339,6 @@ impl Server {
                 .collect();
             self.rx_cache.insert(key, found);
         }
-        &self.rx_cache[&key]
     }
 
     fn next_read(&self) -> Option<u64> {
@@ -436,19 +444,12 @@ impl Server {
         self.floor = self.floor.max(until);
     }
 
-    /// The shortest frame this bus can carry (an empty one; on a CAN FD bus the shorter of classical and FD).
-    fn shortest_frame_ns(&self, shared: &Shared) -> u64 {
-        let t = &shared.bus.timing;
-        let classical = t.frame_ns(0, &[], false, false, false).unwrap_or(0);
-        if self.cfg.format.is_fd() { classical.min(t.frame_ns(0, &[], false, true, true).unwrap_or(0)) } else { classical }
-    }
-
     /// SYNC read times that are less than one shortest frame away, when the bus's state settles them: a frame
     /// not yet on the wire cannot end by then, so if the frame on the wire (if any) ends after it, every frame
     /// that ends by it has been handed over. The lazy reader has its SYNC before its read time (and waits for
     /// that time itself), so it does not wait for this loop's wake-up after it.
     fn anticipate(&mut self, shared: &mut Shared, now: u64) {
-        let horizon = now + self.shortest_frame_ns(shared);
+        let horizon = now + self.shortest_frame_ns;
         while let Some(r) = self.next_read().filter(|&r| r < horizon) {
             if shared.bus.current.is_some_and(|tx| tx.t_end <= r) {
                 return; // that frame ends first: the SYNC comes after it, at its time
@@ -459,7 +460,7 @@ impl Server {
 
     /// Read time `r` of lazy readers: a SYNC after the frames that ended by then, written out now.
     fn sync_readers(&mut self, r: u64) {
-        let stamp = (self.epoch0_ns as f64 + r as f64 / self.cfg.pace) / 1e9;
+        let stamp = self.epoch_s(r);
         for c in self.clients.iter_mut().filter(|c| c.next_read() == Some(r)) {
             c.push_now(&pack_sync(stamp));
             c.reads.retain_mut(|(next, period)| {
@@ -497,6 +498,11 @@ impl Server {
         Ok(())
     }
 
+    /// A bus time (ns) in epoch seconds, as records carry it; `bus_ns` is its inverse.
+    fn epoch_s(&self, t: u64) -> f64 {
+        (self.epoch0_ns as f64 + t as f64 / self.cfg.pace) / 1e9
+    }
+
     /// An epoch second in bus ns (None before the bus's zero or not finite).
     fn bus_ns(&self, epoch_s: f64) -> Option<u64> {
         let ns = (epoch_s * 1e9 - self.epoch0_ns as f64) * self.cfg.pace;
@@ -505,7 +511,7 @@ impl Server {
 
     fn deliver(&mut self, shared: &mut Shared, tx: &Transmission) {
         let flags = if tx.extended { FLAG_EXTENDED } else { 0 } | format_flags(tx.format);
-        let stamp = (self.epoch0_ns as f64 + tx.t_end as f64 / self.cfg.pace) / 1e9;
+        let stamp = self.epoch_s(tx.t_end);
         let mut packed = Vec::with_capacity(MAX_FRAME_RECORDS * RECORD_SIZE);
         pack_frame_records(tx.frame_id, tx.data.as_slice(), flags, stamp, &mut packed);
         let mut record = [0u8; MAX_FRAME_RECORDS * RECORD_SIZE]; // copied per receiver without allocating
@@ -705,12 +711,8 @@ impl Server {
     fn process_records(&mut self, shared: &mut Shared, now: u64) {
         loop {
             let mut best: Option<(u64, usize)> = None;
-            for (i, c) in self.clients.iter().enumerate() {
-                if c.closed || c.rx.len() - c.rx_off < RECORD_SIZE {
-                    continue;
-                }
-                let t = self.record_time(c, &c.rx[c.rx_off..c.rx_off + RECORD_SIZE], now);
-                if best.is_none_or(|(bt, _)| t < bt) {
+            for i in 0..self.clients.len() {
+                if let Some(t) = self.next_record_time(i, now).filter(|&t| best.is_none_or(|(bt, _)| t < bt)) {
                     best = Some((t, i));
                 }
             }
@@ -727,8 +729,7 @@ impl Server {
     /// Every whole record of one node, at once (a node that is leaving).
     fn process_client(&mut self, shared: &mut Shared, i: usize) {
         let now = self.now();
-        while !self.clients[i].closed && self.clients[i].rx.len() - self.clients[i].rx_off >= RECORD_SIZE {
-            let t = { let c = &self.clients[i]; self.record_time(c, &c.rx[c.rx_off..c.rx_off + RECORD_SIZE], now) };
+        while let Some(t) = self.next_record_time(i, now) {
             self.advance(shared, t, false);
             self.process_one(shared, i, t);
         }
@@ -753,6 +754,15 @@ impl Server {
             c.rx.clear();
             c.rx_off = 0;
         }
+    }
+
+    /// When node `i`'s next whole record takes effect (None: it has none, or it is closed).
+    fn next_record_time(&self, i: usize, now: u64) -> Option<u64> {
+        let c = &self.clients[i];
+        if c.closed || c.rx.len() - c.rx_off < RECORD_SIZE {
+            return None;
+        }
+        Some(self.record_time(c, &c.rx[c.rx_off..c.rx_off + RECORD_SIZE], now))
     }
 
     /// When a record takes effect: a lazy reader's FRAME at its stamp (kept within [floor, now]), a FRAME_DATA

@@ -105,34 +105,32 @@ class EngineFrames:
 
         No wake-up per frame: mailboxes keep the latest frame of each stream, and a handler gets the frames in
         time order with their bus timestamps, so taking them at once is the same as taking them one by one.
-        A lazy reader blocks on its sockets until each server's SYNC of ``sim_t`` instead (no spin)."""
+        A lazy reader then waits for each server's SYNC of ``sim_t`` (no spin)."""
         if self.lazy:
+            self._sleep_until(sim_t, stop)
             self._wait_synced(sim_t, stop)
-            self.drain(on_frame)
-            return
-        clock = self.clock
-        while not stop:
-            rem = clock.wall_until(sim_t) - spin_s
-            if rem <= 0:
-                break
-            time.sleep(min(rem, MAX_SLEEP_S))
-        while clock.wall_until(sim_t) > 0 and not stop:
-            pass
+        else:
+            self._sleep_until(sim_t, stop, spin_s)
         self.drain(on_frame)
+
+    def _sleep_until(self, sim_t: float, stop, spin_s: float = 0.0) -> None:
+        """Sleep to ``sim_t``, noticing a stop request every MAX_SLEEP_S; the last ``spin_s`` wall seconds polled."""
+        while not stop and (rem := self.clock.wall_until(sim_t) - spin_s) > 0:
+            time.sleep(min(rem, MAX_SLEEP_S))
+        while not stop and self.clock.wall_until(sim_t) > 0:
+            pass
 
     def _wait_synced(self, sim_t: float, stop) -> None:
         """Until every bus server has synced us to ``sim_t`` (asking once if it is not a foreseen read time), or
-        SYNC_GRACE_S past it (a server that does not answer: go on with what came)."""
+        SYNC_GRACE_S past it (a server that does not answer: go on with what came). Called at ``sim_t``: a server
+        that can settle it sends the SYNC a little before (its ``anticipate``), so the node wakes once, on its own
+        timer, rather than after the server's wake-up."""
         t = self._epoch(sim_t)
         buses = self._foreseen(sim_t)
         if not buses:
             buses = set(range(len(self.links)))
             for link in self.links:
                 link.read_every(t, 0.0)
-        # sleep to the read time first: a server that can settle it sends the SYNC a little before (its
-        # `anticipate`), so the node wakes once, on its own timer, rather than after the server's wake-up
-        while not stop and (rem := self.clock.wall_until(sim_t)) > 0:
-            time.sleep(min(rem, MAX_SLEEP_S))
         for link in (self.links[i] for i in sorted(buses)):
             while not stop:
                 left = self.clock.wall_until(sim_t)
