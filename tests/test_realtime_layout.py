@@ -53,3 +53,15 @@ def test_ecu_processes_are_started_in_groups_of_the_layout(tmp_path, monkeypatch
     groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
     assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # one ECU process per train
     assert [kind for kind, *_ in started][:2] == ["plant", "radio"]
+
+
+def test_the_progress_bar_redraws_rarely_into_a_file(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Redirected to a file, the real-time progress bar wrote a line a hundred times a second; now every 5 s."""
+    with open(tmp_path / "err.log", "w") as fh:
+        monkeypatch.setattr(orchestrator.sys, "stderr", fh)
+        bar = orchestrator._progress_bar(10.0)
+        for _ in range(100):  # half the run, in 100 ticks
+            bar.update(0.05)
+        bar.close()
+    assert bar.mininterval == 5.0
+    assert (tmp_path / "err.log").read_text().count("real time (sim s)") <= 3
