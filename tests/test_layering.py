@@ -12,6 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS: list[list[str]] = [
     ["ecu_sim"],
     ["hil"],  # the package root: its version
+    ["hil.fmi"],  # the reference FMUs' sources and their build
     ["hil.scenario"],  # the data model, the loader, the train layout, which firmware each unit runs
     ["hil.sample_table", "hil.reference_profile", "hil.radio", "hil.cli_values"],
     ["hil.can"],

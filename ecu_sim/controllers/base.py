@@ -77,9 +77,14 @@ def register(cls: type[Controller]) -> type[Controller]:
 
 def get_controller(name: str) -> type[Controller]:
     """A law by registered name, by a name an installed package publishes (entry-point group
-    ``trainhil.controllers``), or by a ``"package.module:QualName"`` reference. The error lists the known names or
-    says why the reference does not load."""
+    ``trainhil.controllers``), by a ``"package.module:QualName"`` reference, or an FMU's (``"fmu:PATH"``). The error
+    lists the known names or says why the reference does not load."""
     import ecu_sim.controllers  # noqa: F401  (imports every law module, filling the registry)
+
+    if name.startswith("fmu:"):
+        from ecu_sim.controllers.fmu_law import fmu_law_class
+
+        return fmu_law_class(name.removeprefix("fmu:"))
 
     return resolve(name, _REGISTRY, LAW_GROUP, _check_law, "controller law", "ClassName")
 

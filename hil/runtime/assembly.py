@@ -49,6 +49,22 @@ def random_streams(seed: int) -> dict[str, np.random.Generator]:
     return {name: np.random.default_rng(child) for name, child in zip(names, children)}
 
 
+def build_plant(scenario: Scenario, layout: TrainLayout, x0: np.ndarray, v0: np.ndarray,
+                rng: np.random.Generator) -> Plant:
+    """The built-in plant, or the FMU plant of [plant.fmu]; an FMU that does not load or fit its mapping is a
+    ScenarioError naming it (exit 2 before a run writes anything)."""
+    if scenario.plant.fmu is None:
+        return Plant(scenario.plant, scenario.track, layout, x0, v0, rng)
+    from ecu_sim.fmu import FmuError
+    from hil.plant.fmu_plant import FmuPlant
+    from hil.scenario import ScenarioError
+
+    try:
+        return FmuPlant(scenario.plant, scenario.track, layout, x0, v0, rng)
+    except FmuError as exc:
+        raise ScenarioError(f"{scenario.name}: plant.fmu: {exc}") from None
+
+
 def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     """Build layout, plant (at its initial state), reference and one controller per unit (its own law)."""
     seed = scenario.seed if seed is None else seed
@@ -57,7 +73,7 @@ def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     given = scenario.trains.initial_unit_positions  # per-unit start (uneven couplers), else couplers at rest
     x0 = np.array(given, dtype=float) if given is not None else layout.initial_positions(scenario.trains.head_positions_m)
     v0 = np.repeat(scenario.trains.initial_speeds_mps, layout.units_per_train).astype(float)
-    plant = Plant(scenario.plant, scenario.track, layout, x0, v0, streams["plant"])
+    plant = build_plant(scenario, layout, x0, v0, streams["plant"])
     info = plant_info(scenario)
     firmware = firmware_plan(scenario)
     controllers = [build_controller(f.law, f.params, layout.agent_info(u), info) for u, f in enumerate(firmware)]

@@ -8,6 +8,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from hil.scenario.fmu_paths import anchor_fmu_paths, resolve_references
 from hil.scenario.model import Scenario
 
 
@@ -84,10 +85,15 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>", overrid
             if not isinstance(node, dict):
                 raise ScenarioError(f"{source}: override {dotted!r}: {part!r} is not a table")
         node[leaf] = value
+    anchor_fmu_paths(data, Path.cwd())  # an override's relative FMU path is the current folder's
     try:
         scenario = Scenario(**data)
+        if resolve_references(data, scenario.trains.count, scenario.trains.units):
+            scenario = Scenario(**data)
     except ValidationError as exc:
         raise ScenarioError(format_validation_errors(source, exc)) from None
+    except ValueError as exc:  # a reference FMU that cannot be built (no gcc): named, before anything runs
+        raise ScenarioError(f"{source}: {exc}") from None
     except RecursionError:
         raise ScenarioError(f"{source}: nested too deeply (arrays or tables inside each other beyond what a "
                             "scenario has)") from None
@@ -128,6 +134,7 @@ def read_scenario_data(path: Path, error: type[ValueError] = ScenarioError, _cha
     replaces the base's; a ``controller.law`` other than the base's brings only its own ``controller.params``
     (another law's parameters would not fit it)."""
     data = read_toml(path, error)
+    anchor_fmu_paths(data, path.parent)  # an FMU path is relative to the file that names it
     base = data.pop("extends", None)
     if base is None:
         return data

@@ -306,6 +306,59 @@ class ActuatorFault(Section):
         return self
 
 
+PLANT_FMU_QUANTITIES = {  # what [plant.fmu.parameters] can set from the scenario: per unit, or for the group
+    "mass_kg": "unit", "effective_mass_kg": "unit", "length_m": "unit", "davis_c0": "unit", "davis_c1": "unit",
+    "davis_c2": "unit", "initial_position_m": "unit", "initial_speed_mps": "unit",
+    "coupler_stiffness_n_per_m": "group", "coupler_damping_ns_per_m": "group", "step_s": "group",
+}
+FMU_UNIT_FIELDS = ("{unit}", "{train}", "{car}")  # placeholders of a per-unit variable name (1-based)
+
+
+class PlantFmuInputs(Section):
+    """FMU input variables the plant sets before each step, per unit: names with ``{unit}`` (or ``{train}`` and
+    ``{car}``), 1-based, front to back."""
+
+    force: str = Field(description="applied traction (+) or brake (-) force, N, after the actuator chain")
+    grade: str | None = Field(default=None, description="grade force per kg (N/kg, + uphill); needed on a track with grades")
+    curve: str | None = Field(default=None, description="curve resistance per kg (N/kg); needed on a track with curves")
+    disturbance: str | None = Field(default=None, description="force-channel disturbance, N; needed with plant.disturbances")
+
+
+class PlantFmuOutputs(Section):
+    """FMU output variables the plant reads after each step: per unit (``{unit}``), or per coupler (``{coupler}``)."""
+
+    position: str = Field(description="front-end position, m")
+    speed: str = Field(description="speed, m/s")
+    acceleration: str | None = Field(default=None, description="acceleration, m/s^2 (default: the speed change over the step)")
+    coupler: str | None = Field(default=None, description="coupler displacement, m, + stretched, per coupler "
+                                "(default: from positions and unit lengths)")
+
+
+class PlantFmu(Section):
+    """A plant from an FMU (FMI 2 or 3 co-simulation): it replaces the built-in dynamics; the actuator chain,
+    sensors, faults, CAN and recording stay. Mapping format: docs/fmi.md."""
+
+    path: str = Field(description="the .fmu file (relative to the scenario file), or trainhil:train_plant "
+                      "(trainhil:train_plant@3 for FMI 3), the reference FMU built from hil/fmi/c/ for the scenario's trains")
+    step_s: float | None = Field(default=None, gt=0, description="communication step: a whole multiple of "
+                                 "plant.step_s (default: plant.step_s)")
+    inputs: PlantFmuInputs
+    outputs: PlantFmuOutputs
+    parameters: dict[str, float | str] = Field(default={}, description="FMU variable (a name, or a template with "
+                                               "{unit}) -> a number, or a scenario quantity: "
+                                               + ", ".join(PLANT_FMU_QUANTITIES))
+
+    @field_validator("parameters")
+    @classmethod
+    def _check_parameters(cls, value: dict[str, float | str]) -> dict[str, float | str]:
+        for name, source in value.items():
+            if isinstance(source, str) and source not in PLANT_FMU_QUANTITIES:
+                raise ValueError(f"{name} = {source!r}: not a scenario quantity (known: {', '.join(PLANT_FMU_QUANTITIES)})")
+            if isinstance(source, str) and PLANT_FMU_QUANTITIES[source] == "unit" and not any(f in name for f in FMU_UNIT_FIELDS):
+                raise ValueError(f"{name} = {source!r}: a per-unit quantity needs a variable name with {{unit}}")
+        return value
+
+
 class PlantConfig(Section):
     """Longitudinal dynamics of every unit of every train."""
 
@@ -324,6 +377,7 @@ class PlantConfig(Section):
     units: UnitsConfig = UnitsConfig()
     actuator: ActuatorConfig = ActuatorConfig()
     actuator_faults: list[ActuatorFault] = []
+    fmu: PlantFmu | None = Field(default=None, description="the dynamics from an FMU instead of the built-in model")
 
     def check_units(self, count: int, units: int) -> None:
         """Per-unit lists and fault units fit the train group (count trains x units); errors name the field."""
@@ -579,8 +633,9 @@ class Scenario(Section):
         """Periods the plant samples at must be whole multiples of its step."""
         step = round(self.plant.step_s * 1e9)
         for field, value in (("can.sensor_period_s", self.can.sensor_period_s), ("recording.period_s", self.recording.period_s),
-                             ("ecu.cycle_s", self.ecu.cycle_s)):
-            if round(value * 1e9) % step:
+                             ("ecu.cycle_s", self.ecu.cycle_s),
+                             ("plant.fmu.step_s", self.plant.fmu.step_s if self.plant.fmu else None)):
+            if value is not None and round(value * 1e9) % step:
                 raise ValueError(f"{field} = {value} must be a whole multiple of plant.step_s = {self.plant.step_s}")
         return self
 
