@@ -8,12 +8,14 @@ exchange). Every variable the scenario maps is checked before the run: present, 
 what the FMU logged with an error status is part of the message.
 
 Instances are pooled per process (:meth:`Fmu.acquire`): a sweep worker instantiates an FMU once and resets it
-between runs (``fmi2Reset`` / ``fmi3Reset``) rather than loading its library again.
+between runs, given back by the plant's and the laws' ``close`` at the end of each run (``fmi2Reset`` / ``fmi3Reset``) rather than loading its library again.
 """
 from __future__ import annotations
 
 import atexit
 import ctypes
+import functools
+import itertools
 import math
 import shutil
 import weakref
@@ -61,6 +63,7 @@ class Fmu:
         self._unzipped: Path | None = None
         self._free: list[FmuInstance] = []
 
+
     def variable(self, name: str, causalities: Iterable[str], role: str) -> FmuVariable:
         """The real variable ``name`` of one of ``causalities``, checked; ``role`` says what the mapping uses it for."""
         wanted = tuple(causalities)
@@ -77,16 +80,18 @@ class Fmu:
                            f"expected {' or '.join(repr(c) for c in wanted)}")
         return var
 
-    def acquire(self, instance_name: str) -> FmuInstance:
-        """A free instance (reset) or a new one; it returns to the pool when its owner calls ``release``."""
+    def acquire(self, owner: object, instance_name: str) -> tuple[FmuInstance, weakref.finalize]:
+        """A free instance (reset) or a new one, lent to ``owner``, and the callable that gives it back: the owner
+        calls it when its run ends (``close``), or it runs when the owner is collected."""
         if self._free:
             instance = self._free.pop()
             instance.reset()
-            return instance
-        return FmuInstance(self, instance_name)
+        else:
+            instance = FmuInstance(self, instance_name)
+        return instance, weakref.finalize(owner, self._release, instance)
 
-    def release(self, instance: FmuInstance) -> None:
-        """Give an instance back for the next run of this process."""
+    def _release(self, instance: FmuInstance) -> None:
+        """Take an instance back for the next run of this process (not one that failed a call)."""
         if not instance.broken:
             self._free.append(instance)
 
@@ -141,12 +146,12 @@ class FmuInstance:
     plant costs a few tens of microseconds, not fmpy's per-call list conversions."""
 
     def __init__(self, fmu: Fmu, instance_name: str) -> None:
-        self.fmu, self.name = fmu, instance_name
+        self.fmu, self.name = fmu, f"{instance_name}#{next(_NUMBERS)}"  # unique: the FMI 2 logger routes by name
         self.messages: list[str] = []
         self.broken = False
         md, unzipped = fmu.description, fmu.unzipped()
         common = dict(guid=md.guid if fmu.fmi_version == 2 else md.instantiationToken, unzipDirectory=str(unzipped),
-                      modelIdentifier=md.coSimulation.modelIdentifier, instanceName=instance_name)
+                      modelIdentifier=md.coSimulation.modelIdentifier, instanceName=self.name)
         try:
             if fmu.fmi_version == 2:
                 from fmpy.fmi2 import FMU2Slave
@@ -168,19 +173,10 @@ class FmuInstance:
     # ------------------------------------------------------------------ logging
 
     def _fmi2_callbacks(self) -> Any:
-        from fmpy.fmi2 import (fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions,
-                               fmi2CallbackLoggerTYPE)
-        from fmpy.logging import addLoggerProxy
-
-        libc = ctypes.CDLL(None)
-        callbacks = fmi2CallbackFunctions()
-        callbacks.logger = fmi2CallbackLoggerTYPE(lambda env, name, status, category, message:
-                                                  self._record(status, message))
-        callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(("calloc", libc))
-        callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(("free", libc))
-        addLoggerProxy(ctypes.byref(callbacks))  # formats the printf-like message in C before it reaches Python
-        self._callbacks = callbacks  # kept alive as long as the instance
-        return callbacks
+        """The process's FMI 2 callbacks: fmpy's native logger proxy keeps one Python logger for the whole process,
+        so one logger routes every message to its instance by the (unique) instance name."""
+        _INSTANCES[self.name] = weakref.ref(self)
+        return _fmi2_callbacks()
 
     def _fmi3_log(self, env: Any, status: int, category: Any, message: Any) -> None:
         self._record(status, message)
@@ -281,6 +277,32 @@ class ValuePort:
             if not math.isfinite(value):
                 return f"{var.name} = {value!r}"
         return None
+
+
+_INSTANCES: dict[str, weakref.ref[FmuInstance]] = {}
+_NUMBERS = itertools.count(1)
+
+
+@functools.cache
+def _fmi2_callbacks() -> Any:
+    """fmi2CallbackFunctions shared by every FMI 2 instance of the process (kept alive by the cache)."""
+    from fmpy.fmi2 import (fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions,
+                           fmi2CallbackLoggerTYPE)
+    from fmpy.logging import addLoggerProxy
+
+    def log(env: Any, name: bytes | None, status: int, category: Any, message: bytes | None) -> None:
+        ref = _INSTANCES.get((name or b"").decode("utf-8", "replace"))
+        instance = ref() if ref is not None else None
+        if instance is not None:
+            instance._record(status, message)
+
+    libc = ctypes.CDLL(None)
+    callbacks = fmi2CallbackFunctions()
+    callbacks.logger = fmi2CallbackLoggerTYPE(log)
+    callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(("calloc", libc))
+    callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(("free", libc))
+    addLoggerProxy(ctypes.byref(callbacks))  # formats the printf-like message in C before it reaches Python
+    return callbacks
 
 
 def _free_slave(slave: Any) -> None:

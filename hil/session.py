@@ -155,6 +155,8 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
             w.stop()
         if writer:
             writer.close()
+        if rig is not None:
+            rig.parts.close()  # FMU instances back to the pool (a sweep worker's next run reuses them)
     try:
         metrics = run_metrics(log, scenario, runtime, scenario.seed if seed is None else seed, overrides=overrides,
                               source=source)

@@ -43,6 +43,9 @@ class Controller(ABC):
     def reset(self) -> None:
         """Forget internal state (ECU restart). Stateless laws need not override."""
 
+    def close(self) -> None:
+        """The run is over: give back what the law holds outside Python (an FMU instance). Most laws hold nothing."""
+
 
 class PlantInfo(BaseModel):
     """Model knowledge a law may use (nominal values, as the firmware would be configured)."""

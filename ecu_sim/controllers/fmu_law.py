@@ -13,7 +13,6 @@ the plant, set at instantiation). ``[[ecu.units]]`` params give a unit its own m
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Callable
 from functools import lru_cache
 from typing import Any, ClassVar
@@ -125,8 +124,8 @@ class FmuLaw(Controller):
         for name, source in params.parameters.items():
             var = fmu.variable(name, ("parameter", "input"), f"controller.params.parameters ({where})")
             self._parameters[var] = UNIT_QUANTITIES[source](agent, plant_info) if isinstance(source, str) else float(source)
-        self.instance: FmuInstance = fmu.acquire(f"law:t{agent.train + 1}u{agent.unit + 1}")
-        weakref.finalize(self, fmu.release, self.instance)
+        self.instance: FmuInstance
+        self.instance, self._give_back = fmu.acquire(self, f"law:t{agent.train + 1}u{agent.unit + 1}")
         self._in, self._out = self.instance.port(inputs), self.instance.port(outputs)
         self._started = False
         self.instance.initialize(self._parameters)  # fail at build time, not in the first cycle
@@ -152,6 +151,10 @@ class FmuLaw(Controller):
         force = out[0]
         accel = out[1] if len(out) > 1 else force / agent.mass_kg
         return Command(force_n=force, accel_mps2=accel)
+
+    def close(self) -> None:
+        """The run is over: the FMU instance back to this process's pool (a sweep's next run reuses it)."""
+        self._give_back()
 
     def reset(self) -> None:
         """ECU restart: the FMU instance back to its start, initialized again at the next cycle."""

@@ -193,6 +193,9 @@ class Plant:
         self._steps = 0
         self.t = 0.0
 
+    def close(self) -> None:
+        """The run is over. The built-in plant holds nothing to give back; the FMU plant returns its instance."""
+
     # ------------------------------------------------------------------ state
 
     @property

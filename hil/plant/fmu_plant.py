@@ -11,7 +11,6 @@ the firmware's nominal data differ exactly as they do with the built-in plant.
 from __future__ import annotations
 
 import math
-import weakref
 
 import numpy as np
 
@@ -64,13 +63,16 @@ class FmuPlant(Plant):
         self.fmu = load_fmu(mapping.path)
         self._refuse_unmapped(mapping)
         ports = self._ports(mapping)
-        self.instance = self.fmu.acquire(f"plant:{self.fmu.name}")
-        weakref.finalize(self, self.fmu.release, self.instance)
+        self.instance, self._give_back = self.fmu.acquire(self, f"plant:{self.fmu.name}")
         self.instance.initialize(self._parameters(mapping))
         self._inputs, self._outputs = (self.instance.port(p) for p in ports)
         self._n_out = len(self._outputs.variables)
         self._read_outputs(0.0)
         self._fmu_ready = True
+
+    def close(self) -> None:
+        """The run is over: the FMU instance back to this process's pool (a sweep's next run reuses it)."""
+        self._give_back()
 
     # ------------------------------------------------------------------ mapping
 

@@ -30,6 +30,12 @@ class Assembly:
     seed: int
     streams: dict[str, np.random.Generator]
 
+    def close(self) -> None:
+        """The run is over: the plant and the laws give back what they hold (FMU instances, to the pool)."""
+        self.plant.close()
+        for controller in self.controllers:
+            controller.close()
+
 
 def plant_info(scenario: Scenario) -> PlantInfo:
     """The nominal model knowledge a firmware is configured with."""
