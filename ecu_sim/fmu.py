@@ -16,7 +16,6 @@ import atexit
 import ctypes
 import functools
 import itertools
-import math
 import shutil
 import weakref
 import zipfile
@@ -24,6 +23,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 REAL_TYPES = ("Real", "Float64")
 
@@ -248,18 +249,20 @@ class ValuePort:
         self.instance, self.variables = instance, variables
         self.refs = (ctypes.c_uint32 * len(variables))(*[v.value_reference for v in variables])
         self.values = (ctypes.c_double * len(variables))()
+        self.array = np.ctypeslib.as_array(self.values)  # the same memory as a numpy array (no copy)
 
-    def write(self, values: Iterable[float]) -> None:
+    def write(self, values: Iterable[float] | np.ndarray) -> None:
         """Set every variable of the port (one fmiNSetReal/SetFloat64 call)."""
-        self.values[:] = list(values)
+        self.array[:] = values
         try:
             self.instance._call_set(self.refs, self.values)
         except Exception as exc:
             raise FmuError(f"{self.instance.fmu.name}: setting {self.variables[0].name} ... failed: "
                            f"{_one_line(exc)}{self.instance._logged()}") from None
 
-    def read(self) -> list[float]:
-        """Every variable's value (one fmiNGetReal/GetFloat64 call)."""
+    def read(self) -> np.ndarray:
+        """Every variable's value (one fmiNGetReal/GetFloat64 call), in :attr:`array`, which is returned: it is
+        overwritten by the next read."""
         inst = self.instance
         try:
             if inst.fmu.fmi_version == 2:
@@ -269,14 +272,12 @@ class ValuePort:
         except Exception as exc:
             raise FmuError(f"{inst.fmu.name}: reading {self.variables[0].name} ... failed: "
                            f"{_one_line(exc)}{inst._logged()}") from None
-        return self.values[:]
+        return self.array
 
-    def first_non_finite(self, values: list[float]) -> str | None:
-        """The name of the first variable whose value in ``values`` is not finite, else None."""
-        for var, value in zip(self.variables, values):
-            if not math.isfinite(value):
-                return f"{var.name} = {value!r}"
-        return None
+    def first_non_finite(self, values: np.ndarray) -> str | None:
+        """``name = value`` of the first variable whose value in ``values`` is not finite, else None."""
+        bad = np.flatnonzero(~np.isfinite(values))
+        return f"{self.variables[bad[0]].name} = {float(values[bad[0]])!r}" if len(bad) else None
 
 
 _INSTANCES: dict[str, weakref.ref[FmuInstance]] = {}

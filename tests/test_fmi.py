@@ -304,3 +304,14 @@ def test_fmu_paths_are_relative_to_the_scenario_file(tmp_path, plant_fmu):
     sc = load_scenario(plant_scenario(tmp_path, "models/plant.fmu"))
     assert sc.plant.fmu.path == str((tmp_path / "models" / "plant.fmu").resolve())
     assert math.isfinite(assemble(sc).plant.x[0])
+
+
+def test_a_law_fmu_failing_mid_run_stops_that_ecu_like_any_law_that_raises(tmp_path):
+    """Gains of 1e308 overflow the FMU's force: the ECUs whose law fails stop (verdict ecu_failure, an ERROR event
+    naming the FMU), the plant's fail-safe holds their units, and the run goes on to its end."""
+    sc = load_scenario("seed000-fmu-law", {"controller.params.parameters.kx_intra": 1e308})
+    result = run_scenario(sc, tmp_path / "out", duration_s=2, record=False, progress=False)
+    assert result.metrics["sim_time_s"] == pytest.approx(2.0)
+    assert result.metrics["safety"]["ecu_failure"]["violated"]
+    errors = [e.text for e in result.log.events if e.level == "ERROR"]
+    assert any("consensus_law" in text and ("force = inf" in text or "doStep" in text) for text in errors), errors[:3]

@@ -148,8 +148,8 @@ class FmuLaw(Controller):
         bad = self._out.first_non_finite(out)
         if bad is not None:
             raise FmuError(f"{self.fmu.name}: the law's output {bad} at t = {view.t:.6f} s")
-        force = out[0]
-        accel = out[1] if len(out) > 1 else force / agent.mass_kg
+        force = float(out[0])
+        accel = float(out[1]) if len(out) > 1 else force / agent.mass_kg
         return Command(force_n=force, accel_mps2=accel)
 
     def close(self) -> None:

@@ -10,8 +10,6 @@ the firmware's nominal data differ exactly as they do with the built-in plant.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ecu_sim.fmu import FmuError, FmuVariable, load_fmu
@@ -66,7 +64,6 @@ class FmuPlant(Plant):
         self.instance, self._give_back = self.fmu.acquire(self, f"plant:{self.fmu.name}")
         self.instance.initialize(self._parameters(mapping))
         self._inputs, self._outputs = (self.instance.port(p) for p in ports)
-        self._n_out = len(self._outputs.variables)
         self._read_outputs(0.0)
         self._fmu_ready = True
 
@@ -94,9 +91,12 @@ class FmuPlant(Plant):
         inputs = [fmu.variable(name, ("input",), f"plant.fmu.inputs.{role}")
                   for role in self._input_roles for name in expand(getattr(mapping.inputs, role), layout)]
         self._output_roles = [r for r in ("position", "speed", "acceleration", "coupler") if getattr(mapping.outputs, r)]
-        outputs = [fmu.variable(name, ("output",), f"plant.fmu.outputs.{role}")
-                   for role in self._output_roles
-                   for name in expand(getattr(mapping.outputs, role), layout, "coupler" if role == "coupler" else "unit")]
+        outputs: list[FmuVariable] = []
+        self._slices: dict[str, slice] = {}  # each output role's place in the output port
+        for role in self._output_roles:
+            names = expand(getattr(mapping.outputs, role), layout, "coupler" if role == "coupler" else "unit")
+            self._slices[role] = slice(len(outputs), len(outputs) + len(names))
+            outputs += [fmu.variable(name, ("output",), f"plant.fmu.outputs.{role}") for name in names]
         return inputs, outputs
 
     def _parameters(self, mapping: PlantFmu) -> dict[FmuVariable, float]:
@@ -150,43 +150,37 @@ class FmuPlant(Plant):
         self._steps += 1
         self.t = self._steps * self.dt
 
-    def _input_values(self, t: float, force: np.ndarray) -> list[float]:
+    def _input_values(self, t: float, force: np.ndarray) -> np.ndarray:
         """The mapped inputs in port order: force, then grade and curve (N/kg) and disturbance (N) where mapped."""
-        values = list(force)
-        if "grade" in self._input_roles or "curve" in self._input_roles:
-            self._track.lookup(self._x, self._grade, self._curve)
-            for role, arr in (("grade", self._grade), ("curve", self._curve)):
-                if role in self._input_roles:
-                    values += list(arr)
-        if "disturbance" in self._input_roles:
-            w = np.zeros(self.layout.n_units)
-            self._dist.add(t, w)
-            values += list(w)
-        bad = next((i for i, v in enumerate(values) if not math.isfinite(v)), None)
-        if bad is not None:
+        if len(self._input_roles) == 1:
+            values = force
+        else:
+            parts = [force]
+            if "grade" in self._input_roles or "curve" in self._input_roles:
+                self._track.lookup(self._x, self._grade, self._curve)
+                parts += [arr for role, arr in (("grade", self._grade), ("curve", self._curve)) if role in self._input_roles]
+            if "disturbance" in self._input_roles:
+                w = np.zeros(self.layout.n_units)
+                self._dist.add(t, w)
+                parts.append(w)
+            values = np.concatenate(parts)
+        if not np.isfinite(values).all():
             raise FmuPlantError(f"plant diverged at t = {t:.6f} s: non-finite FMU input "
-                                f"{self._inputs.variables[bad].name} = {values[bad]!r}")
+                                f"{self._inputs.first_non_finite(values)}")
         return values
 
     def _read_outputs(self, t: float) -> None:
         """Positions, speeds, accelerations and coupler displacements from the FMU, checked finite."""
         values = self._outputs.read()
-        bad = self._outputs.first_non_finite(values)
-        if bad is not None:
-            raise FmuPlantError(f"plant diverged at t = {t:.6f} s: the FMU {self.fmu.name} gives {bad}")
-        n, k = self.layout.n_units, 0
-        v_before = self._v.copy()
-        for role in self._output_roles:
-            count = len(self.layout.coupler_pairs()) if role == "coupler" else n
-            chunk = values[k:k + count]
-            k += count
-            if role == "position":
-                self._x[:] = chunk
-            elif role == "speed":
-                self._v[:] = chunk
-            elif role == "acceleration":
-                self.a[:] = chunk
-            else:
-                self._coupler = np.array(chunk)
+        if not np.isfinite(values).all():
+            raise FmuPlantError(f"plant diverged at t = {t:.6f} s: the FMU {self.fmu.name} gives "
+                                f"{self._outputs.first_non_finite(values)}")
         if "acceleration" not in self._output_roles and t > 0:
-            self.a[:] = (self._v - v_before) / self.fmu_step_s
+            np.subtract(values[self._slices["speed"]], self._v, out=self.a)
+            self.a /= self.fmu_step_s
+        self._x[:] = values[self._slices["position"]]
+        self._v[:] = values[self._slices["speed"]]
+        if "acceleration" in self._slices:
+            self.a[:] = values[self._slices["acceleration"]]
+        if "coupler" in self._slices:
+            self._coupler = values[self._slices["coupler"]].copy()
