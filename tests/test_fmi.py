@@ -189,14 +189,21 @@ def test_a_sweep_worker_instantiates_each_fmu_once_and_resets_it_between_runs(tm
     assert outcomes[2]["metrics"]["control_effort"] == outcomes[4]["metrics"]["control_effort"]
 
 
-def test_a_sweep_over_the_unit_count_builds_the_plant_fmu_for_each_layout(tmp_path):
-    spec = tmp_path / "units.toml"
-    spec.write_text('name = "fmu-units"\nbase = "seed000-fmu-plant"\nduration_s = 0.2\n'
-                    '[axes]\n"trains.units" = [2, 4]\n')
-    assert main(["sweep", str(spec), "--out", str(tmp_path / "sweep"), "--workers", "1", "--quiet"]) == 0
-    rows = (tmp_path / "sweep" / "results.csv").read_text().splitlines()
-    assert len(rows) == 3 and all(",ok," in row or row.split(",")[1:2] for row in rows[1:])
-    assert sum("ok" in row for row in rows[1:]) == 2
+def test_sweeps_over_the_unit_count_build_the_plant_fmu_per_layout_under_the_pool_and_dask(tmp_path, capfd):
+    from hil.sweep.runner import run_sweep
+    from hil.sweep.spec import load_sweep
+
+    spec_file = tmp_path / "units.toml"
+    spec_file.write_text('name = "fmu-units"\nbase = "seed000-fmu-plant"\nduration_s = 0.3\n'
+                         '[axes]\n"trains.units" = [2, 4]\n')
+    spec = load_sweep(spec_file)
+    pool = run_sweep(spec, tmp_path / "pool", workers=2, progress=False)
+    dask = run_sweep(spec, tmp_path / "dask", workers=2, dask="local", progress=False)
+    for res in (pool, dask):
+        assert (res.ok, res.failed) == (2, 0), [r.get("error") for r in res.rows]
+    assert [r["frames_sent"] for r in pool.rows] == [r["frames_sent"] for r in dask.rows]
+    assert [r["coupler_max_abs_m"] for r in pool.rows] == [r["coupler_max_abs_m"] for r in dask.rows]
+    assert pool.rows[0]["frames_sent"] < pool.rows[1]["frames_sent"]  # 2 and 4 units per train: two plant FMUs
 
 
 # --------------------------------------------------------------------------- bad FMUs
@@ -315,3 +322,14 @@ def test_a_law_fmu_failing_mid_run_stops_that_ecu_like_any_law_that_raises(tmp_p
     assert result.metrics["safety"]["ecu_failure"]["violated"]
     errors = [e.text for e in result.log.events if e.level == "ERROR"]
     assert any("consensus_law" in text and ("force = inf" in text or "doStep" in text) for text in errors), errors[:3]
+
+
+def test_a_reference_fmu_cache_others_can_write_to_is_refused(tmp_path, monkeypatch):
+    """An FMU in the cache is native code every run loads: a folder others can write is refused, by name."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    monkeypatch.setenv("TRAINHIL_FMU_CACHE", str(shared))
+    with pytest.raises(ScenarioError, match=r"trainhil:train_plant: the FMU cache .*shared is not yours alone .*mode 777"):
+        load_scenario("seed000-fmu-plant")
+    assert not list(shared.iterdir())

@@ -133,13 +133,29 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "trainhil" / "fmu"
 
 
+def checked_cache_dir() -> Path:
+    """The cache folder, made if missing; refused unless it is the user's own and no one else can write to it: an
+    FMU there is native code every run loads, so a folder others can write would let them run theirs."""
+    folder = cache_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        st = folder.stat()
+    except OSError as exc:
+        raise FmuBuildError(f"the FMU cache {folder} cannot be made: {exc.strerror}") from None
+    if st.st_uid != os.getuid() or st.st_mode & 0o022:
+        raise FmuBuildError(f"the FMU cache {folder} is not yours alone (owner uid {st.st_uid}, mode "
+                            f"{st.st_mode & 0o777:o}): an FMU there runs in every run; chmod go-w it or set "
+                            f"{CACHE_ENV} to a folder of your own")
+    return folder
+
+
 def reference_fmu(name: str, fmi_version: int = 2, n_trains: int = 1, units_per_train: int = 1) -> Path:
     """The path of reference FMU ``name``, built on first use and reused while its sources are unchanged."""
     spec = spec_for(name, n_trains, units_per_train)
     sources = b"".join((C_DIR / f).read_bytes() for f in sorted(os.listdir(C_DIR)))
     key = hashlib.sha256(sources + guid(spec).encode() + bytes([fmi_version])).hexdigest()[:16]
     layout = f"-{n_trains}x{units_per_train}" if name == "train_plant" else ""
-    path = cache_dir() / f"{name}{layout}-fmi{fmi_version}-{key}.fmu"
+    path = checked_cache_dir() / f"{name}{layout}-fmi{fmi_version}-{key}.fmu"
     if not path.is_file():
         build_fmu(spec, fmi_version, path)
     return path
