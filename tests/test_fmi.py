@@ -333,3 +333,17 @@ def test_a_reference_fmu_cache_others_can_write_to_is_refused(tmp_path, monkeypa
     with pytest.raises(ScenarioError, match=r"trainhil:train_plant: the FMU cache .*shared is not yours alone .*mode 777"):
         load_scenario("seed000-fmu-plant")
     assert not list(shared.iterdir())
+
+
+def test_a_crashed_ecu_restarts_its_law_fmu_from_the_start(tmp_path):
+    """An ECU crash and restart resets its FMU instance; after the restart the unit's commands are those of the
+    Python law restarted the same way (the FMU is initialized again at the first cycle after the restart)."""
+    crash = {"faults": [{"kind": "ecu_crash", "train": 2, "unit": 3, "at_s": 1.0, "duration_s": 0.5}]}
+    runs = {}
+    for name in ("seed000-consensus", "seed000-fmu-law"):
+        result = run_scenario(load_scenario(name, crash), tmp_path / name, duration_s=4, record=False, progress=False)
+        runs[name] = result.metrics
+    a, b = runs["seed000-consensus"], runs["seed000-fmu-law"]
+    assert a["faults"]["ecu_restarts"] == b["faults"]["ecu_restarts"] == 1
+    for key in ("speed_error_max_abs_mps", "coupler_max_abs_m", "control_effort", "frames_sent"):
+        assert b[key] == pytest.approx(a[key], rel=1e-9), key
