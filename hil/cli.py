@@ -328,8 +328,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_compare_parser(sub)
     add_can_analysis_parser(sub)
     from hil.commands.fmu import add_fmu_parser
+    from hil.commands.silkit import add_silkit_parser
 
     add_fmu_parser(sub)
+    add_silkit_parser(sub)
     add_bus_server_parser(sub)
     from hil.runtime.realtime.recover import add_recover_parser
 

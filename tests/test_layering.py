@@ -19,6 +19,7 @@ LAYERS: list[list[str]] = [
     ["hil.record"],
     ["hil.plant"],
     ["hil.faults"],
+    ["hil.silkit"],  # Vector SIL Kit: its runtime, the C API binding, participants, the CAN network simulator
     ["hil.runtime"],  # virtual time, the ideal loop, what both runtimes share, the virtual fault machinery
     ["hil.session", "hil.runtime.realtime"],  # a run to files, in virtual and in real time
     ["hil.compare", "hil.sweep", "hil.testing", "hil.viewer"],

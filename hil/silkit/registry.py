@@ -1,0 +1,54 @@
+"""A SIL Kit registry of the rig's own on loopback: started on a free port, its URI read from the configuration
+file it writes, stopped with the run (or the test) that started it."""
+from __future__ import annotations
+
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+from hil.silkit.runtime import SilKitRuntime
+
+
+class Registry:
+    """``sil-kit-registry --listen-uri silkit://HOST:0`` as a child process; :attr:`uri` is where it listens."""
+
+    def __init__(self, runtime: SilKitRuntime, host: str = "127.0.0.1", timeout_s: float = 10.0) -> None:
+        self._dir = tempfile.TemporaryDirectory(prefix="trainhil-registry-")
+        config = Path(self._dir.name) / "registry.yaml"
+        self.process = subprocess.Popen(
+            [str(runtime.tool("sil-kit-registry")), "--listen-uri", f"silkit://{host}:0",
+             "--generate-configuration", str(config), "--log", "warn"],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        self.uri = self._wait_for_uri(config, timeout_s)
+
+    def _wait_for_uri(self, config: Path, timeout_s: float) -> str:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                err = self.process.stderr.read().decode(errors="replace") if self.process.stderr else ""
+                raise RuntimeError(f"sil-kit-registry exited ({self.process.returncode}): {err.strip()[-300:]}")
+            if config.is_file():
+                for line in config.read_text().splitlines():
+                    if "RegistryUri:" in line:
+                        return line.split("RegistryUri:", 1)[1].strip().strip("'\"")
+            time.sleep(0.02)
+        self.close()
+        raise RuntimeError(f"sil-kit-registry did not report its URI within {timeout_s} s")
+
+    def close(self) -> None:
+        """Stop the registry (SIGTERM, then SIGKILL after 5 s)."""
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._dir.cleanup()
+
+    def __enter__(self) -> "Registry":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
