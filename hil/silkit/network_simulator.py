@@ -1,8 +1,7 @@
-"""trainhil as SIL Kit's network simulator for one CAN network: every controller's frames queued (TX queue depth;
-overflow acknowledged ``TransmitQueueFull``), arbitrated (lowest ID first among the queue heads when the bus goes
-idle), timed to the bit (the frame's exact stuffed length at the controller's bit rate, plus the 3-bit
-intermission) and delivered to every other controller with their end-of-frame timestamp, the sender getting its
-``Transmitted`` acknowledgement at the same instant.
+"""trainhil as SIL Kit's network simulator for one CAN network, on the engine's bus model (the one every run of the
+rig uses): each SIL Kit CAN controller is a node of an engine bus, so its frames are queued (TX queue depth;
+overflow acknowledged ``TransmitQueueFull``), arbitrated, timed to the bit and delivered to every other controller
+with their end-of-frame timestamp, the sender getting its ``Transmitted`` acknowledgement at the same instant.
 
 **When a frame was sent.** SIL Kit's frame request carries no time, and under its time synchronisation a
 participant may start its step t while the simulator is still between its own steps, so "the simulator's time when
@@ -14,61 +13,52 @@ sent in step kΔ, and are stamped kΔ; every arbitration that starts before (k +
 that ends by (k + 1)Δ is produced at once, which SIL Kit hands to the receivers before their step (k + 1)Δ. A frame
 is seen in the first step at or after its end, with its exact end time, and the run does not depend on thread
 timing. Participants must step on the Δ grid (a finer sender's frames are stamped at the Δ point before them).
-This first version models one classical CAN bus without error injection; the engine's bus model (error
-confinement, faults, CAN FD) is the next step.
+A frame that ends exactly on a step boundary (k + 1)Δ is produced a step later. The engine's objects live on the
+simulator's step thread: SIL Kit's callbacks only record what they are told. Not yet wired: the engine's error
+model and bus faults (error states to the controllers), CAN FD, per-controller bit rates (the bus has one; a
+controller that sets another is counted in ``bitrate_mismatches``).
 """
 from __future__ import annotations
 
 import ctypes
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
-from hil.can.frame import frame_bits, frame_duration_ns
 from hil.silkit import capi
 from hil.silkit.capi import Library
-
-INTERMISSION_BITS = 3
-
-
-@dataclass
-class Request:
-    """One frame a controller asked to send."""
-
-    controller: int  # its controller descriptor
-    can_id: int
-    flags: int
-    data: bytes
-    user_context: int | None
-    requested_ns: int
+from trainhil_engine import Network
 
 
 @dataclass
 class SimulatedController:
-    """What the simulator knows of one controller: its bit rate, state and TX queue."""
+    """What the simulator knows of one SIL Kit controller: its engine node, bit rate and state."""
 
     descriptor: int
-    bitrate: int = 500_000
+    node: int | None = None  # attached to the engine bus at the next half step (the engine's thread)
+    bitrate: int | None = None
     started: bool = True
-    queue: list[Request] = field(default_factory=list)
 
 
 class CanNetworkSimulator:
     """The simulated CAN network ``network`` of participant ``participant_handle`` (see the module docstring)."""
 
-    def __init__(self, lib: Library, participant_handle: Any, network: str, grid_ns: int,
+    def __init__(self, lib: Library, participant_handle: Any, network: str, grid_ns: int, bitrate: int = 500_000,
                  tx_queue_depth: int = 64) -> None:
         if grid_ns <= 0 or grid_ns % 2:
             raise ValueError(f"grid_ns = {grid_ns}: the participants' step must be a positive, even number of ns")
-        self.lib, self.network, self.depth, self.grid_ns = lib, network, tx_queue_depth, grid_ns
+        self.lib, self.network, self.grid_ns, self.bitrate = lib, network, grid_ns, bitrate
         self.step_ns = grid_ns // 2  # the simulator's own step (see the module docstring)
         self.controllers: dict[int, SimulatedController] = {}
         self.delivered: list[tuple[int, int, int, bytes]] = []  # (end ns, sender, id, data): what went on the bus
         self.queue_full = 0
+        self.bitrate_mismatches = 0
         self._lock = threading.Lock()
         self._arrived: list[tuple[int, int, int, bytes, Any]] = []  # requests since the last half step
-        self._in_flight: list[tuple[Request, int, list[int]]] = []  # won the bus, end after the last horizon
-        self._bus_free_ns = 0
+        self._contexts: dict[tuple[int, int], list[Any]] = {}  # (node, id) -> user contexts of frames queued
+        self._net: Network | None = None
+        self._depth = tx_queue_depth
+        self._by_node: dict[int, int] = {}  # engine node -> controller descriptor
         self._producer: Any = None
         self._keep: list[Any] = []
         self._controller_functions = capi.new(
@@ -114,14 +104,14 @@ class CanNetworkSimulator:
             c = self.controllers.get(int(controller or 0))
             if c is not None and config.contents.rate:
                 c.bitrate = int(config.contents.rate)
+                if c.bitrate != self.bitrate:
+                    self.bitrate_mismatches += 1
 
     def _on_mode(self, controller: Any, mode: Any) -> None:
         with self._lock:
             c = self.controllers.get(int(controller or 0))
             if c is not None:
                 c.started = mode.contents.state == capi.CONTROLLER_STARTED
-                if mode.contents.canControllerModeFlags & 2:  # CancelTransmitRequests
-                    c.queue.clear()
 
     def _on_frame_request(self, controller: Any, request: Any) -> None:
         frame = request.contents.frame.contents
@@ -133,70 +123,68 @@ class CanNetworkSimulator:
     # ------------------------------------------------------------------ the bus (the rig's step)
 
     def step(self, now_ns: int, duration_ns: int) -> None:
-        """The simulator's step at ``now`` (every Δ/2): at the half steps kΔ + Δ/2, stamp what arrived with kΔ, run
-        the bus to (k + 1)Δ and produce every frame that ends by then."""
+        """The simulator's step at ``now`` (every Δ/2): at the half steps kΔ + Δ/2, queue what arrived at kΔ on the
+        engine bus, run it to (k + 1)Δ and produce every frame that ended before then."""
         if now_ns % self.grid_ns != self.step_ns:
             return
+        net, bus = self._engine()
         sent_at = now_ns - self.step_ns
-        horizon = sent_at + self.grid_ns
-        full = self._enqueue(sent_at)
-        for descriptor, can_id, context in full:
+        net.advance(sent_at)
+        for descriptor, can_id, context in self._queue(net, bus):
             self._acknowledge(descriptor, can_id, capi.TRANSMIT_QUEUE_FULL, sent_at, context)
-        with self._lock:
-            while (winner := self._arbitrate(horizon)) is not None:
-                request, start = winner
-                bitrate = self.controllers[request.controller].bitrate
-                bits = frame_bits(request.can_id, request.data, bool(request.flags & capi.FLAG_IDE))
-                end = start + frame_duration_ns(bits, bitrate)
-                self.controllers[request.controller].queue.remove(request)
-                self._bus_free_ns = end + frame_duration_ns(INTERMISSION_BITS, bitrate)
-                receivers = [d for d, c in self.controllers.items() if d != request.controller and c.started]
-                self._in_flight.append((request, end, receivers))
-            due = [f for f in self._in_flight if f[1] <= horizon]
-            self._in_flight = [f for f in self._in_flight if f[1] > horizon]
-        for request, end, receivers in due:
-            self.delivered.append((end, request.controller, request.can_id, request.data))
-            self._deliver(request, end, receivers)
+        net.advance(sent_at + self.grid_ns)
+        for can_id, data, extended, _, _, end, node, _, _ in net.take_trace(bus):
+            sender = self._by_node[node]
+            queued = self._contexts.get((node, can_id))
+            context = queued.pop(0) if queued else None
+            with self._lock:
+                receivers = [d for d, c in self.controllers.items() if d != sender and c.started and c.node is not None]
+            self.delivered.append((end, sender, can_id, data))
+            self._deliver(sender, can_id, data, 0 if not extended else capi.FLAG_IDE, end, receivers, context)
 
-    def _enqueue(self, sent_at: int) -> list[tuple[int, int, Any]]:
-        """The requests that arrived since the last half step into their controllers' TX queues, stamped
-        ``sent_at``; returns (controller, id, context) of those a full queue refused."""
-        full = []
+    def _engine(self) -> tuple[Network, int]:
+        """The engine network and bus, made on this (the step) thread, with every known controller attached."""
+        if self._net is None:
+            self._net = Network()
+            self._bus = self._net.add_bus(self.network, self.bitrate, "priority", self._depth)
+            self._net.set_trace(self._bus, True)
+        with self._lock:
+            new = [c for c in self.controllers.values() if c.node is None]
+        for c in sorted(new, key=lambda c: c.descriptor):
+            c.node = self._net.attach_sender(self._bus, f"silkit:{c.descriptor}")
+            self._by_node[c.node] = c.descriptor
+        return self._net, self._bus
+
+    def _queue(self, net: Network, bus: int) -> list[tuple[int, int, Any]]:
+        """Send the requests that arrived since the last half step into the engine at its current time, controller
+        by controller (each one's in its own order: the run does not depend on which controller's came first);
+        returns (controller, id, context) of those a full TX queue refused."""
         with self._lock:
             arrived, self._arrived = self._arrived, []
-            for descriptor, can_id, flags, data, context in arrived:
-                c = self.controllers.get(descriptor)
-                if c is None:
-                    continue
-                if len(c.queue) >= self.depth:
-                    self.queue_full += 1
-                    full.append((descriptor, can_id, context))
-                else:
-                    c.queue.append(Request(descriptor, can_id, flags, data, context, sent_at))
+            nodes = {d: c.node for d, c in self.controllers.items()}
+        full = []
+        for descriptor, can_id, flags, data, context in sorted(arrived, key=lambda r: r[0]):  # stable: keeps order
+            node = nodes.get(descriptor)
+            if node is None:
+                continue
+            if net.send(bus, node, can_id, data):
+                self._contexts.setdefault((node, can_id), []).append(context)
+            else:
+                self.queue_full += 1
+                full.append((descriptor, can_id, context))
         return full
 
-    def _arbitrate(self, horizon_ns: int) -> tuple[Request, int] | None:
-        """The queue head that wins the bus next and when it starts, if that is before ``horizon`` (later, a
-        request not yet known could still contend), else None."""
-        heads = [min(c.queue, key=lambda r: r.can_id) for c in self.controllers.values() if c.queue and c.started]
-        if not heads:
-            return None
-        start = max(self._bus_free_ns, min(r.requested_ns for r in heads))
-        if start >= horizon_ns:
-            return None
-        contenders = [r for r in heads if r.requested_ns <= start]
-        return min(contenders, key=lambda r: r.can_id), start
-
-    def _deliver(self, request: Request, end_ns: int, receivers: list[int]) -> None:
+    def _deliver(self, sender: int, can_id: int, data: bytes, flags: int, end_ns: int, receivers: list[int],
+                 context: Any) -> None:
         """The frame to every other started controller, and the acknowledgement to its sender, at ``end_ns``."""
-        payload = (ctypes.c_uint8 * max(1, len(request.data))).from_buffer_copy(request.data.ljust(1, b"\0"))
-        frame = capi.new(capi.CanFrame, id=request.can_id, flags=request.flags, dlc=len(request.data),
-                         data=capi.ByteVector(ctypes.cast(payload, ctypes.POINTER(ctypes.c_uint8)), len(request.data)))
+        payload = (ctypes.c_uint8 * max(1, len(data))).from_buffer_copy(data.ljust(1, b"\0"))
+        frame = capi.new(capi.CanFrame, id=can_id, flags=flags, dlc=len(data),
+                         data=capi.ByteVector(ctypes.cast(payload, ctypes.POINTER(ctypes.c_uint8)), len(data)))
         event = capi.new(capi.CanFrameEvent, timestamp=end_ns, frame=ctypes.pointer(frame),
                          direction=capi.DIRECTION_RECEIVE, userContext=None)
         if receivers:
             self._produce(event, receivers)
-        self._acknowledge(request.controller, request.can_id, capi.TRANSMITTED, end_ns, request.user_context)
+        self._acknowledge(sender, can_id, capi.TRANSMITTED, end_ns, context)
 
     def _acknowledge(self, descriptor: int, can_id: int, status: int, t_ns: int, context: Any) -> None:
         ack = capi.new(capi.CanFrameTransmitEvent, userContext=context, timestamp=t_ns, status=status, canId=can_id)
