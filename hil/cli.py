@@ -122,7 +122,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, overrides)
     if args.external:  # added to the scenario's own, validated like them
         scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
-    if not args.realtime:  # before anything is written
+    if args.silkit is not None and (args.realtime or args.ideal):
+        raise ScenarioError(f"--silkit runs in virtual time: not with --{'realtime' if args.realtime else 'ideal'} (yet)")
+    if not args.realtime and args.silkit is None:  # before anything is written
         from hil.runtime.firmware import refuse_external_units
 
         refuse_external_units(scenario, "the ideal loop" if args.ideal else "virtual time")
@@ -156,7 +158,8 @@ def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict) -> i
     else:
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
                               record=not args.no_record, progress=not args.quiet, live=live,
-                              overrides=_given(args, overrides), source=str(args.scenario), keep_signals=False)
+                              overrides=_given(args, overrides), source=str(args.scenario), keep_signals=False,
+                              silkit=args.silkit)
     print_summary(result.metrics, out)
     if result.metrics.get("stopped_early"):  # a plant or radio process died: not the Ctrl-C code
         print(f"hil: error: the run stopped early: {result.metrics['stopped_early']} (what ran is in {out})",
@@ -298,6 +301,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="write one CAN log per bus: asc (the default), blf or mf4 (needs asammdf); python-can reads "
                           "each, bus1 on channel 0 (channel 1 in the ASC/BLF files)")
     run.add_argument("--ideal", action="store_true", help="run the ideal network-free reference loop instead")
+    run.add_argument("--silkit", nargs="?", const="", default=None, metavar="URI",
+                     help="virtual time in lockstep with Vector SIL Kit, the rig simulating its CAN buses for SIL Kit "
+                          "participants; ecu.external units are participants named after them (train1/unit2). URI: "
+                          "the registry (default: one of the run's own on 127.0.0.1, printed on stdout)")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     from hil.record.live import DEFAULT_PORT, DEFAULT_URL

@@ -77,10 +77,22 @@ def _can_loggers(rig: VirtualRig, out_dir: Path, fmt: str) -> list:
     return writers
 
 
+def _silkit_rig(scenario: Scenario, seed: int | None, db, uri: str) -> VirtualRig:
+    """The virtual rig as a SIL Kit participant; says on stdout where the participants join (also under --quiet)."""
+    from hil.runtime.silkit_rig import SilKitRig
+
+    rig = SilKitRig(scenario, seed, db=db, registry_uri=uri or None)
+    buses = ",".join(bus.name for bus in rig.buses)
+    print(f"silkit registry={rig.registry_uri} participant=trainhil networks={buses} "
+          f"external={','.join(scenario.ecu.external) or '-'}", flush=True)
+    return rig
+
+
 def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, duration_s: float | None = None,
                  can_log: str | bool | None = None, ideal: bool = False, record: bool = True, progress: bool = False,
                  chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None,
-                 overrides: dict | None = None, source: str | None = None, keep_signals: bool = True) -> RunResult:
+                 overrides: dict | None = None, source: str | None = None, keep_signals: bool = True,
+                 silkit: str | None = None) -> RunResult:
     """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir
     (``can_log``: "asc", "blf" or "mf4", True for ASC).
 
@@ -89,14 +101,15 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     (the ``--set`` options and the scenario as named) go into metrics.json's provenance. ``keep_signals=False``
     (``hil run``, sweeps): the samples are let go once recorded and summarised for the metrics, so memory does not
     grow with the run's length, and ``result.log`` holds only the last of them. The ideal loop records as it goes
-    too, and stops on Ctrl-C with what it has, as a virtual-time run does."""
+    too, and stops on Ctrl-C with what it has, as a virtual-time run does. ``silkit``: run as a Vector SIL Kit
+    participant on the registry at that URI ("" for a registry of the run's own; hil/runtime/silkit_rig.py)."""
     if live is not None:
         chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
     fmt = None if ideal else log_format(can_log)  # checked before anything is written
     db = None if ideal else load_train_db(scenario)  # so is the scenario's DBC
     out_dir.mkdir(parents=True, exist_ok=True)
     duration = scenario.duration_s if duration_s is None else duration_s
-    runtime = "ideal" if ideal else "virtual"
+    runtime = "ideal" if ideal else "virtual" if silkit is None else "silkit"
     stop = StopSignals().install()  # a stop signal during set-up is remembered, raised once the run starts
     mark_running(out_dir / "metrics.json", scenario.name, runtime)  # never a stale or half-written result
     files: list[Path] = []
@@ -113,7 +126,8 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     rig, failure = None, None
     try:
         stop.arm()  # from here SIGTERM/SIGHUP stop the run like Ctrl-C (the run loop returns what it has)
-        rig = IdealLoop(scenario, seed) if ideal else VirtualRig(scenario, seed, db=db)
+        rig = IdealLoop(scenario, seed) if ideal else VirtualRig(scenario, seed, db=db) if silkit is None else \
+            _silkit_rig(scenario, seed, db, silkit)
         rig.log.summary(scenario.plant.coupler_band_m)  # the metrics' figures, kept as the samples come
         if not ideal:
             if recorder and scenario.recording.frames:

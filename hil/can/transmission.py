@@ -10,7 +10,7 @@ from typing import Any
 class Transmission:
     """A frame on the wire."""
 
-    node: Any  # the sender: a model's node in the oracle, None where the engine carried the frame
+    node: Any  # the sender: a model's node in the oracle, the engine's node index where the engine carried it
     frame_id: int
     data: bytes
     t_enqueue: int

@@ -152,8 +152,8 @@ class EngineBus:
         self.log.load.extend_bytes(load)
         self.log.frames_sent, self.log.frames_dropped = sent, dropped
         if self._tracing:
-            for frame_id, data, ext, t_enq, t_start, t_end, _, fd, brs in self.net.take_trace(self.index):
-                tx = Transmission(None, frame_id, data, t_enq, t_start, t_end, ext, fd=fd, brs=brs)  # type: ignore[arg-type]
+            for frame_id, data, ext, t_enq, t_start, t_end, node, fd, brs in self.net.take_trace(self.index):
+                tx = Transmission(node, frame_id, data, t_enq, t_start, t_end, ext, fd=fd, brs=brs)  # node: the engine's
                 for listener in self.frame_listeners:
                     listener(tx)
 

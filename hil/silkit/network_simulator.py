@@ -40,11 +40,28 @@ class SimulatedController:
     started: bool = True
 
 
+def create_simulator(lib: Library, participant_handle: Any) -> ctypes.c_void_p:
+    """The participant's network simulator (one per participant; start it once, after its networks are added)."""
+    handle = ctypes.c_void_p()
+    lib.call("SilKit_Experimental_NetworkSimulator_Create", ctypes.byref(handle), participant_handle)
+    return handle
+
+
+def start_simulator(lib: Library, simulator: ctypes.c_void_p) -> None:
+    """Begin simulating every network added to ``simulator`` (before the lifecycle starts)."""
+    lib.call("SilKit_Experimental_NetworkSimulator_Start", simulator)
+
+
 class CanNetworkSimulator:
     """The simulated CAN network ``network`` of participant ``participant_handle`` (see the module docstring)."""
 
     def __init__(self, lib: Library, participant_handle: Any, network: str, grid_ns: int, bitrate: int = 500_000,
-                 tx_queue_depth: int = 64) -> None:
+                 tx_queue_depth: int = 64, bus: tuple[Network, int] | None = None,
+                 simulator: ctypes.c_void_p | None = None) -> None:
+        """``bus``: an engine network and bus index to put the controllers on (the rig's own bus, whose clock the rig
+        advances and whose frames it hands to :meth:`frame_ended`); default: a network of the simulator's own,
+        driven by :meth:`step`. ``simulator``: the participant's network simulator when it simulates several
+        networks (SIL Kit allows one per participant: :func:`create_simulator`); default: one made here."""
         if grid_ns <= 0 or grid_ns % 2:
             raise ValueError(f"grid_ns = {grid_ns}: the participants' step must be a positive, even number of ns")
         self.lib, self.network, self.grid_ns, self.bitrate = lib, network, grid_ns, bitrate
@@ -56,7 +73,8 @@ class CanNetworkSimulator:
         self._lock = threading.Lock()
         self._arrived: list[tuple[int, int, int, bytes, Any]] = []  # requests since the last half step
         self._contexts: dict[tuple[int, int], list[Any]] = {}  # (node, id) -> user contexts of frames queued
-        self._net: Network | None = None
+        self._net: Network | None = bus[0] if bus else None
+        self._bus = bus[1] if bus else 0
         self._depth = tx_queue_depth
         self._by_node: dict[int, int] = {}  # engine node -> controller descriptor
         self._producer: Any = None
@@ -70,15 +88,14 @@ class CanNetworkSimulator:
             ProvideSimulatedController=self._keep_fn(capi.ProvideController(self._provide)),
             SimulatedControllerRemoved=self._keep_fn(capi.ControllerRemoved(self._removed)),
             SetEventProducer=self._keep_fn(capi.SetEventProducer(self._set_producer)))
-        self.handle = ctypes.c_void_p()
-        lib.call("SilKit_Experimental_NetworkSimulator_Create", ctypes.byref(self.handle), participant_handle)
+        self.handle = simulator if simulator is not None else create_simulator(lib, participant_handle)
         self._context = ctypes.c_int(1)  # SIL Kit wants a non-null network context; ours lives in self
         lib.call("SilKit_Experimental_NetworkSimulator_SimulateNetwork", self.handle, network.encode(),
                  capi.NETWORK_CAN, ctypes.byref(self._context), ctypes.byref(self._network_functions))
 
     def start(self) -> None:
-        """Begin simulating (call before the lifecycle starts)."""
-        self.lib.call("SilKit_Experimental_NetworkSimulator_Start", self.handle)
+        """Begin simulating (call before the lifecycle starts; with a shared simulator, once: start_simulator)."""
+        start_simulator(self.lib, self.handle)
 
     def _keep_fn(self, fn: Any) -> Any:
         self._keep.append(fn)
@@ -123,27 +140,41 @@ class CanNetworkSimulator:
     # ------------------------------------------------------------------ the bus (the rig's step)
 
     def step(self, now_ns: int, duration_ns: int) -> None:
-        """The simulator's step at ``now`` (every Δ/2): at the half steps kΔ + Δ/2, queue what arrived at kΔ on the
-        engine bus, run it to (k + 1)Δ and produce every frame that ended before then."""
+        """The simulator's step at ``now`` (every Δ/2), on a network of its own: at the half steps kΔ + Δ/2, queue
+        what arrived at kΔ on the engine bus, run it to (k + 1)Δ and produce every frame that ended before then."""
         if now_ns % self.grid_ns != self.step_ns:
             return
         net, bus = self._engine()
         sent_at = now_ns - self.step_ns
         net.advance(sent_at)
-        for descriptor, can_id, context in self._queue(net, bus):
-            self._acknowledge(descriptor, can_id, capi.TRANSMIT_QUEUE_FULL, sent_at, context)
+        self.inject(sent_at)
         net.advance(sent_at + self.grid_ns)
         for can_id, data, extended, _, _, end, node, _, _ in net.take_trace(bus):
-            sender = self._by_node[node]
+            self.frame_ended(node, can_id, data, extended, end)
+
+    def inject(self, sent_at: int) -> None:
+        """Queue the requests that arrived since the last half step on the engine bus, whose clock is at
+        ``sent_at``; a full TX queue is acknowledged to its sender."""
+        net, bus = self._engine()
+        for descriptor, can_id, context in self._queue(net, bus):
+            self._acknowledge(descriptor, can_id, capi.TRANSMIT_QUEUE_FULL, sent_at, context)
+
+    def frame_ended(self, node: int, can_id: int, data: bytes, extended: bool, end_ns: int) -> None:
+        """A frame the engine carried to its end: to every SIL Kit controller but its sender, and the sender's
+        acknowledgement when a SIL Kit controller sent it."""
+        sender = self._by_node.get(node)
+        context = None
+        if sender is not None:
             queued = self._contexts.get((node, can_id))
             context = queued.pop(0) if queued else None
-            with self._lock:
-                receivers = [d for d, c in self.controllers.items() if d != sender and c.started and c.node is not None]
-            self.delivered.append((end, sender, can_id, data))
-            self._deliver(sender, can_id, data, 0 if not extended else capi.FLAG_IDE, end, receivers, context)
+        with self._lock:
+            receivers = [d for d, c in self.controllers.items() if d != sender and c.started and c.node is not None]
+        self.delivered.append((end_ns, sender if sender is not None else -1, can_id, data))
+        self._deliver(sender, can_id, data, capi.FLAG_IDE if extended else 0, end_ns, receivers, context)
 
     def _engine(self) -> tuple[Network, int]:
-        """The engine network and bus, made on this (the step) thread, with every known controller attached."""
+        """The engine network and bus (made here, on the step thread, when the simulator has its own), with every
+        known controller attached."""
         if self._net is None:
             self._net = Network()
             self._bus = self._net.add_bus(self.network, self.bitrate, "priority", self._depth)
@@ -174,9 +205,9 @@ class CanNetworkSimulator:
                 full.append((descriptor, can_id, context))
         return full
 
-    def _deliver(self, sender: int, can_id: int, data: bytes, flags: int, end_ns: int, receivers: list[int],
+    def _deliver(self, sender: int | None, can_id: int, data: bytes, flags: int, end_ns: int, receivers: list[int],
                  context: Any) -> None:
-        """The frame to every other started controller, and the acknowledgement to its sender, at ``end_ns``."""
+        """The frame to the ``receivers``, and the acknowledgement to its sender (a SIL Kit one), at ``end_ns``."""
         payload = (ctypes.c_uint8 * max(1, len(data))).from_buffer_copy(data.ljust(1, b"\0"))
         frame = capi.new(capi.CanFrame, id=can_id, flags=flags, dlc=len(data),
                          data=capi.ByteVector(ctypes.cast(payload, ctypes.POINTER(ctypes.c_uint8)), len(data)))
@@ -184,7 +215,8 @@ class CanNetworkSimulator:
                          direction=capi.DIRECTION_RECEIVE, userContext=None)
         if receivers:
             self._produce(event, receivers)
-        self._acknowledge(sender, can_id, capi.TRANSMITTED, end_ns, context)
+        if sender is not None:
+            self._acknowledge(sender, can_id, capi.TRANSMITTED, end_ns, context)
 
     def _acknowledge(self, descriptor: int, can_id: int, status: int, t_ns: int, context: Any) -> None:
         ack = capi.new(capi.CanFrameTransmitEvent, userContext=context, timestamp=t_ns, status=status, canId=can_id)

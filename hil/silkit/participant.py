@@ -84,6 +84,7 @@ class Participant:
         self.time_sync = ctypes.c_void_p()
         lib.call("SilKit_TimeSyncService_Create", ctypes.byref(self.time_sync), self.lifecycle)
         self._keep: list[Any] = []
+        self._system_controller: ctypes.c_void_p | None = None
 
     def can_controller(self, name: str, network: str) -> CanController:
         return CanController(self, name, network)
@@ -96,6 +97,7 @@ class Participant:
         names_list = capi.StringList(len(names), strings)
         workflow = capi.new(capi.WorkflowConfiguration, requiredParticipantNames=ctypes.pointer(names_list))
         self._keep += [controller, strings, names_list, workflow]
+        self._system_controller = controller
         self.lib.call("SilKit_Experimental_SystemController_SetWorkflowConfiguration", controller,
                       ctypes.byref(workflow))
 
@@ -107,6 +109,11 @@ class Participant:
         step = capi.StepHandler(callback)
         self._keep.append(step)
         self.lib.call("SilKit_TimeSyncService_SetSimulationStepHandler", self.time_sync, None, step, step_ns)
+
+    def abort(self) -> None:
+        """As the system controller: abort the whole simulation (every participant's lifecycle ends)."""
+        if self._system_controller is not None:
+            self.lib.call("SilKit_Experimental_SystemController_AbortSimulation", self._system_controller)
 
     def stop(self, reason: str) -> None:
         self.lib.call("SilKit_LifecycleService_Stop", self.lifecycle, reason.encode())

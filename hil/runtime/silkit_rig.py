@@ -1,0 +1,141 @@
+"""The virtual rig as a Vector SIL Kit participant (``hil run SCENARIO --silkit [URI]``): plant, wayside, radio and
+the rig's own ECUs run in the engine as always, in lockstep with SIL Kit's virtual time, and the rig is SIL Kit's
+network simulator for each of its buses (``bus1`` ...): a SIL Kit CAN controller on such a network is a node of
+that engine bus, so its frames meet the rig's on one bus model, and every frame of the bus reaches it with its
+end-of-frame timestamp (hil/silkit/network_simulator.py says when).
+
+Units named in ``ecu.external`` are left to SIL Kit participants named after them (``train1/unit2``); the rig is
+the system controller and the simulation starts when all of them have joined, or stops with an error naming them
+after ``ecu.join_timeout_s`` of wall time. The rig steps at half of ``step_ns`` (the participants' step, 1 ms by
+default) and does its work at the half steps: run the engine to kΔ, queue what the participants sent in step kΔ,
+run to (k + 1)Δ and hand every ended frame to SIL Kit.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from hil.record.runlog import RunLog
+from hil.runtime.firmware import EcuFactory, build_ecu
+from hil.runtime.train_db import TrainDb
+from hil.runtime.virtual import ProgressFn, VirtualRig, to_ns
+from hil.scenario.model import Scenario
+from hil.silkit.capi import Library
+from hil.silkit.network_simulator import CanNetworkSimulator, create_simulator, start_simulator
+from hil.silkit.participant import Participant
+from hil.silkit.registry import Registry
+from hil.silkit.runtime import find_runtime
+
+PARTICIPANT = "trainhil"
+DEFAULT_STEP_NS = 1_000_000
+
+
+class JoinTimeout(RuntimeError):
+    """External participants did not join in time; the message names them."""
+
+
+class SilKitRig(VirtualRig):
+    """:class:`VirtualRig` stepped by SIL Kit, its buses simulated for SIL Kit's CAN controllers."""
+
+    runs_external_units = True
+
+    def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None,
+                 ecu_factory: EcuFactory = build_ecu, registry_uri: str | None = None,
+                 step_ns: int = DEFAULT_STEP_NS) -> None:
+        self._external: set[int] = set()
+        super().__init__(scenario, seed, db, ecu_factory)
+        self.external_names = list(scenario.ecu.external)
+        self.step_ns = step_ns
+        runtime = find_runtime()
+        self.lib = Library(str(runtime.library))
+        self.registry = Registry(runtime) if not registry_uri else None
+        self.registry_uri = registry_uri or self.registry.uri  # type: ignore[union-attr]
+        self.participant = Participant(self.lib, PARTICIPANT, self.registry_uri)
+        self.participant.require([PARTICIPANT, *self.external_names])
+        simulator = create_simulator(self.lib, self.participant.handle)
+        self.networks = []
+        for bus in self.buses:
+            network = CanNetworkSimulator(self.lib, self.participant.handle, bus.name, step_ns, self.sc.can.bitrate,
+                                          self.sc.can.tx_queue_depth, bus=(self.net, bus.index), simulator=simulator)
+            bus.frame_listeners.append(lambda tx, n=network: n.frame_ended(tx.node, tx.frame_id, tx.data,
+                                                                           tx.extended, tx.t_end))
+            self.networks.append(network)
+        start_simulator(self.lib, simulator)
+        self.participant.on_step(self._step, step_ns // 2)
+        self._failure: BaseException | None = None
+        self._started = threading.Event()
+
+    # ------------------------------------------------------------------ external units have no ECU here
+    def _attach_ecu(self, u: int, ecu_factory: EcuFactory) -> None:
+        if self.layout.unit_name(u) in self.sc.ecu.external:
+            self._external.add(u)
+            self.ecus.append(ecu_factory(self.parts, self.db, u))  # kept for the lists' sake, never run
+            self._ecu_nodes.append(None)
+            return
+        super()._attach_ecu(u, ecu_factory)
+
+    def _ecu_tick(self, u: int, t_ns: int) -> None:
+        if u not in self._external:
+            super()._ecu_tick(u, t_ns)
+
+    # ------------------------------------------------------------------ running in SIL Kit's time
+    def run(self, duration_s: float | None = None, progress: ProgressFn | None = None,
+            on_chunk: Callable[[RunLog], None] | None = None, chunk_s: float = 1.0) -> RunLog:
+        """Run the SIL Kit lifecycle until ``duration_s`` of virtual time; the log as :meth:`VirtualRig.run`'s."""
+        duration = self.sc.duration_s if duration_s is None else duration_s
+        self._end_ns, self._chunk_ns, self._next_chunk = to_ns(duration), to_ns(chunk_s), to_ns(chunk_s)
+        self._progress, self._on_chunk = progress, on_chunk
+        wall0 = time.perf_counter()
+        self._before_run()
+        watchdog = threading.Timer(self.sc.ecu.join_timeout_s, self._join_timed_out)
+        watchdog.daemon = True
+        if self.external_names:
+            watchdog.start()
+        try:
+            self.participant.run()
+        finally:
+            watchdog.cancel()
+            self._finish(time.perf_counter() - wall0)
+            self.close()
+        if self._failure is not None:
+            raise self._failure
+        return self.log
+
+    def _step(self, now_ns: int, duration_ns: int) -> None:
+        """SIL Kit's step (every Δ/2, on its thread); an error stops the simulation and is raised by :meth:`run`."""
+        self._started.set()
+        try:
+            if now_ns % self.step_ns != self.step_ns // 2 or self._failure is not None:
+                return
+            sent_at = now_ns - self.step_ns // 2
+            self.kernel.run(min(sent_at, self._end_ns))
+            for network in self.networks:
+                network.inject(sent_at)
+            horizon = min(sent_at + self.step_ns, self._end_ns)
+            self.kernel.run(horizon)
+            self._collect()
+            if horizon >= self._next_chunk or horizon >= self._end_ns:
+                self._next_chunk += self._chunk_ns
+                if self._progress:
+                    self._progress(horizon * 1e-9)
+                if self._on_chunk:
+                    self._on_chunk(self.log)
+            if horizon >= self._end_ns:
+                self.participant.stop("trainhil: the run reached its duration")
+        except BaseException as exc:  # ctypes would print and drop it: keep it for run() and stop the simulation
+            self._failure = exc
+            self.participant.stop(f"trainhil failed: {exc}")
+
+    def _join_timed_out(self) -> None:
+        """No step after ecu.join_timeout_s: the participants that were to join did not; abort."""
+        if not self._started.is_set():
+            self._failure = JoinTimeout(f"SIL Kit participant(s) {', '.join(self.external_names)} did not join "
+                                        f"{self.registry_uri} within ecu.join_timeout_s = {self.sc.ecu.join_timeout_s} s")
+            self.participant.abort()
+
+    def close(self) -> None:
+        """Leave SIL Kit and stop the registry this rig started."""
+        self.participant.close()
+        if self.registry is not None:
+            self.registry.close()
