@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from hil.can.transmission import Transmission
 from hil.record.runlog import RunLog
 from hil.runtime.firmware import EcuFactory, build_ecu
 from hil.runtime.train_db import TrainDb
@@ -29,6 +30,13 @@ from hil.silkit.runtime import find_runtime
 
 PARTICIPANT = "trainhil"
 DEFAULT_STEP_NS = 1_000_000
+
+
+def _forwarder(network: CanNetworkSimulator) -> Callable[[Transmission], None]:
+    """A bus listener handing each ended frame to the SIL Kit network simulating that bus."""
+    def forward(tx: Transmission) -> None:
+        network.frame_ended(tx.node, tx.frame_id, tx.data, tx.extended, tx.t_end)
+    return forward
 
 
 class JoinTimeout(RuntimeError):
@@ -58,8 +66,7 @@ class SilKitRig(VirtualRig):
         for bus in self.buses:
             network = CanNetworkSimulator(self.lib, self.participant.handle, bus.name, step_ns, self.sc.can.bitrate,
                                           self.sc.can.tx_queue_depth, bus=(self.net, bus.index), simulator=simulator)
-            bus.frame_listeners.append(lambda tx, n=network: n.frame_ended(tx.node, tx.frame_id, tx.data,
-                                                                           tx.extended, tx.t_end))
+            bus.frame_listeners.append(_forwarder(network))
             self.networks.append(network)
         start_simulator(self.lib, simulator)
         self.participant.on_step(self._step, step_ns // 2)
