@@ -100,3 +100,80 @@ def test_the_same_participants_give_the_same_run_twice(runtime):
     assert first == simulate(runtime, sends)[0]
     ends = [t for t, _, _ in first]
     assert len(first) == 9 and ends == sorted(ends)
+
+
+# --------------------------------------------------------------------------- hil run --silkit
+
+
+def test_a_silkit_run_without_external_units_is_the_virtual_run(runtime, tmp_path):
+    """The rig in lockstep with SIL Kit, no participant but itself: the same frames and signals as without SIL Kit."""
+    from hil.scenario import load_scenario
+    from hil.session import run_scenario
+
+    sc = load_scenario("seed000")
+    plain = run_scenario(sc, tmp_path / "plain", duration_s=2, record=False).metrics
+    silkit = run_scenario(sc, tmp_path / "silkit", duration_s=2, record=False, silkit="").metrics
+    assert silkit["runtime"] == "silkit" and silkit["sim_time_s"] == pytest.approx(2.0)
+    for key in ("frames_sent", "speed_error_max_abs_mps", "coupler_max_abs_m", "control_effort", "frame_latency_p99_s",
+                "gap_min_overall_m", "jerk_rms_mps3"):
+        assert silkit[key] == plain[key], key
+
+
+def test_an_external_unit_joins_in_virtual_time_and_its_commands_are_applied(runtime, tmp_path):
+    """train1/unit2 runs as a SIL Kit participant (here the firmware of ecu_sim, on SIL Kit's CAN API and nothing of
+    the rig's network): it reads its frames from bus1, cycles every 10 ms and sends its commands, which the plant
+    accepts (E2E and sequence), and the run stays safe around it."""
+    import threading
+
+    from hil.runtime.assembly import assemble
+    from hil.runtime.firmware import build_ecu
+    from hil.runtime.train_db import load_train_db
+    from hil.scenario import load_scenario
+    from hil.session import run_scenario
+    from hil.silkit.capi import Library
+    from hil.silkit.participant import Participant
+    from hil.silkit.registry import Registry
+
+    sc = load_scenario("seed000", {"ecu.external": ["train1/unit2"], "ecu.join_timeout_s": 20.0})
+    parts, db = assemble(sc), load_train_db(sc)
+    ecu = build_ecu(parts, db, 1)
+    inbox: list[tuple[int, bytes, float]] = []
+    sent: list[int] = []
+    with Registry(runtime) as registry:
+        lib = Library(str(runtime.library))
+        unit = Participant(lib, "train1/unit2", registry.uri)
+        can = unit.can_controller("CAN1", "bus1")
+        can.on_frame(lambda t, i, d, f: inbox.append((i, d, t * 1e-9)) if i in ecu.rx_ids else None)
+        can.on_transmit(lambda t, i, s: sent.append(s))
+
+        def step(now: int, duration: int) -> None:
+            while inbox:
+                ecu.on_frame(*inbox.pop(0))
+            if now % 10_000_000 == 2_000_000:  # the ECU's 10 ms cycle, its phase on SIL Kit's 1 ms grid
+                for frame_id, data in ecu.cycle(now * 1e-9):
+                    can.send(frame_id, data)
+
+        unit.on_step(step, STEP_NS)
+        can.set_baud_rate(500_000)
+        can.start()
+        thread = threading.Thread(target=unit.run, daemon=True)
+        thread.start()
+        result = run_scenario(sc, tmp_path / "run", duration_s=3, record=False, silkit=registry.uri)
+        thread.join(20)
+        unit.close()
+    metrics = result.metrics
+    assert metrics["sim_time_s"] == pytest.approx(3.0)
+    assert ecu.counters.cycles == 300 and sent.count(capi.TRANSMITTED) == len(sent) >= 3 * 295
+    assert not metrics["plant_command_rejects"], metrics["plant_command_rejects"]
+    assert metrics["coupler_max_abs_m"] < 0.5 and not metrics["safety"]["collision"]["violated"]
+
+
+def test_a_missing_external_participant_is_named_after_the_join_timeout(runtime, tmp_path, capsys):
+    from hil.cli import main
+
+    code = main(["run", "seed000", "--silkit", "--set", "ecu.external=['train1/unit2']", "--set",
+                 "ecu.join_timeout_s=1.5", "--duration", "1", "--out", str(tmp_path / "o"), "--quiet"])
+    captured = capsys.readouterr()
+    assert code == 1
+    assert "silkit registry=silkit://127.0.0.1:" in captured.out and "external=train1/unit2" in captured.out
+    assert "SIL Kit participant(s) train1/unit2 did not join" in captured.err and "1.5 s" in captured.err
