@@ -122,6 +122,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, overrides)
     if args.external:  # added to the scenario's own, validated like them
         scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
+    if args.silkit is not None and not (args.silkit_step > 0 and round(args.silkit_step * 1e9) % 2 == 0):
+        raise ScenarioError(f"--silkit-step {args.silkit_step}: expected a positive time step of a whole, even number of ns")
     if args.silkit is not None and (args.realtime or args.ideal):
         raise ScenarioError(f"--silkit runs in virtual time: not with --{'realtime' if args.realtime else 'ideal'} (yet)")
     if not args.realtime and args.silkit is None:  # before anything is written
@@ -159,7 +161,7 @@ def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict) -> i
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
                               record=not args.no_record, progress=not args.quiet, live=live,
                               overrides=_given(args, overrides), source=str(args.scenario), keep_signals=False,
-                              silkit=args.silkit)
+                              silkit=args.silkit, silkit_step_s=args.silkit_step)
     print_summary(result.metrics, out)
     if result.metrics.get("stopped_early"):  # a plant or radio process died: not the Ctrl-C code
         print(f"hil: error: the run stopped early: {result.metrics['stopped_early']} (what ran is in {out})",
@@ -305,6 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="virtual time in lockstep with Vector SIL Kit, the rig simulating its CAN buses for SIL Kit "
                           "participants; ecu.external units are participants named after them (train1/unit2). URI: "
                           "the registry (default: one of the run's own on 127.0.0.1, printed on stdout)")
+    run.add_argument("--silkit-step", type=float, default=0.001, metavar="S",
+                     help="--silkit: the participants' time step, s (default 0.001; the rig steps at half of it); a "
+                          "frame is seen at the first step after its end, and each step costs SIL Kit's synchronisation")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     from hil.record.live import DEFAULT_PORT, DEFAULT_URL

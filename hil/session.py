@@ -77,11 +77,11 @@ def _can_loggers(rig: VirtualRig, out_dir: Path, fmt: str) -> list:
     return writers
 
 
-def _silkit_rig(scenario: Scenario, seed: int | None, db, uri: str) -> VirtualRig:
+def _silkit_rig(scenario: Scenario, seed: int | None, db, uri: str, step_s: float) -> VirtualRig:
     """The virtual rig as a SIL Kit participant; says on stdout where the participants join (also under --quiet)."""
     from hil.runtime.silkit_rig import SilKitRig
 
-    rig = SilKitRig(scenario, seed, db=db, registry_uri=uri or None)
+    rig = SilKitRig(scenario, seed, db=db, registry_uri=uri or None, step_ns=round(step_s * 1e9))
     buses = ",".join(bus.name for bus in rig.buses)
     print(f"silkit registry={rig.registry_uri} participant=trainhil networks={buses} "
           f"external={','.join(scenario.ecu.external) or '-'}", flush=True)
@@ -92,7 +92,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
                  can_log: str | bool | None = None, ideal: bool = False, record: bool = True, progress: bool = False,
                  chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None,
                  overrides: dict | None = None, source: str | None = None, keep_signals: bool = True,
-                 silkit: str | None = None) -> RunResult:
+                 silkit: str | None = None, silkit_step_s: float = 0.001) -> RunResult:
     """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir
     (``can_log``: "asc", "blf" or "mf4", True for ASC).
 
@@ -127,7 +127,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     try:
         stop.arm()  # from here SIGTERM/SIGHUP stop the run like Ctrl-C (the run loop returns what it has)
         rig = IdealLoop(scenario, seed) if ideal else VirtualRig(scenario, seed, db=db) if silkit is None else \
-            _silkit_rig(scenario, seed, db, silkit)
+            _silkit_rig(scenario, seed, db, silkit, silkit_step_s)
         rig.log.summary(scenario.plant.coupler_band_m)  # the metrics' figures, kept as the samples come
         if not ideal:
             if recorder and scenario.recording.frames:

@@ -119,10 +119,9 @@ def test_a_silkit_run_without_external_units_is_the_virtual_run(runtime, tmp_pat
         assert silkit[key] == plain[key], key
 
 
-def test_an_external_unit_joins_in_virtual_time_and_its_commands_are_applied(runtime, tmp_path):
-    """train1/unit2 runs as a SIL Kit participant (here the firmware of ecu_sim, on SIL Kit's CAN API and nothing of
-    the rig's network): it reads its frames from bus1, cycles every 10 ms and sends its commands, which the plant
-    accepts (E2E and sequence), and the run stays safe around it."""
+def run_with_external_unit(runtime, out, duration_s: float = 3.0):
+    """seed000 --silkit with train1/unit2 as a SIL Kit participant of the test's (the firmware of ecu_sim on SIL
+    Kit's CAN API, nothing of the rig's network): (metrics, the unit's ECU, its transmit statuses)."""
     import threading
 
     from hil.runtime.assembly import assemble
@@ -158,14 +157,23 @@ def test_an_external_unit_joins_in_virtual_time_and_its_commands_are_applied(run
         can.start()
         thread = threading.Thread(target=unit.run, daemon=True)
         thread.start()
-        result = run_scenario(sc, tmp_path / "run", duration_s=3, record=False, silkit=registry.uri)
+        result = run_scenario(sc, out, duration_s=duration_s, record=False, silkit=registry.uri)
         thread.join(20)
         unit.close()
-    metrics = result.metrics
+    return result.metrics, ecu, sent
+
+
+def test_an_external_unit_joins_in_virtual_time_and_its_commands_are_applied(runtime, tmp_path):
+    """The external unit's commands reach the plant (E2E and sequence accepted), the run stays safe around it,
+    and the same participants give the same run twice."""
+    metrics, ecu, sent = run_with_external_unit(runtime, tmp_path / "a")
     assert metrics["sim_time_s"] == pytest.approx(3.0)
     assert ecu.counters.cycles == 300 and sent.count(capi.TRANSMITTED) == len(sent) >= 3 * 295
     assert not metrics["plant_command_rejects"], metrics["plant_command_rejects"]
     assert metrics["coupler_max_abs_m"] < 0.5 and not metrics["safety"]["collision"]["violated"]
+    again, _, _ = run_with_external_unit(runtime, tmp_path / "b")
+    for key in ("frames_sent", "speed_error_max_abs_mps", "coupler_max_abs_m", "control_effort", "jerk_rms_mps3"):
+        assert again[key] == metrics[key], key
 
 
 def test_a_missing_external_participant_is_named_after_the_join_timeout(runtime, tmp_path, capsys):

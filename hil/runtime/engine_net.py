@@ -151,6 +151,10 @@ class EngineBus:
         self.log.frames.extend_bytes(frames)
         self.log.load.extend_bytes(load)
         self.log.frames_sent, self.log.frames_dropped = sent, dropped
+        self.collect_frames()
+
+    def collect_frames(self) -> None:
+        """Hand the traced frames completed since the last call to the listeners (without the statistics)."""
         if self._tracing:
             for frame_id, data, ext, t_enq, t_start, t_end, node, fd, brs in self.net.take_trace(self.index):
                 tx = Transmission(node, frame_id, data, t_enq, t_start, t_end, ext, fd=fd, brs=brs)  # node: the engine's

@@ -121,8 +121,10 @@ class SilKitRig(VirtualRig):
                 network.inject(sent_at)
             horizon = min(sent_at + self.step_ns, self._end_ns)
             self.kernel.run(horizon)
-            self._collect()
+            for bus in self.buses:
+                bus.collect_frames()  # every ended frame to SIL Kit now; the statistics once per chunk
             if horizon >= self._next_chunk or horizon >= self._end_ns:
+                self._collect()
                 self._next_chunk += self._chunk_ns
                 if self._progress:
                     self._progress(horizon * 1e-9)

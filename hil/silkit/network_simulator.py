@@ -67,7 +67,6 @@ class CanNetworkSimulator:
         self.lib, self.network, self.grid_ns, self.bitrate = lib, network, grid_ns, bitrate
         self.step_ns = grid_ns // 2  # the simulator's own step (see the module docstring)
         self.controllers: dict[int, SimulatedController] = {}
-        self.delivered: list[tuple[int, int, int, bytes]] = []  # (end ns, sender, id, data): what went on the bus
         self.queue_full = 0
         self.bitrate_mismatches = 0
         self._lock = threading.Lock()
@@ -163,13 +162,14 @@ class CanNetworkSimulator:
         """A frame the engine carried to its end: to every SIL Kit controller but its sender, and the sender's
         acknowledgement when a SIL Kit controller sent it."""
         sender = self._by_node.get(node)
+        if sender is None and not self._by_node:
+            return  # no SIL Kit controller on this bus (yet): nothing to hand over
         context = None
         if sender is not None:
             queued = self._contexts.get((node, can_id))
             context = queued.pop(0) if queued else None
         with self._lock:
             receivers = [d for d, c in self.controllers.items() if d != sender and c.started and c.node is not None]
-        self.delivered.append((end_ns, sender if sender is not None else -1, can_id, data))
         self._deliver(sender, can_id, data, capi.FLAG_IDE if extended else 0, end_ns, receivers, context)
 
     def _engine(self) -> tuple[Network, int]:
