@@ -185,3 +185,53 @@ def test_a_missing_external_participant_is_named_after_the_join_timeout(runtime,
     assert code == 1
     assert "silkit registry=silkit://127.0.0.1:" in captured.out and "external=train1/unit2" in captured.out
     assert "SIL Kit participant(s) train1/unit2 did not join" in captured.err and "1.5 s" in captured.err
+
+
+@pytest.fixture(scope="module")
+def c_ecu(runtime, tmp_path_factory):
+    """examples/silkit_ecu built with gcc, as its header comment says."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc to build examples/silkit_ecu")
+    source = Path(__file__).resolve().parents[1] / "examples" / "silkit_ecu" / "silkit_ecu.c"
+    out = tmp_path_factory.mktemp("c-ecu") / "silkit_ecu"
+    home = str(runtime.home)
+    subprocess.run(["gcc", "-O2", "-Wall", "-Werror", "-o", str(out), str(source), f"-L{home}", "-lSilKit",
+                    f"-Wl,-rpath,{home}", "-lm"], check=True)
+    return out
+
+
+def run_with_c_ecu(runtime, binary, out):
+    import subprocess
+
+    from hil.scenario import load_scenario
+    from hil.session import run_scenario
+    from hil.silkit.registry import Registry
+
+    sc = load_scenario("seed000", {"ecu.external": ["train1/unit2"], "ecu.join_timeout_s": 20.0})
+    with Registry(runtime) as registry:
+        ecu = subprocess.Popen([str(binary), "--registry", registry.uri, "--train", "1", "--unit", "2"],
+                               stdout=subprocess.PIPE, text=True)
+        try:
+            metrics = run_scenario(sc, out, duration_s=3, record=False, silkit=registry.uri).metrics
+            printed, _ = ecu.communicate(timeout=20)
+        finally:
+            ecu.kill()
+    return metrics, printed
+
+
+def test_the_c_reference_ecu_drives_its_unit_in_virtual_time_deterministically(runtime, c_ecu, tmp_path):
+    """examples/silkit_ecu (C, SIL Kit's C API, nothing of trainhil) as train1/unit2: its 300 cycles' frames pass
+    the plant's and its neighbours' E2E checks, the couplers stay bounded, and the same run comes twice."""
+    metrics, printed = run_with_c_ecu(runtime, c_ecu, tmp_path / "a")
+    assert "sent 900 frames, dropped 0 with a bad E2E CRC, final state 110" in printed, printed
+    assert not metrics["plant_command_rejects"]
+    neighbour = metrics["e2e"]["train1/unit1/ecu"]  # receives unit 2's AgentState and AgentAux
+    assert set(neighbour) <= {"OK", "INITIAL"} and neighbour["OK"] > 1000
+    assert metrics["coupler_max_abs_m"] < 0.5 and not metrics["safety"]["collision"]["violated"]
+    again, _ = run_with_c_ecu(runtime, c_ecu, tmp_path / "b")
+    for key in ("frames_sent", "speed_error_max_abs_mps", "coupler_max_abs_m", "control_effort"):
+        assert again[key] == metrics[key], key
