@@ -16,12 +16,13 @@ from typing import Callable
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.plant.dynamics import PlantDiverged
 from hil.record.diskspace import DiskFullError
-from hil.record.integrity import StopSignals, mark_running, write_json_atomic
+from hil.record.integrity import StopSignals, mark_failed, mark_running, write_json_atomic
 from hil.record.out_dir import disk_full_outcome, write_metrics_when_full
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
 from hil.record.metrics import run_metrics
 from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog, RunResult  # noqa: F401  (RunResult: what run_scenario returns)
+from hil.runtime.errors import RigDidNotStart
 from hil.runtime.ideal import IdealLoop
 from hil.runtime.train_db import load_train_db
 from hil.runtime.virtual import VirtualRig
@@ -152,6 +153,10 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
         log.event(log.sim_time_s, "ERROR", "plant", f"run stopped: {exc}")
         if recorder:
             recorder(log)
+    except RigDidNotStart as exc:  # nothing ran: say so in metrics.json, not "running"
+        stop.defer()
+        mark_failed(out_dir / "metrics.json", scenario.name, runtime, str(exc))
+        raise
     except DiskFullError as exc:  # the recording filled the disk: stop; the metrics go after the recording's cut
         if rig is None:
             raise DiskFullError(exc.errno, f"{exc.strerror}: before the run started; nothing ran") from None

@@ -3,6 +3,7 @@
 virtual time. Skipped where SIL Kit is not installed, except on CI (CI=true), which installs it and must run them."""
 from __future__ import annotations
 
+import json
 import os
 
 import pytest
@@ -185,6 +186,23 @@ def test_a_missing_external_participant_is_named_after_the_join_timeout(runtime,
     assert code == 1
     assert "silkit registry=silkit://127.0.0.1:" in captured.out and "external=train1/unit2" in captured.out
     assert "SIL Kit participant(s) train1/unit2 did not join" in captured.err and "1.5 s" in captured.err
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert metrics["status"] == "failed" and "did not join" in metrics["error"]  # not "running": nothing to recover
+
+
+def test_a_registry_uri_where_none_answers_is_named(runtime, tmp_path, capsys):
+    import socket
+
+    from hil.cli import main
+
+    with socket.socket() as s:  # a free loopback port: nothing listens there once it is closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = main(["run", "seed000", "--silkit", f"silkit://127.0.0.1:{port}", "--duration", "1",
+                 "--out", str(tmp_path / "o"), "--quiet"])
+    assert code == 1
+    assert f"no SIL Kit registry answers at silkit://127.0.0.1:{port}" in capsys.readouterr().err
+    assert json.loads((tmp_path / "o" / "metrics.json").read_text())["status"] == "failed"
 
 
 @pytest.fixture(scope="module")
@@ -235,3 +253,38 @@ def test_the_c_reference_ecu_drives_its_unit_in_virtual_time_deterministically(r
     again, _ = run_with_c_ecu(runtime, c_ecu, tmp_path / "b")
     for key in ("frames_sent", "speed_error_max_abs_mps", "coupler_max_abs_m", "control_effort"):
         assert again[key] == metrics[key], key
+
+
+def test_a_participant_killed_mid_run_is_recorded_and_the_fail_safe_holds_its_unit(runtime, c_ecu, tmp_path):
+    """The C ECU as train1/unit2 dies abruptly at 2 s (``--crash-at``, SIL Kit never told): the rig records it as
+    that ECU's failure at the time it was lost, leaves SIL Kit (whose coordinated time cannot advance past a lost
+    participant) and runs on to its end in virtual time; the plant's fail-safe brakes the silent unit, and the
+    files are complete and readable."""
+    import subprocess
+
+    from hil.record.integrity import check_run_dir
+    from hil.scenario import load_scenario
+    from hil.session import run_scenario
+    from hil.silkit.registry import Registry
+
+    sc = load_scenario("seed000", {"ecu.external": ["train1/unit2"], "ecu.join_timeout_s": 20.0})
+    with Registry(runtime) as registry:
+        ecu = subprocess.Popen([str(c_ecu), "--registry", registry.uri, "--crash-at", "2"], stdout=subprocess.PIPE,
+                               text=True)
+        try:
+            result = run_scenario(sc, tmp_path, duration_s=6, silkit=registry.uri)
+            printed, _ = ecu.communicate(timeout=20)
+        finally:
+            ecu.kill()
+    assert "crashing at t = 2.000 s" in printed and ecu.returncode == 3, printed
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["interrupted"] is False and metrics["sim_time_s"] == pytest.approx(6.0)
+    lost = metrics["safety"]["ecu_failure"]["violations"][0]
+    assert lost["where"] == "train1/unit2" and "disconnected without shutting down" in lost["text"]
+    assert 2.0 <= lost["t_s"] <= 2.01  # lost in the step it died in
+    braked = [e for e in result.log.events if e.source == "plant" and e.t > lost["t_s"] and "unit 2" in e.text
+              and "train 1" in e.text]
+    assert braked, "the plant's fail-safe did not act on the lost unit"
+    assert metrics["coupler_max_abs_m"] < 5.0 and not metrics["safety"]["collision"]["violated"]
+    report = check_run_dir(tmp_path, expect_complete=True)
+    assert report.ok, report.problems

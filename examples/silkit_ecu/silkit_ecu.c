@@ -13,11 +13,14 @@
  *     gcc -O2 -Wall -o silkit_ecu examples/silkit_ecu/silkit_ecu.c -L"$H" -lSilKit -Wl,-rpath,"$H" -lm
  * Run, after `hil run seed000 --silkit --external train1/unit2` printed its registry:
  *     ./silkit_ecu --registry silkit://127.0.0.1:PORT --train 1 --unit 2
+ * `--crash-at S` makes it exit abruptly at simulated time S without leaving SIL Kit, as a crashing board would
+ * (the rig's test of a participant lost mid-run).
  */
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 #include "silkit_capi.h"
 
 enum { DATA_ID_CMD = 1, DATA_ID_REF = 2, DATA_ID_REF_AUX = 3, DATA_ID_SENSOR = 4, DATA_ID_STATE = 5, DATA_ID_AUX = 6 };
@@ -26,7 +29,7 @@ enum { ID_REFERENCE = 0xA0, ID_REFERENCE_AUX = 0xA1 };
 typedef struct {
     int unit;                       /* slot in the train, 1-based */
     double mass_kg, kp, ki, period_s;
-    uint64_t step_ns, cycle_ns, phase_ns;
+    uint64_t step_ns, cycle_ns, phase_ns, crash_ns;  /* crash_ns: 0, or when to die as a crashing board would */
     SilKit_CanController *can;
     int have_sample, have_ref;
     double x, v, v_ref, a_ref, integral;
@@ -158,6 +161,11 @@ static void on_step(void *context, SilKit_TimeSyncService *service, SilKit_Nanos
                     SilKit_NanosecondsTime duration) {
     (void)service; (void)duration;
     Ecu *ecu = context;
+    if (ecu->crash_ns && now >= ecu->crash_ns) {  /* --crash-at: gone at once, SIL Kit never told */
+        printf("silkit_ecu: crashing at t = %.3f s (--crash-at)\n", now * 1e-9);
+        fflush(stdout);
+        _exit(3);
+    }
     if (now % ecu->cycle_ns == ecu->phase_ns && ecu->have_sample) cycle(ecu);
 }
 
@@ -171,7 +179,7 @@ int main(int argc, char **argv) {
     const char *registry = arg(argc, argv, "--registry", NULL);
     if (registry == NULL) {
         fprintf(stderr, "usage: silkit_ecu --registry URI [--train 1] [--unit 2] [--mass-kg 80000] [--kp 0.5] "
-                        "[--ki 0.05] [--bitrate 500000]\n");
+                        "[--ki 0.05] [--bitrate 500000] [--crash-at SECONDS]\n");
         return 2;
     }
     Ecu ecu = {0};
@@ -180,6 +188,7 @@ int main(int argc, char **argv) {
     ecu.mass_kg = atof(arg(argc, argv, "--mass-kg", "80000"));
     ecu.kp = atof(arg(argc, argv, "--kp", "0.5"));
     ecu.ki = atof(arg(argc, argv, "--ki", "0.05"));
+    ecu.crash_ns = (uint64_t)llround(atof(arg(argc, argv, "--crash-at", "0")) * 1e9);
     ecu.step_ns = 1000000, ecu.cycle_ns = 10000000, ecu.phase_ns = 2000000, ecu.period_s = 0.01;
     if (train < 1 || ecu.unit < 1 || ecu.unit > 16) {
         fprintf(stderr, "silkit_ecu: --train must be >= 1 and --unit 1..16\n");

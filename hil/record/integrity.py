@@ -28,6 +28,7 @@ from typing import Any
 from hil.record.diskspace import disk_full
 
 RUNNING = "running"
+FAILED = "failed"  # the rig did not start
 TIME_SLACK_S = 1.0  # recording vs metrics time: a flush and a sample period of slack
 
 
@@ -51,6 +52,13 @@ def mark_running(path: Path, scenario: str, runtime: str, sim_time_s: float = 0.
     write_json_atomic(path, {"scenario": scenario, "runtime": runtime, "status": RUNNING, "interrupted": True,
                              "sim_time_s": float(sim_time_s),
                              "note": note or "the run has not finished: run.rrd holds everything up to sim_time_s"})
+
+
+def mark_failed(path: Path, scenario: str, runtime: str, error: str) -> None:
+    """The metrics.json of a rig that did not start: nothing ran, so not "running" (which points to hil recover)."""
+    write_json_atomic(path, {"scenario": scenario, "runtime": runtime, "status": FAILED, "interrupted": True,
+                             "sim_time_s": 0.0, "error": error.splitlines()[0],
+                             "note": "the rig did not start, nothing ran: there is nothing to recover"})
 
 
 class StopSignals:

@@ -16,13 +16,15 @@ import threading
 import time
 from collections.abc import Callable
 
+from ecu_sim.runtime import ECU_STOPPED, os_exit_stops_the_firmware
 from hil.can.transmission import Transmission
 from hil.record.runlog import RunLog
+from hil.runtime.errors import RigDidNotStart
 from hil.runtime.firmware import EcuFactory, build_ecu
 from hil.runtime.train_db import TrainDb
 from hil.runtime.virtual import ProgressFn, VirtualRig, to_ns
 from hil.scenario.model import Scenario
-from hil.silkit.capi import Library
+from hil.silkit.capi import Library, SilKitError
 from hil.silkit.network_simulator import CanNetworkSimulator, create_simulator, start_simulator
 from hil.silkit.participant import Participant
 from hil.silkit.registry import Registry
@@ -39,8 +41,12 @@ def _forwarder(network: CanNetworkSimulator) -> Callable[[Transmission], None]:
     return forward
 
 
-class JoinTimeout(RuntimeError):
+class JoinTimeout(RigDidNotStart):
     """External participants did not join in time; the message names them."""
+
+
+class RegistryUnreachable(RigDidNotStart):
+    """``--silkit URI``: no registry there; the message names the URI."""
 
 
 class SilKitRig(VirtualRig):
@@ -59,19 +65,31 @@ class SilKitRig(VirtualRig):
         self.lib = Library(str(runtime.library))
         self.registry = Registry(runtime) if not registry_uri else None
         self.registry_uri = registry_uri or self.registry.uri  # type: ignore[union-attr]
-        self.participant = Participant(self.lib, PARTICIPANT, self.registry_uri)
+        try:
+            self.participant = Participant(self.lib, PARTICIPANT, self.registry_uri)
+        except SilKitError as exc:
+            self.close()
+            raise RegistryUnreachable(f"no SIL Kit registry answers at {self.registry_uri} ({exc}); start one there "
+                                      "(sil-kit-registry --listen-uri URI) or give --silkit without a URI for a "
+                                      "registry of the run's own") from None
         self.participant.require([PARTICIPANT, *self.external_names])
         simulator = create_simulator(self.lib, self.participant.handle)
-        self.networks = []
+        self.networks, self._forwarders = [], []
         for bus in self.buses:
             network = CanNetworkSimulator(self.lib, self.participant.handle, bus.name, step_ns, self.sc.can.bitrate,
                                           self.sc.can.tx_queue_depth, bus=(self.net, bus.index), simulator=simulator)
-            bus.frame_listeners.append(_forwarder(network))
+            self._forwarders.append(_forwarder(network))
+            bus.frame_listeners.append(self._forwarders[-1])
             self.networks.append(network)
         start_simulator(self.lib, simulator)
         self.participant.on_step(self._step, step_ns // 2)
         self._failure: BaseException | None = None
         self._started = threading.Event()
+        self._end_ns = self._at_ns = 0  # the run's end, and the time of SIL Kit's latest step
+        self._lost: list[tuple[str, int]] = []  # external participants that disconnected mid-run, and when
+        self._leaving = False
+        self._reached_end = False
+        self.participant.on_disconnected(self._on_disconnected)
 
     # ------------------------------------------------------------------ external units have no ECU here
     def _attach_ecu(self, u: int, ecu_factory: EcuFactory) -> None:
@@ -89,7 +107,12 @@ class SilKitRig(VirtualRig):
     # ------------------------------------------------------------------ running in SIL Kit's time
     def run(self, duration_s: float | None = None, progress: ProgressFn | None = None,
             on_chunk: Callable[[RunLog], None] | None = None, chunk_s: float = 1.0) -> RunLog:
-        """Run the SIL Kit lifecycle until ``duration_s`` of virtual time; the log as :meth:`VirtualRig.run`'s."""
+        """Run the SIL Kit lifecycle until ``duration_s`` of virtual time; the log as :meth:`VirtualRig.run`'s.
+
+        Ctrl-C stops the lifecycle and returns what was run, as in virtual time. An external participant that
+        disconnects mid-run (killed, crashed) is recorded as its ECU's failure; SIL Kit's coordinated time cannot
+        advance past a lost participant, so the rig leaves SIL Kit and runs on to ``duration_s`` in virtual time,
+        the lost unit (and any other external one) sending nothing: the plant's fail-safe then holds it."""
         duration = self.sc.duration_s if duration_s is None else duration_s
         self._end_ns, self._chunk_ns, self._next_chunk = to_ns(duration), to_ns(chunk_s), to_ns(chunk_s)
         self._progress, self._on_chunk = progress, on_chunk
@@ -100,7 +123,15 @@ class SilKitRig(VirtualRig):
         if self.external_names:
             watchdog.start()
         try:
-            self.participant.run()
+            with os_exit_stops_the_firmware():  # the firmware runs in this process, on SIL Kit's step thread
+                self.participant.run(poll=self._leave_if_lost)
+                if self._lost and self._failure is None:
+                    self._run_on_without_silkit(progress, on_chunk)
+                elif not self._reached_end and self._failure is None:
+                    self._stopped_by_another()
+        except KeyboardInterrupt:
+            self.log.interrupted = True
+            self.log.event(self.kernel.now * 1e-9, "WARN", "rig", "run interrupted (Ctrl-C)")
         finally:
             watchdog.cancel()
             self._finish(time.perf_counter() - wall0)
@@ -109,9 +140,42 @@ class SilKitRig(VirtualRig):
             raise self._failure
         return self.log
 
+    def _on_disconnected(self, name: str) -> None:
+        """SIL Kit's thread: a participant left. An external unit's participant leaving before the end is lost."""
+        if name in self.external_names and self._started.is_set() and not self._reached_end:
+            self._lost.append((name, self._at_ns))
+
+    def _leave_if_lost(self) -> None:
+        """The main thread, while SIL Kit runs: stop the lifecycle once a participant is lost (time cannot advance)."""
+        if self._lost and not self._leaving:
+            self._leaving = True
+            names = ", ".join(name for name, _ in self._lost)
+            self.participant.halt(f"trainhil: SIL Kit participant(s) {names} lost")
+
+    def _stopped_by_another(self) -> None:
+        """The lifecycle ended before the run's end and no participant was lost: another one stopped SIL Kit."""
+        self.log.interrupted = True
+        self.log.event(self.kernel.now * 1e-9, "WARN", "rig",
+                       "the SIL Kit simulation was stopped by another participant before the run's end")
+
+    def _run_on_without_silkit(self, progress: ProgressFn | None, on_chunk: Callable[[RunLog], None] | None) -> None:
+        """Record each lost participant as its ECU's failure and run on to the end in virtual time alone."""
+        for name, at_ns in self._lost:
+            self.log.event(at_ns * 1e-9, "ERROR", name,
+                           f"SIL Kit participant {name} disconnected without shutting down (killed or crashed); "
+                           f"its unit receives no command from now: {ECU_STOPPED}")
+        t = self.kernel.now * 1e-9
+        self.log.event(t, "WARN", "rig", f"left SIL Kit at t = {t:.3f} s: its coordinated time cannot advance "
+                                         "past a lost participant; the run goes on in virtual time, the external "
+                                         "units silent")
+        for bus, forward in zip(self.buses, self._forwarders):
+            bus.frame_listeners.remove(forward)
+        self._run_chunks(self._end_ns, self._chunk_ns, progress, on_chunk)
+
     def _step(self, now_ns: int, duration_ns: int) -> None:
         """SIL Kit's step (every Δ/2, on its thread); an error stops the simulation and is raised by :meth:`run`."""
         self._started.set()
+        self._at_ns = now_ns
         try:
             if now_ns % self.step_ns != self.step_ns // 2 or self._failure is not None:
                 return
@@ -131,6 +195,7 @@ class SilKitRig(VirtualRig):
                 if self._on_chunk:
                     self._on_chunk(self.log)
             if horizon >= self._end_ns:
+                self._reached_end = True
                 self.participant.stop("trainhil: the run reached its duration")
         except BaseException as exc:  # ctypes would print and drop it: keep it for run() and stop the simulation
             self._failure = exc
@@ -145,6 +210,7 @@ class SilKitRig(VirtualRig):
 
     def close(self) -> None:
         """Leave SIL Kit and stop the registry this rig started."""
-        self.participant.close()
+        if hasattr(self, "participant"):
+            self.participant.close()
         if self.registry is not None:
             self.registry.close()

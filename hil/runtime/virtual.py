@@ -213,22 +213,27 @@ class VirtualRig:
         wall0 = time.perf_counter()
         self._before_run()
         try:
-            t = self.kernel.now
-            while t < end_ns:
-                t = min(t + chunk_ns, end_ns)
-                with os_exit_stops_the_firmware():  # the firmware runs in this process
-                    self.kernel.run(t)
-                self._collect()
-                if progress:
-                    progress(t * 1e-9)
-                if on_chunk:
-                    on_chunk(self.log)
+            self._run_chunks(end_ns, chunk_ns, progress, on_chunk)
         except KeyboardInterrupt:
             self.log.interrupted = True
             self.log.event(self.kernel.now * 1e-9, "WARN", "rig", "run interrupted (Ctrl-C)")
         finally:
             self._finish(time.perf_counter() - wall0)
         return self.log
+
+    def _run_chunks(self, end_ns: int, chunk_ns: int, progress: ProgressFn | None,
+                    on_chunk: Callable[[RunLog], None] | None) -> None:
+        """Run from now to ``end_ns`` a chunk at a time, collecting, reporting progress and recording after each."""
+        t = self.kernel.now
+        while t < end_ns:
+            t = min(t + chunk_ns, end_ns)
+            with os_exit_stops_the_firmware():  # the firmware runs in this process
+                self.kernel.run(t)
+            self._collect()
+            if progress:
+                progress(t * 1e-9)
+            if on_chunk:
+                on_chunk(self.log)
 
     def _before_run(self) -> None:
         """Keep the completed frames in the engine for the buses someone listens to."""

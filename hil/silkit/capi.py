@@ -1,5 +1,5 @@
 """ctypes declarations of the parts of SIL Kit's stable C API (5.0.x, ``silkit/capi/*.h``) the rig uses: participant,
-lifecycle and time synchronisation, the system controller, CAN controllers and the (experimental) network
+lifecycle and time synchronisation, the system monitor and controller, CAN controllers and the (experimental) network
 simulator. Written from the public headers; the layouts follow their ``#pragma pack(8)``, which for these structs
 is the natural alignment ctypes uses.
 
@@ -51,6 +51,11 @@ class ByteVector(Structure):
 
 class StringList(Structure):
     _fields_ = [("numStrings", c_size_t), ("strings", POINTER(c_char_p))]
+
+
+class ParticipantConnectionInformation(Structure):
+    ID = struct_id(SERVICE_PARTICIPANT, 4, 1)
+    _fields_ = [("structHeader", StructHeader), ("participantName", c_char_p)]
 
 
 class LifecycleConfiguration(Structure):
@@ -107,6 +112,7 @@ def new(cls: type[S], **fields: Any) -> S:
 StepHandler = CFUNCTYPE(None, c_void_p, c_void_p, NanosecondsTime, NanosecondsTime)
 LifecycleHandler = CFUNCTYPE(None, c_void_p, c_void_p)
 AbortHandler = CFUNCTYPE(None, c_void_p, c_void_p, c_int16)
+DisconnectedHandler = CFUNCTYPE(None, c_void_p, c_void_p, POINTER(ParticipantConnectionInformation))
 CanFrameHandler = CFUNCTYPE(None, c_void_p, c_void_p, POINTER(CanFrameEvent))
 CanTransmitHandler = CFUNCTYPE(None, c_void_p, c_void_p, POINTER(CanFrameTransmitEvent))
 CanStateHandler = CFUNCTYPE(None, c_void_p, c_void_p, POINTER(CanStateChangeEvent))
@@ -129,6 +135,8 @@ PROTOTYPES: dict[str, list[Any]] = {
     "SilKit_LifecycleService_SetAbortHandler": [_P, _P, AbortHandler],
     "SilKit_TimeSyncService_Create": [_PP, _P],
     "SilKit_TimeSyncService_SetSimulationStepHandler": [_P, _P, StepHandler, NanosecondsTime],
+    "SilKit_SystemMonitor_Create": [_PP, _P],
+    "SilKit_SystemMonitor_SetParticipantDisconnectedHandler": [_P, _P, DisconnectedHandler],
     "SilKit_Experimental_SystemController_Create": [_PP, _P],
     "SilKit_Experimental_SystemController_SetWorkflowConfiguration": [_P, POINTER(WorkflowConfiguration)],
     "SilKit_Experimental_SystemController_AbortSimulation": [_P],

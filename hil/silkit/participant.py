@@ -5,6 +5,7 @@ callback and struct they hand to C alive as long as the participant."""
 from __future__ import annotations
 
 import ctypes
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -118,11 +119,56 @@ class Participant:
     def stop(self, reason: str) -> None:
         self.lib.call("SilKit_LifecycleService_Stop", self.lifecycle, reason.encode())
 
-    def run(self) -> int:
-        """Start the lifecycle and wait until it completes; returns the final participant state."""
+    def halt(self, reason: str) -> None:
+        """Stop the lifecycle in whatever state it is; before it runs (a stop is refused then), abort it."""
+        try:
+            self.stop(reason)
+        except capi.SilKitError:
+            self.abort()
+
+    def on_disconnected(self, handler: Callable[[str], None]) -> None:
+        """``handler(name)`` when another participant leaves (shut down, or its connection lost: killed, crashed)."""
+        monitor = ctypes.c_void_p()
+        self.lib.call("SilKit_SystemMonitor_Create", ctypes.byref(monitor), self.handle)
+
+        def callback(context: Any, system_monitor: Any, info: Any) -> None:
+            handler((info.contents.participantName or b"").decode("utf-8", "replace"))
+
+        disconnected = capi.DisconnectedHandler(callback)
+        self._keep += [monitor, disconnected]
+        self.lib.call("SilKit_SystemMonitor_SetParticipantDisconnectedHandler", monitor, None, disconnected)
+
+    def run(self, poll: Callable[[], None] | None = None, poll_s: float = 0.1) -> int:
+        """Start the lifecycle and wait until it completes; returns the final participant state.
+
+        SIL Kit's wait blocks in C, where Python cannot deliver a signal; it therefore runs on a helper thread and
+        this one wakes every ``poll_s`` to call ``poll``, so Ctrl-C (KeyboardInterrupt) and other checks reach the
+        caller during a run. On KeyboardInterrupt the lifecycle is stopped, and its end awaited, before it is
+        re-raised."""
         self.lib.call("SilKit_LifecycleService_StartLifecycle", self.lifecycle)
         state = ctypes.c_int16()
-        self.lib.call("SilKit_LifecycleService_WaitForLifecycleToComplete", self.lifecycle, ctypes.byref(state))
+        errors: list[BaseException] = []
+
+        def wait() -> None:
+            try:
+                self.lib.call("SilKit_LifecycleService_WaitForLifecycleToComplete", self.lifecycle,
+                              ctypes.byref(state))
+            except BaseException as exc:  # raised in the caller's thread below
+                errors.append(exc)
+
+        waiter = threading.Thread(target=wait, name=f"silkit-lifecycle-{self.name}", daemon=True)
+        waiter.start()
+        try:
+            while waiter.is_alive():
+                waiter.join(poll_s)
+                if poll is not None and waiter.is_alive():
+                    poll()
+        except KeyboardInterrupt:
+            self.halt("interrupted (Ctrl-C or a stop signal)")
+            waiter.join()
+            raise
+        if errors:
+            raise errors[0]
         return int(state.value)
 
     def close(self) -> None:

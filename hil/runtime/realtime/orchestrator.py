@@ -59,11 +59,12 @@ from hil.runtime.realtime.socketcan import check_channels
 from hil.record.canlog import frame_listener, log_format, log_path, open_can_log
 from hil.record.live import LiveTarget
 from hil.record.diskspace import DiskFullError
-from hil.record.integrity import mark_running, write_json_atomic
+from hil.record.integrity import mark_failed, mark_running, write_json_atomic
 from hil.record.out_dir import disk_full_outcome, write_metrics_when_full
 from hil.record.metrics import run_metrics
 from hil.record.runlog import BusLog, Event, RunLog, RunResult
 from hil.record.safety import record_violations
+from hil.runtime.errors import RigDidNotStart
 from hil.runtime.firmware import import_roots
 from hil.runtime.train_db import load_train_db
 from hil.scenario.model import Scenario
@@ -87,7 +88,7 @@ PROTOCOL_WORDS = frozenset({"ready", JOIN_LINE, "fault"})
 PRINTED_TAIL_LINES = 20
 
 
-class NodeError(RuntimeError):
+class NodeError(RigDidNotStart):
     """A node failed to start or to become ready."""
 
 
@@ -302,10 +303,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 faults.release()
             _stop_nodes(nodes)
     except NodeError as exc:  # the rig never ran: say so, not "running" (which would point to hil recover)
-        write_json_atomic(out_dir / "metrics.json", {
-            "scenario": scenario.name, "runtime": "realtime", "status": "failed", "interrupted": True,
-            "sim_time_s": 0.0, "error": str(exc).splitlines()[0],
-            "note": "the rig did not start, nothing ran: there is nothing to recover"})
+        mark_failed(out_dir / "metrics.json", scenario.name, "realtime", str(exc))
         raise
     finally:
         _kill_all(nodes)
