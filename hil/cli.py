@@ -122,10 +122,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, overrides)
     if args.external:  # added to the scenario's own, validated like them
         scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
-    if args.silkit is not None and not (args.silkit_step > 0 and round(args.silkit_step * 1e9) % 2 == 0):
-        raise ScenarioError(f"--silkit-step {args.silkit_step}: expected a positive time step of a whole, even number of ns")
-    if args.silkit is not None and (args.realtime or args.ideal):
-        raise ScenarioError(f"--silkit runs in virtual time: not with --{'realtime' if args.realtime else 'ideal'} (yet)")
+    silkit = _silkit_options(args)
     if not args.realtime and args.silkit is None:  # before anything is written
         from hil.runtime.firmware import refuse_external_units
 
@@ -136,13 +133,43 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else default_output_dir(scenario.name, args)
     check_output_dir(out, args.overwrite)
     try:
-        return _run_in(out, scenario, args, overrides)
+        return _run_in(out, scenario, args, overrides, silkit)
     finally:
         free_reserve(out)
         release_folder(out)
 
 
-def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict) -> int:
+def _silkit_options(args: argparse.Namespace):
+    """--silkit and its companions as SilKitOptions (None without --silkit); a value that cannot work is exit 2."""
+    if args.silkit is None:
+        given = [o for o, v in (("--silkit-step", args.silkit_step), ("--silkit-config", args.silkit_config),
+                                ("--silkit-no-system-controller", args.silkit_no_system_controller or None))
+                 if v is not None]
+        if given:
+            raise ScenarioError(f"{' and '.join(given)} only with --silkit")
+        return None
+    if args.ideal:
+        raise ScenarioError("--silkit runs the rig, not the ideal loop: not with --ideal")
+    if args.realtime and (args.ecus_per_process is not None or args.run_name is not None):
+        raise ScenarioError("--realtime --silkit runs the virtual rig paced by SIL Kit: --ecus-per-process and --run "
+                            "are for the process rig (without --silkit)")
+    from hil.silkit.options import SilKitOptions
+
+    try:
+        config = Path(args.silkit_config).read_text() if args.silkit_config else ""
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"--silkit-config {args.silkit_config}: cannot read it ({exc})") from None
+    try:
+        options = SilKitOptions(uri=args.silkit, step_s=0.001 if args.silkit_step is None else args.silkit_step,
+                                pace=(1.0 if args.pace is None else args.pace) if args.realtime else None,
+                                system_controller=not args.silkit_no_system_controller, config=config)
+        options.participant_config()  # a configuration pacing cannot be added to: refused before anything runs
+    except ValueError as exc:
+        raise ScenarioError(str(exc)) from None
+    return options
+
+
+def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict, silkit=None) -> int:
     """The run itself, into ``out`` (checked and held)."""
     from hil.session import run_scenario
 
@@ -153,7 +180,7 @@ def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict) -> i
     live = live_target(args)
     if live is not None and not args.quiet:
         print(f"hil: {live.describe()}", file=sys.stderr)
-    if args.realtime:
+    if args.realtime and silkit is None:
         from hil.runtime.realtime.command_line import run_realtime_from_args
 
         result = run_realtime_from_args(args, scenario, out, live, _given(args, overrides))
@@ -161,7 +188,7 @@ def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict) -> i
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
                               record=not args.no_record, progress=not args.quiet, live=live,
                               overrides=_given(args, overrides), source=str(args.scenario), keep_signals=False,
-                              silkit=args.silkit, silkit_step_s=args.silkit_step)
+                              silkit=silkit)
     print_summary(result.metrics, out)
     if result.metrics.get("stopped_early"):  # a plant or radio process died: not the Ctrl-C code
         print(f"hil: error: the run stopped early: {result.metrics['stopped_early']} (what ran is in {out})",
@@ -306,10 +333,17 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--silkit", nargs="?", const="", default=None, metavar="URI",
                      help="virtual time in lockstep with Vector SIL Kit, the rig simulating its CAN buses for SIL Kit "
                           "participants; ecu.external units are participants named after them (train1/unit2). URI: "
-                          "the registry (default: one of the run's own on 127.0.0.1, printed on stdout)")
-    run.add_argument("--silkit-step", type=float, default=0.001, metavar="S",
+                          "the registry (default: one of the run's own on 127.0.0.1, printed on stdout). With "
+                          "--realtime: SIL Kit's time coupled to the wall clock at --pace (its AnimationFactor)")
+    run.add_argument("--silkit-step", type=float, default=None, metavar="S",
                      help="--silkit: the participants' time step, s (default 0.001; the rig steps at half of it); a "
                           "frame is seen at the first step after its end, and each step costs SIL Kit's synchronisation")
+    run.add_argument("--silkit-config", metavar="FILE",
+                     help="--silkit: a SIL Kit participant configuration (YAML/JSON, as SIL Kit's tools take with "
+                          "--configuration) for the rig's participant: logging, middleware (acceptors, domain sockets)")
+    run.add_argument("--silkit-no-system-controller", action="store_true",
+                     help="--silkit: another participant starts the simulation (Vector's sil-kit-system-controller "
+                          "trainhil train1/unit2 ..., CANoe); by default the rig does, once the external units joined")
     run.add_argument("--no-record", action="store_true", help="skip the rerun recording (metrics only)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     from hil.record.live import DEFAULT_PORT, DEFAULT_URL

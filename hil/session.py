@@ -26,6 +26,7 @@ from hil.runtime.errors import RigDidNotStart
 from hil.runtime.ideal import IdealLoop
 from hil.runtime.train_db import load_train_db
 from hil.runtime.virtual import VirtualRig
+from hil.silkit.options import SilKitOptions
 from hil.scenario.model import Scenario
 
 
@@ -78,11 +79,11 @@ def _can_loggers(rig: VirtualRig, out_dir: Path, fmt: str) -> list:
     return writers
 
 
-def _silkit_rig(scenario: Scenario, seed: int | None, db, uri: str, step_s: float) -> VirtualRig:
+def _silkit_rig(scenario: Scenario, seed: int | None, db, options: "SilKitOptions") -> VirtualRig:
     """The virtual rig as a SIL Kit participant; says on stdout where the participants join (also under --quiet)."""
     from hil.runtime.silkit_rig import SilKitRig
 
-    rig = SilKitRig(scenario, seed, db=db, registry_uri=uri or None, step_ns=round(step_s * 1e9))
+    rig = SilKitRig(scenario, seed, db=db, options=options)
     buses = ",".join(bus.name for bus in rig.buses)
     print(f"silkit registry={rig.registry_uri} participant=trainhil networks={buses} "
           f"external={','.join(scenario.ecu.external) or '-'}", flush=True)
@@ -93,7 +94,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
                  can_log: str | bool | None = None, ideal: bool = False, record: bool = True, progress: bool = False,
                  chunk_s: float = 10.0, min_flush_wall_s: float = 2.0, live: LiveTarget | None = None,
                  overrides: dict | None = None, source: str | None = None, keep_signals: bool = True,
-                 silkit: str | None = None, silkit_step_s: float = 0.001) -> RunResult:
+                 silkit: "str | SilKitOptions | None" = None) -> RunResult:
     """Run a scenario (virtual time, or the ideal loop) and write run.rrd, metrics.json and CAN logs into out_dir
     (``can_log``: "asc", "blf" or "mf4", True for ASC).
 
@@ -103,7 +104,8 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     (``hil run``, sweeps): the samples are let go once recorded and summarised for the metrics, so memory does not
     grow with the run's length, and ``result.log`` holds only the last of them. The ideal loop records as it goes
     too, and stops on Ctrl-C with what it has, as a virtual-time run does. ``silkit``: run as a Vector SIL Kit
-    participant on the registry at that URI ("" for a registry of the run's own; hil/runtime/silkit_rig.py)."""
+    participant (hil/runtime/silkit_rig.py), on the registry at that URI ("" for a registry of the run's own) or as
+    the options say."""
     if live is not None:
         chunk_s, min_flush_wall_s = min(chunk_s, 1.0), LIVE_FLUSH_WALL_S
     fmt = None if ideal else log_format(can_log)  # checked before anything is written
@@ -128,7 +130,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
     try:
         stop.arm()  # from here SIGTERM/SIGHUP stop the run like Ctrl-C (the run loop returns what it has)
         rig = IdealLoop(scenario, seed) if ideal else VirtualRig(scenario, seed, db=db) if silkit is None else \
-            _silkit_rig(scenario, seed, db, silkit, silkit_step_s)
+            _silkit_rig(scenario, seed, db, SilKitOptions(uri=silkit) if isinstance(silkit, str) else silkit)
         rig.log.summary(scenario.plant.coupler_band_m)  # the metrics' figures, kept as the samples come
         if not ideal:
             if recorder and scenario.recording.frames:
@@ -178,7 +180,7 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
             rig.parts.close()  # FMU instances back to the pool (a sweep worker's next run reuses them)
     try:
         metrics = run_metrics(log, scenario, runtime, scenario.seed if seed is None else seed, overrides=overrides,
-                              source=source)
+                              source=source, pace=silkit.pace if isinstance(silkit, SilKitOptions) else None)
         if failure is not None:
             metrics["error"] = f"{type(failure).__name__}: {failure.strerror if isinstance(failure, OSError) else failure}"
         if isinstance(failure, DiskFullError):

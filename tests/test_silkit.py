@@ -288,3 +288,158 @@ def test_a_participant_killed_mid_run_is_recorded_and_the_fail_safe_holds_its_un
     assert metrics["coupler_max_abs_m"] < 5.0 and not metrics["safety"]["collision"]["violated"]
     report = check_run_dir(tmp_path, expect_complete=True)
     assert report.ok, report.problems
+
+
+@pytest.fixture
+def two_hosts():
+    """Two network namespaces joined by a veth pair, ``(host A, host B, A's address)``, made here and removed after;
+    skipped with the reason where they cannot be made (no iproute2, no privilege to make namespaces)."""
+    import shutil
+    import subprocess
+
+    if shutil.which("ip") is None or shutil.which("ss") is None:
+        pytest.skip("no iproute2 (ip, ss) to make and watch network namespaces")
+    tag = os.getpid() % 100000
+    a, b, subnet = f"tha{tag}", f"thb{tag}", f"10.213.{tag % 250}"
+
+    def ip(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["ip", *args], capture_output=True, text=True)
+
+    steps = [("netns", "add", a), ("netns", "add", b),
+             ("link", "add", f"va{tag}", "type", "veth", "peer", "name", f"vb{tag}"),
+             ("link", "set", f"va{tag}", "netns", a), ("link", "set", f"vb{tag}", "netns", b),
+             ("-n", a, "addr", "add", f"{subnet}.1/30", "dev", f"va{tag}"),
+             ("-n", b, "addr", "add", f"{subnet}.2/30", "dev", f"vb{tag}"),
+             ("-n", a, "link", "set", f"va{tag}", "up"), ("-n", b, "link", "set", f"vb{tag}", "up"),
+             ("-n", a, "link", "set", "lo", "up"), ("-n", b, "link", "set", "lo", "up")]
+    try:
+        for step in steps:
+            done = ip(*step)
+            if done.returncode:
+                pytest.skip(f"cannot make two network hosts here (ip {' '.join(step)}: {done.stderr.strip()})")
+        yield a, b, f"{subnet}.1"
+    finally:
+        ip("netns", "del", a)
+        ip("netns", "del", b)
+
+
+def _peer_connections(namespace: str, host: str, registry_port: str, seen: list, stop) -> None:
+    """Watch ``namespace``'s established TCP connections for one to ``host`` that is not the registry's (a
+    participant-to-participant link over the veth) until ``stop`` is set."""
+    import subprocess
+
+    while not stop.is_set():
+        out = subprocess.run(["ip", "netns", "exec", namespace, "ss", "-tnH", "state", "established"],
+                             capture_output=True, text=True).stdout
+        seen += [line for line in out.splitlines()
+                 if (peer := line.split()[-1]).startswith(f"{host}:") and not peer.endswith(f":{registry_port}")]
+        stop.wait(0.1)
+
+
+def test_the_rig_and_the_c_ecu_on_two_hosts(runtime, c_ecu, two_hosts, tmp_path):
+    """The registry and the rig on host A, the C ECU on host B (two network namespaces joined by veth): the ECU
+    joins over TCP (the rig's domain sockets off, through its --silkit-config), drives train1/unit2 in virtual time,
+    and a participant-to-participant TCP connection between the hosts is seen."""
+    import subprocess
+    import sys
+    import threading
+
+    from hil.silkit.registry import Registry
+
+    host_a, host_b, address = two_hosts
+    on = {"a": ["ip", "netns", "exec", host_a], "b": ["ip", "netns", "exec", host_b]}
+    config = tmp_path / "rig.yaml"
+    config.write_text("Middleware:\n  EnableDomainSockets: false\n")
+    with Registry(runtime, host=address, launcher=on["a"]) as registry:
+        seen: list[str] = []
+        stop = threading.Event()
+        watcher = threading.Thread(target=_peer_connections,
+                                   args=(host_b, address, registry.uri.rsplit(":", 1)[1], seen, stop))
+        ecu = subprocess.Popen([*on["b"], str(c_ecu), "--registry", registry.uri], stdout=subprocess.PIPE, text=True)
+        watcher.start()
+        try:
+            rig = subprocess.run([*on["a"], sys.executable, "-c", "import sys; from hil.cli import main; sys.exit(main())",
+                                  "run", "seed000", "--silkit", registry.uri, "--silkit-config", str(config),
+                                  "--external", "train1/unit2", "--duration", "3", "--out", str(tmp_path / "o"),
+                                  "--no-record", "--quiet"], capture_output=True, text=True, timeout=120)
+            printed, _ = ecu.communicate(timeout=30)
+        finally:
+            stop.set()
+            watcher.join()
+            ecu.kill()
+    assert rig.returncode == 0, rig.stderr
+    assert "sent 900 frames, dropped 0 with a bad E2E CRC, final state 110" in printed, printed
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert metrics["silkit"]["controllers"]["bus1"] == 1 and not metrics["plant_command_rejects"]
+    assert metrics["e2e"]["train1/unit1/ecu"]["OK"] > 1000  # unit 2's frames reached its neighbour on host A
+    assert seen, "no TCP connection between the participants on the two hosts was seen"
+
+
+def test_vector_s_system_controller_starts_the_rig_and_the_c_ecu(runtime, c_ecu, tmp_path):
+    """Vector's sil-kit-system-controller (unchanged, from the runtime) coordinates: the rig leaves that role to it
+    (--silkit-no-system-controller); the C ECU drives its unit and the controller sees the simulation end."""
+    import subprocess
+
+    from hil.cli import main
+    from hil.silkit.registry import Registry
+
+    with Registry(runtime) as registry:
+        controller = subprocess.Popen([str(runtime.tool("sil-kit-system-controller")), "--connect-uri", registry.uri,
+                                       "--log", "info", "trainhil", "train1/unit2"],
+                                      stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                      text=True)
+        ecu = subprocess.Popen([str(c_ecu), "--registry", registry.uri], stdout=subprocess.PIPE, text=True)
+        try:
+            code = main(["run", "seed000", "--silkit", registry.uri, "--silkit-no-system-controller", "--external",
+                         "train1/unit2", "--duration", "2", "--out", str(tmp_path / "o"), "--no-record", "--quiet"])
+            printed, _ = ecu.communicate(timeout=20)
+            said, _ = controller.communicate(timeout=20)
+        finally:
+            ecu.kill()
+            controller.kill()
+    assert code == 0
+    assert "sent 600 frames, dropped 0" in printed, printed
+    assert "Simulation is now running" in said and "Simulation ended" in said and controller.returncode == 0, said
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert metrics["silkit"]["system_controller"] is False and not metrics["plant_command_rejects"]
+
+
+def test_realtime_silkit_couples_sil_kit_time_to_the_wall_clock(runtime, tmp_path):
+    """--realtime --silkit --pace 4: SIL Kit's AnimationFactor 0.25 on the rig's participant, so 2 simulated
+    seconds take at least 0.5 s of wall time, every one of the 4,000 half steps (0.5 ms) timed against the wall
+    clock in metrics.json; the run is the virtual one (the same frames as without pacing)."""
+    import time
+
+    from hil.cli import main
+
+    wall0 = time.perf_counter()
+    code = main(["run", "seed000", "--realtime", "--pace", "4", "--silkit", "--duration", "2", "--out",
+                 str(tmp_path / "paced"), "--no-record", "--quiet"])
+    wall = time.perf_counter() - wall0
+    assert code == 0
+    paced = json.loads((tmp_path / "paced" / "metrics.json").read_text())
+    assert paced["runtime"] == "silkit" and paced["pace"] == 4.0 and wall >= 0.5
+    lateness = paced["silkit"]["step_lateness_ms"]
+    assert lateness["steps"] == 4000 and 0 <= lateness["p50"] <= lateness["max"]
+    assert main(["run", "seed000", "--silkit", "--duration", "2", "--out", str(tmp_path / "free"), "--no-record",
+                 "--quiet"]) == 0
+    free = json.loads((tmp_path / "free" / "metrics.json").read_text())
+    assert "step_lateness_ms" not in free["silkit"]
+    for key in ("frames_sent", "speed_error_max_abs_mps", "coupler_max_abs_m"):
+        assert paced[key] == free[key], key
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--silkit-step", "0.002"], "--silkit-step only with --silkit"),
+    (["--silkit", "--silkit-step", "0.0000000015"], "whole, even number of ns"),
+    (["--silkit", "--silkit-step", "0.0010000005"], "whole, even number of ns"),
+    (["--silkit", "--ideal"], "not with --ideal"),
+    (["--silkit", "--realtime", "--ecus-per-process", "2"], "--ecus-per-process and --run are for the process rig"),
+    (["--silkit", "--silkit-config", "/nonexistent/sk.yaml"], "--silkit-config /nonexistent/sk.yaml: cannot read"),
+])
+def test_silkit_options_that_cannot_work_are_exit_2_before_anything_is_written(tmp_path, capsys, argv, message):
+    from hil.cli import main
+
+    assert main(["run", "seed000", *argv, "--duration", "1", "--out", str(tmp_path / "o")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

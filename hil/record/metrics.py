@@ -59,6 +59,8 @@ def compute_metrics(log: RunLog, coupler_band: tuple[float, float], settle_band_
     out["safety"] = safety_report(log, (lo, hi))  # each violation with its time and cause (hil/record/safety.py)
     if log.fault_report is not None:  # set by hil.faults when the scenario schedules faults
         out["faults"] = log.fault_report
+    if log.silkit_report is not None:  # set by the rig under SIL Kit (hil/runtime/silkit_rig.py)
+        out["silkit"] = log.silkit_report
     out["sim_time_s"] = _f(log.sim_time_s)
     out["wall_time_s"] = _f(log.wall_time_s)
     out["realtime_factor"] = _f(log.sim_time_s / log.wall_time_s) if log.wall_time_s > 0 else None

@@ -56,6 +56,7 @@ class RunLog:
     wall_time_s: float = 0.0
     plant_command_rejects: dict[str, dict[str, int]] = field(default_factory=dict)  # per unit: out-of-sequence commands
     fault_report: dict | None = None  # the faults block of metrics.json, set by hil.faults when faults are scheduled
+    silkit_report: dict | None = None  # the silkit block of metrics.json, set by a run under SIL Kit
     # (coupler band, settle band, line limit) -> the summary of the samples and how many rows it has seen
     summaries: dict[tuple, tuple[SignalSummary, int]] = field(default_factory=dict, repr=False)
 

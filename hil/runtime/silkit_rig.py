@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import threading
 import time
+
+import numpy as np
 from collections.abc import Callable
 
 from ecu_sim.runtime import ECU_STOPPED, os_exit_stops_the_firmware
@@ -25,13 +27,13 @@ from hil.runtime.train_db import TrainDb
 from hil.runtime.virtual import ProgressFn, VirtualRig, to_ns
 from hil.scenario.model import Scenario
 from hil.silkit.capi import Library, SilKitError
+from hil.silkit.options import SilKitOptions
 from hil.silkit.network_simulator import CanNetworkSimulator, create_simulator, start_simulator
 from hil.silkit.participant import Participant
 from hil.silkit.registry import Registry
 from hil.silkit.runtime import find_runtime
 
 PARTICIPANT = "trainhil"
-DEFAULT_STEP_NS = 1_000_000
 
 
 def _forwarder(network: CanNetworkSimulator) -> Callable[[Transmission], None]:
@@ -55,24 +57,26 @@ class SilKitRig(VirtualRig):
     runs_external_units = True
 
     def __init__(self, scenario: Scenario, seed: int | None = None, db: TrainDb | None = None,
-                 ecu_factory: EcuFactory = build_ecu, registry_uri: str | None = None,
-                 step_ns: int = DEFAULT_STEP_NS) -> None:
+                 ecu_factory: EcuFactory = build_ecu, options: SilKitOptions = SilKitOptions()) -> None:
         self._external: set[int] = set()
         super().__init__(scenario, seed, db, ecu_factory)
         self.external_names = list(scenario.ecu.external)
-        self.step_ns = step_ns
+        self.options = options
+        self.step_ns = step_ns = round(options.step_s * 1e9)
         runtime = find_runtime()
         self.lib = Library(str(runtime.library))
-        self.registry = Registry(runtime) if not registry_uri else None
-        self.registry_uri = registry_uri or self.registry.uri  # type: ignore[union-attr]
+        self.registry = Registry(runtime) if not options.uri else None
+        self.registry_uri = options.uri or self.registry.uri  # type: ignore[union-attr]
         try:
-            self.participant = Participant(self.lib, PARTICIPANT, self.registry_uri)
+            self.participant = Participant(self.lib, PARTICIPANT, self.registry_uri,
+                                           config=options.participant_config())
         except SilKitError as exc:
             self.close()
             raise RegistryUnreachable(f"no SIL Kit registry answers at {self.registry_uri} ({exc}); start one there "
                                       "(sil-kit-registry --listen-uri URI) or give --silkit without a URI for a "
                                       "registry of the run's own") from None
-        self.participant.require([PARTICIPANT, *self.external_names])
+        if options.system_controller:
+            self.participant.require([PARTICIPANT, *self.external_names])
         simulator = create_simulator(self.lib, self.participant.handle)
         self.networks, self._forwarders = [], []
         for bus in self.buses:
@@ -89,6 +93,7 @@ class SilKitRig(VirtualRig):
         self._lost: list[tuple[str, int]] = []  # external participants that disconnected mid-run, and when
         self._leaving = False
         self._reached_end = False
+        self._step_offsets_s: list[float] = []  # paced: each step's wall-clock start minus its scheduled one
         self.participant.on_disconnected(self._on_disconnected)
 
     # ------------------------------------------------------------------ external units have no ECU here
@@ -135,10 +140,30 @@ class SilKitRig(VirtualRig):
         finally:
             watchdog.cancel()
             self._finish(time.perf_counter() - wall0)
+            self.log.silkit_report = self._report()
             self.close()
         if self._failure is not None:
             raise self._failure
         return self.log
+
+    def _report(self) -> dict:
+        """The ``silkit`` block of metrics.json: who took part, what SIL Kit controllers did, and when paced, how
+        late the rig's steps began against the wall clock's schedule of virtual time (SIL Kit never starts one early;
+        the schedule is anchored at the step that began earliest against it, so this is the pacing's jitter)."""
+        report: dict = {
+            "registry": self.registry_uri, "participant": PARTICIPANT, "step_s": self.step_ns * 1e-9,
+            "system_controller": self.options.system_controller, "external": self.external_names,
+            "lost": [{"participant": name, "t_s": t * 1e-9} for name, t in self._lost],
+            "controllers": {n.network: len(n.controllers) for n in self.networks},
+            "tx_queue_full": sum(n.queue_full for n in self.networks),
+            "bitrate_mismatches": sum(n.bitrate_mismatches for n in self.networks)}
+        if self.options.pace is not None:  # anchored at the step that began earliest against the schedule
+            offsets = np.asarray(self._step_offsets_s)
+            late = (offsets - offsets.min()) * 1e3 if offsets.size else offsets
+            report["pace"] = self.options.pace
+            report["step_lateness_ms"] = ({"p50": float(np.percentile(late, 50)), "p99": float(np.percentile(late, 99)),
+                                           "max": float(late.max()), "steps": int(late.size)} if late.size else None)
+        return report
 
     def _on_disconnected(self, name: str) -> None:
         """SIL Kit's thread: a participant left. An external unit's participant leaving before the end is lost."""
@@ -176,6 +201,8 @@ class SilKitRig(VirtualRig):
         """SIL Kit's step (every Δ/2, on its thread); an error stops the simulation and is raised by :meth:`run`."""
         self._started.set()
         self._at_ns = now_ns
+        if self.options.pace is not None:  # when this step began against the wall clock's schedule
+            self._step_offsets_s.append(time.perf_counter() - now_ns * 1e-9 / self.options.pace)
         try:
             if now_ns % self.step_ns != self.step_ns // 2 or self._failure is not None:
                 return

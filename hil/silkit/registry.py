@@ -5,19 +5,22 @@ from __future__ import annotations
 import subprocess
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from hil.silkit.runtime import SilKitRuntime
 
 
 class Registry:
-    """``sil-kit-registry --listen-uri silkit://HOST:0`` as a child process; :attr:`uri` is where it listens."""
+    """``sil-kit-registry --listen-uri silkit://HOST:0`` as a child process; :attr:`uri` is where it listens.
+    ``launcher``: a command to start it under (``ip netns exec NS`` for a registry on another network host)."""
 
-    def __init__(self, runtime: SilKitRuntime, host: str = "127.0.0.1", timeout_s: float = 10.0) -> None:
+    def __init__(self, runtime: SilKitRuntime, host: str = "127.0.0.1", timeout_s: float = 10.0,
+                 launcher: Sequence[str] = ()) -> None:
         self._dir = tempfile.TemporaryDirectory(prefix="trainhil-registry-")
         config = Path(self._dir.name) / "registry.yaml"
         self.process = subprocess.Popen(
-            [str(runtime.tool("sil-kit-registry")), "--listen-uri", f"silkit://{host}:0",
+            [*launcher, str(runtime.tool("sil-kit-registry")), "--listen-uri", f"silkit://{host}:0",
              "--generate-configuration", str(config), "--log", "warn"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         self.uri = self._wait_for_uri(config, timeout_s)
