@@ -120,9 +120,11 @@ def test_a_silkit_run_without_external_units_is_the_virtual_run(runtime, tmp_pat
         assert silkit[key] == plain[key], key
 
 
-def run_with_external_unit(runtime, out, duration_s: float = 3.0):
+def run_with_external_unit(runtime, out, duration_s: float = 3.0, faults: list | None = None,
+                           error_states: list | None = None):
     """seed000 --silkit with train1/unit2 as a SIL Kit participant of the test's (the firmware of ecu_sim on SIL
-    Kit's CAN API, nothing of the rig's network): (metrics, the unit's ECU, its transmit statuses)."""
+    Kit's CAN API, nothing of the rig's network), with the scenario's ``faults`` and the error states its controller
+    is told appended to ``error_states``: (metrics, the unit's ECU, its transmit statuses)."""
     import threading
 
     from hil.runtime.assembly import assemble
@@ -134,7 +136,8 @@ def run_with_external_unit(runtime, out, duration_s: float = 3.0):
     from hil.silkit.participant import Participant
     from hil.silkit.registry import Registry
 
-    sc = load_scenario("seed000", {"ecu.external": ["train1/unit2"], "ecu.join_timeout_s": 20.0})
+    sc = load_scenario("seed000", {"ecu.external": ["train1/unit2"], "ecu.join_timeout_s": 20.0,
+                                   **({"faults": faults} if faults else {})})
     parts, db = assemble(sc), load_train_db(sc)
     ecu = build_ecu(parts, db, 1)
     inbox: list[tuple[int, bytes, float]] = []
@@ -145,6 +148,8 @@ def run_with_external_unit(runtime, out, duration_s: float = 3.0):
         can = unit.can_controller("CAN1", "bus1")
         can.on_frame(lambda t, i, d, f: inbox.append((i, d, t * 1e-9)) if i in ecu.rx_ids else None)
         can.on_transmit(lambda t, i, s: sent.append(s))
+        if error_states is not None:
+            can.on_error_state(lambda t, state: error_states.append((t * 1e-9, state)))
 
         def step(now: int, duration: int) -> None:
             while inbox:
@@ -175,6 +180,24 @@ def test_an_external_unit_joins_in_virtual_time_and_its_commands_are_applied(run
     again, _, _ = run_with_external_unit(runtime, tmp_path / "b")
     for key in ("frames_sent", "speed_error_max_abs_mps", "coupler_max_abs_m", "control_effort", "jerk_rms_mps3"):
         assert again[key] == metrics[key], key
+
+
+def test_an_external_controller_goes_bus_off_under_a_bus_fault_and_is_told(runtime, tmp_path):
+    """Error frames on every TractionCmd_U02 (0x81) from 1 s: the engine's error confinement counts the SIL Kit
+    controller's transmit errors like any node's; it is told error passive, then bus-off, then error active again
+    after its recovery, as often as the engine counts them, and nothing once the fault is over."""
+    states: list[tuple[float, int]] = []
+    fault = {"kind": "bus_error_frames", "train": 1, "at_s": 1.0, "duration_s": 1.0, "probability": 1.0,
+             "frame_ids": [0x81]}
+    metrics, ecu, sent = run_with_external_unit(runtime, tmp_path, 3.0, [fault], states)
+    kinds = [state for _, state in states]
+    assert kinds[:3] == [capi.ERROR_PASSIVE, capi.BUS_OFF, capi.ERROR_ACTIVE], states
+    assert 1.0 <= states[0][0] < states[1][0] < states[2][0] < 2.0
+    node = metrics["faults"]["can_errors"]["buses"]["bus1"]["nodes"]["silkit:1"]  # the engine's count of it
+    assert kinds.count(capi.BUS_OFF) == node["bus_off"] >= 1 and kinds.count(capi.ERROR_PASSIVE) == node["error_passive"]
+    assert node["state"] == "error_active" and kinds[-1] == capi.ERROR_ACTIVE  # recovered once the fault ended
+    assert all(t < 2.01 for t, _ in states)  # nothing after the fault's end (and its last recovery)
+    assert metrics["safety"]["ecu_failure"]["violated"] is False  # a bus-off is the bus's fault, not the ECU's
 
 
 def test_a_missing_external_participant_is_named_after_the_join_timeout(runtime, tmp_path, capsys):

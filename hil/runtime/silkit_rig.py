@@ -105,6 +105,11 @@ class SilKitRig(VirtualRig):
             return
         super()._attach_ecu(u, ecu_factory)
 
+    def bus_event(self, bus: int, t_ns: int, kind: str, fields: dict) -> None:
+        """An error-state change of a SIL Kit controller's node goes to that controller."""
+        if bus < len(self.networks):  # the fault machinery is made before the networks
+            self.networks[bus].error_state_changed(str(fields.get("node", "")), kind, t_ns)
+
     def _ecu_tick(self, u: int, t_ns: int) -> None:
         if u not in self._external:
             super()._ecu_tick(u, t_ns)

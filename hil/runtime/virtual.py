@@ -235,6 +235,10 @@ class VirtualRig:
             if on_chunk:
                 on_chunk(self.log)
 
+    def bus_event(self, bus: int, t_ns: int, kind: str, fields: dict) -> None:
+        """An error-model or guardian event of the engine bus ``bus`` (already on the timeline); for subclasses
+        that hand error states on (the SIL Kit rig does, to its controllers)."""
+
     def _before_run(self) -> None:
         """Keep the completed frames in the engine for the buses someone listens to."""
         for bus in self.buses:

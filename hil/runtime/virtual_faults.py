@@ -72,6 +72,7 @@ class VirtualFaults:
             for bus, t_ns, kind, fields in net.take_bus_events():
                 what, level, text = describe_bus_event(kind, fields)
                 log.event(t_ns * 1e-9, level, f"{buses[bus].name}/{what}", text)
+                self.rig.bus_event(bus, t_ns, kind, fields)
 
     # ---- triggers
     def _poll(self, t_ns: int) -> None:

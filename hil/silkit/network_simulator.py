@@ -14,9 +14,10 @@ that ends by (k + 1)Δ is produced at once, which SIL Kit hands to the receivers
 is seen in the first step at or after its end, with its exact end time, and the run does not depend on thread
 timing. Participants must step on the Δ grid (a finer sender's frames are stamped at the Δ point before them).
 A frame that ends exactly on a step boundary (k + 1)Δ is produced a step later. The engine's objects live on the
-simulator's step thread: SIL Kit's callbacks only record what they are told. Not yet wired: the engine's error
-model and bus faults (error states to the controllers), CAN FD, per-controller bit rates (the bus has one; a
-controller that sets another is counted in ``bitrate_mismatches``).
+simulator's step thread: SIL Kit's callbacks only record what they are told. Under bus faults the engine's error
+confinement counts a SIL Kit controller's errors like any node's, and each change of its error state (error
+passive, bus-off, active again) is sent to it (``error_state_changed``). Not yet: CAN FD, per-controller bit
+rates (the bus has one; a controller that sets another is counted in ``bitrate_mismatches``).
 """
 from __future__ import annotations
 
@@ -28,6 +29,15 @@ from typing import Any
 from hil.silkit import capi
 from hil.silkit.capi import Library
 from trainhil_engine import Network
+
+
+ERROR_STATES = {"error_passive": capi.ERROR_PASSIVE, "bus_off": capi.BUS_OFF, "error_active": capi.ERROR_ACTIVE,
+                "recovered": capi.ERROR_ACTIVE}  # the engine's error-model events -> SIL Kit's CanErrorState
+
+
+def node_name(descriptor: int) -> str:
+    """The engine node name of the SIL Kit controller ``descriptor`` (what the run's events call it)."""
+    return f"silkit:{descriptor}"
 
 
 @dataclass
@@ -76,6 +86,8 @@ class CanNetworkSimulator:
         self._bus = bus[1] if bus else 0
         self._depth = tx_queue_depth
         self._by_node: dict[int, int] = {}  # engine node -> controller descriptor
+        self._by_name: dict[str, int] = {}  # engine node name -> controller descriptor
+        self.error_states: list[tuple[int, int, int]] = []  # (controller, SIL Kit error state, t_ns) reported
         self._producer: Any = None
         self._keep: list[Any] = []
         self._controller_functions = capi.new(
@@ -172,6 +184,17 @@ class CanNetworkSimulator:
             receivers = [d for d, c in self.controllers.items() if d != sender and c.started and c.node is not None]
         self._deliver(sender, can_id, data, capi.FLAG_IDE if extended else 0, end_ns, receivers, context)
 
+    def error_state_changed(self, node_name: str, kind: str, t_ns: int) -> None:
+        """An engine error-model event (``error_passive``, ``bus_off``, ``error_active``, ``recovered``) of node
+        ``node_name``: when it is a SIL Kit controller's, its new error state goes to that controller."""
+        state = ERROR_STATES.get(kind)
+        descriptor = self._by_name.get(node_name)
+        if state is None or descriptor is None:
+            return
+        self.error_states.append((descriptor, state, t_ns))
+        event = capi.new(capi.CanErrorStateChangeEvent, timestamp=t_ns, errorState=state)
+        self._produce(event, [descriptor])
+
     def _engine(self) -> tuple[Network, int]:
         """The engine network and bus (made here, on the step thread, when the simulator has its own), with every
         known controller attached."""
@@ -182,8 +205,10 @@ class CanNetworkSimulator:
         with self._lock:
             new = [c for c in self.controllers.values() if c.node is None]
         for c in sorted(new, key=lambda c: c.descriptor):
-            c.node = self._net.attach_sender(self._bus, f"silkit:{c.descriptor}")
+            name = node_name(c.descriptor)
+            c.node = self._net.attach_sender(self._bus, name)
             self._by_node[c.node] = c.descriptor
+            self._by_name[name] = c.descriptor
         return self._net, self._bus
 
     def _queue(self, net: Network, bus: int) -> list[tuple[int, int, Any]]:
