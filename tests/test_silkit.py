@@ -26,21 +26,25 @@ def runtime():
         pytest.skip(str(exc))
 
 
-def simulate(runtime, sends: dict[str, list[tuple[int, int, bytes]]], depth: int = 64, until_ns: int = 5_000_000):
+def simulate(runtime, sends: dict[str, list[tuple]], depth: int = 64, until_ns: int = 5_000_000, fd: bool = False,
+             flags_seen: list | None = None):
     """Run the rig (network simulator of bus1 at 500 kbit/s) and one participant per key of ``sends``, each sending
-    its (step time, id, data) frames; returns (what the rig's controller received, the acknowledgements by sender,
-    the simulator, and per participant (its last step before the frame came, frame end, id))."""
+    its (step time, id, data[, flags]) frames, on a CAN FD bus (2 Mbit/s data phase) with ``fd``; returns (what the
+    rig's controller received, the acknowledgements by sender, the simulator, and per participant (its last step
+    before the frame came, frame end, id)); the received frames' flags go to ``flags_seen``."""
     from hil.silkit.session import LocalSimulation
 
     with LocalSimulation(["rig", *sends], runtime) as sim:
         rig = sim.participants["rig"]
-        network = CanNetworkSimulator(sim.lib, rig.handle, "bus1", grid_ns=STEP_NS, tx_queue_depth=depth)
+        network = CanNetworkSimulator(sim.lib, rig.handle, "bus1", grid_ns=STEP_NS, tx_queue_depth=depth, fd=fd,
+                                      data_bitrate=2_000_000 if fd else None)
         received: list[tuple[int, int, bytes]] = []
         acks: dict[str, list[tuple[int, int, int]]] = {name: [] for name in sends}
         seen: dict[str, list[tuple[int, int, int]]] = {name: [] for name in sends}
         last_step = {name: -1 for name in sends}
         controllers = {"rig": rig.can_controller("CAN1", "bus1")}
-        controllers["rig"].on_frame(lambda t, i, d, f: received.append((t, i, d)))
+        controllers["rig"].on_frame(lambda t, i, d, f: (received.append((t, i, d)),
+                                                       flags_seen.append(f) if flags_seen is not None else None))
 
         def rig_step(now: int, duration: int) -> None:
             network.step(now, duration)
@@ -55,9 +59,9 @@ def simulate(runtime, sends: dict[str, list[tuple[int, int, bytes]]], depth: int
 
             def step(now: int, duration: int, controller=controller, frames=frames, name=name) -> None:
                 last_step[name] = now
-                for at, can_id, data in frames:
+                for at, can_id, data, *flags in frames:
                     if at == now:
-                        controller.send(can_id, data)
+                        controller.send(can_id, data, *flags)
 
             sim.participants[name].on_step(step, STEP_NS)
         for controller in controllers.values():
@@ -85,6 +89,25 @@ def test_the_lower_id_wins_and_the_other_ends_one_frame_later(runtime):
     # both ended within (1 ms, 2 ms): a receiver has them before its step at 2 ms, after its step at 1 ms
     assert seen["ecuC"] == [(STEP_NS, first_end, 0x100), (STEP_NS, second_end, 0x200)]
     assert seen["ecuA"] == [(STEP_NS, first_end, 0x100)] and seen["ecuB"] == [(STEP_NS, second_end, 0x200)]
+
+
+def test_can_fd_frames_on_a_can_fd_bus_and_a_format_the_bus_does_not_carry_is_refused(runtime):
+    """On a CAN FD bus a 20-byte FDF frame is carried as CAN FD (timed with its 2 Mbit/s data phase, delivered
+    flagged FDF and BRS); a classical frame there, and an FD frame on a classical bus, are acknowledged Canceled."""
+    import trainhil_engine as engine
+
+    payload = bytes(range(20))
+    fd_flags = capi.FLAG_FDF | capi.FLAG_BRS
+    flags: list[int] = []
+    received, acks, network, _ = simulate(runtime, {"ecuA": [(STEP_NS, 0x120, payload, fd_flags),
+                                                             (2 * STEP_NS, 0x121, bytes(8))]}, fd=True,
+                                          flags_seen=flags)
+    end = STEP_NS + engine.frame_duration_ns(0x120, payload, 500_000, 2_000_000, fd=True, brs=True)
+    assert received == [(end, 0x120, payload)] and flags == [fd_flags]
+    assert acks["ecuA"] == [(end, 0x120, capi.TRANSMITTED), (2 * STEP_NS, 0x121, capi.CANCELED)]
+    assert network.format_refused == 1
+    received, acks, network, _ = simulate(runtime, {"ecuA": [(STEP_NS, 0x120, payload, fd_flags)]})
+    assert received == [] and acks["ecuA"] == [(STEP_NS, 0x120, capi.CANCELED)] and network.format_refused == 1
 
 
 def test_a_full_tx_queue_reaches_the_sender(runtime):

@@ -39,7 +39,7 @@ PARTICIPANT = "trainhil"
 def _forwarder(network: CanNetworkSimulator) -> Callable[[Transmission], None]:
     """A bus listener handing each ended frame to the SIL Kit network simulating that bus."""
     def forward(tx: Transmission) -> None:
-        network.frame_ended(tx.node, tx.frame_id, tx.data, tx.extended, tx.t_end)
+        network.frame_ended(tx.node, tx.frame_id, tx.data, tx.extended, tx.t_end, tx.fd, tx.brs)
     return forward
 
 
@@ -81,7 +81,8 @@ class SilKitRig(VirtualRig):
         self.networks, self._forwarders = [], []
         for bus in self.buses:
             network = CanNetworkSimulator(self.lib, self.participant.handle, bus.name, step_ns, self.sc.can.bitrate,
-                                          self.sc.can.tx_queue_depth, bus=(self.net, bus.index), simulator=simulator)
+                                          self.sc.can.tx_queue_depth, bus=(self.net, bus.index), simulator=simulator,
+                                          fd=self.sc.can.fd)
             self._forwarders.append(_forwarder(network))
             bus.frame_listeners.append(self._forwarders[-1])
             self.networks.append(network)
@@ -161,6 +162,7 @@ class SilKitRig(VirtualRig):
             "lost": [{"participant": name, "t_s": t * 1e-9} for name, t in self._lost],
             "controllers": {n.network: len(n.controllers) for n in self.networks},
             "tx_queue_full": sum(n.queue_full for n in self.networks),
+            "format_refused": sum(n.format_refused for n in self.networks),
             "bitrate_mismatches": sum(n.bitrate_mismatches for n in self.networks)}
         if self.options.pace is not None:  # anchored at the step that began earliest against the schedule
             offsets = np.asarray(self._step_offsets_s)

@@ -16,8 +16,10 @@ timing. Participants must step on the Δ grid (a finer sender's frames are stamp
 A frame that ends exactly on a step boundary (k + 1)Δ is produced a step later. The engine's objects live on the
 simulator's step thread: SIL Kit's callbacks only record what they are told. Under bus faults the engine's error
 confinement counts a SIL Kit controller's errors like any node's, and each change of its error state (error
-passive, bus-off, active again) is sent to it (``error_state_changed``). Not yet: CAN FD, per-controller bit
-rates (the bus has one; a controller that sets another is counted in ``bitrate_mismatches``).
+passive, bus-off, active again) is sent to it (``error_state_changed``). On a CAN FD bus SIL Kit controllers send
+and receive CAN FD frames (FDF, BRS as the bus); the bus has one format, so a frame of the other is refused. Not
+yet: per-controller bit rates (the bus has one; a controller that sets another is counted in
+``bitrate_mismatches``).
 """
 from __future__ import annotations
 
@@ -67,18 +69,24 @@ class CanNetworkSimulator:
 
     def __init__(self, lib: Library, participant_handle: Any, network: str, grid_ns: int, bitrate: int = 500_000,
                  tx_queue_depth: int = 64, bus: tuple[Network, int] | None = None,
-                 simulator: ctypes.c_void_p | None = None) -> None:
+                 simulator: ctypes.c_void_p | None = None, fd: bool = False, data_bitrate: int | None = None,
+                 brs: bool = True) -> None:
         """``bus``: an engine network and bus index to put the controllers on (the rig's own bus, whose clock the rig
         advances and whose frames it hands to :meth:`frame_ended`); default: a network of the simulator's own,
         driven by :meth:`step`. ``simulator``: the participant's network simulator when it simulates several
-        networks (SIL Kit allows one per participant: :func:`create_simulator`); default: one made here."""
+        networks (SIL Kit allows one per participant: :func:`create_simulator`); default: one made here. ``fd``,
+        ``data_bitrate``, ``brs``: a CAN FD bus (the rig's bus says so itself: pass the scenario's), whose every
+        frame is CAN FD; a frame whose format the bus does not carry (:meth:`_fits`) is acknowledged ``Canceled``
+        and counted in ``format_refused``."""
         if grid_ns <= 0 or grid_ns % 2:
             raise ValueError(f"grid_ns = {grid_ns}: the participants' step must be a positive, even number of ns")
         self.lib, self.network, self.grid_ns, self.bitrate = lib, network, grid_ns, bitrate
         self.step_ns = grid_ns // 2  # the simulator's own step (see the module docstring)
         self.controllers: dict[int, SimulatedController] = {}
         self.queue_full = 0
+        self.format_refused = 0  # frames whose CAN format the bus does not carry (see _fits)
         self.bitrate_mismatches = 0
+        self.fd, self._data_bitrate, self._brs = fd, data_bitrate, brs
         self._lock = threading.Lock()
         self._arrived: list[tuple[int, int, int, bytes, Any]] = []  # requests since the last half step
         self._contexts: dict[tuple[int, int], list[Any]] = {}  # (node, id) -> user contexts of frames queued
@@ -160,19 +168,20 @@ class CanNetworkSimulator:
         net.advance(sent_at)
         self.inject(sent_at)
         net.advance(sent_at + self.grid_ns)
-        for can_id, data, extended, _, _, end, node, _, _ in net.take_trace(bus):
-            self.frame_ended(node, can_id, data, extended, end)
+        for can_id, data, extended, _, _, end, node, fd, brs in net.take_trace(bus):
+            self.frame_ended(node, can_id, data, extended, end, fd, brs)
 
     def inject(self, sent_at: int) -> None:
         """Queue the requests that arrived since the last half step on the engine bus, whose clock is at
         ``sent_at``; a full TX queue is acknowledged to its sender."""
         net, bus = self._engine()
-        for descriptor, can_id, context in self._queue(net, bus):
-            self._acknowledge(descriptor, can_id, capi.TRANSMIT_QUEUE_FULL, sent_at, context)
+        for descriptor, can_id, context, status in self._queue(net, bus):
+            self._acknowledge(descriptor, can_id, status, sent_at, context)
 
-    def frame_ended(self, node: int, can_id: int, data: bytes, extended: bool, end_ns: int) -> None:
-        """A frame the engine carried to its end: to every SIL Kit controller but its sender, and the sender's
-        acknowledgement when a SIL Kit controller sent it."""
+    def frame_ended(self, node: int, can_id: int, data: bytes, extended: bool, end_ns: int, fd: bool = False,
+                    brs: bool = False) -> None:
+        """A frame the engine carried to its end: to every SIL Kit controller but its sender (flagged FDF, and BRS,
+        when it was a CAN FD frame), and the sender's acknowledgement when a SIL Kit controller sent it."""
         sender = self._by_node.get(node)
         if sender is None and not self._by_node:
             return  # no SIL Kit controller on this bus (yet): nothing to hand over
@@ -182,7 +191,8 @@ class CanNetworkSimulator:
             context = queued.pop(0) if queued else None
         with self._lock:
             receivers = [d for d, c in self.controllers.items() if d != sender and c.started and c.node is not None]
-        self._deliver(sender, can_id, data, capi.FLAG_IDE if extended else 0, end_ns, receivers, context)
+        flags = (capi.FLAG_IDE if extended else 0) | (capi.FLAG_FDF if fd else 0) | (capi.FLAG_BRS if fd and brs else 0)
+        self._deliver(sender, can_id, data, flags, end_ns, receivers, context)
 
     def error_state_changed(self, node_name: str, kind: str, t_ns: int) -> None:
         """An engine error-model event (``error_passive``, ``bus_off``, ``error_active``, ``recovered``) of node
@@ -200,7 +210,8 @@ class CanNetworkSimulator:
         known controller attached."""
         if self._net is None:
             self._net = Network()
-            self._bus = self._net.add_bus(self.network, self.bitrate, "priority", self._depth)
+            self._bus = self._net.add_bus(self.network, self.bitrate, "priority", self._depth, fd=self.fd,
+                                          data_bitrate=self._data_bitrate, brs=self._brs)
             self._net.set_trace(self._bus, True)
         with self._lock:
             new = [c for c in self.controllers.values() if c.node is None]
@@ -211,10 +222,16 @@ class CanNetworkSimulator:
             self._by_name[name] = c.descriptor
         return self._net, self._bus
 
-    def _queue(self, net: Network, bus: int) -> list[tuple[int, int, Any]]:
+    def _fits(self, flags: int, data: bytes) -> bool:
+        """Whether the bus carries this frame: every frame of a CAN FD bus is CAN FD (the engine's bus has one
+        format), so a classical request there is refused, as an FD one (or more than 8 bytes) on a classical bus."""
+        return bool(flags & capi.FLAG_FDF) == self.fd and (self.fd or len(data) <= 8)
+
+    def _queue(self, net: Network, bus: int) -> list[tuple[int, int, Any, int]]:
         """Send the requests that arrived since the last half step into the engine at its current time, controller
         by controller (each one's in its own order: the run does not depend on which controller's came first);
-        returns (controller, id, context) of those a full TX queue refused."""
+        returns (controller, id, context, status) of those refused: a full TX queue, a format the bus does not
+        carry."""
         with self._lock:
             arrived, self._arrived = self._arrived, []
             nodes = {d: c.node for d, c in self.controllers.items()}
@@ -223,11 +240,14 @@ class CanNetworkSimulator:
             node = nodes.get(descriptor)
             if node is None:
                 continue
-            if net.send(bus, node, can_id, data):
+            if not self._fits(flags, data):
+                self.format_refused += 1
+                full.append((descriptor, can_id, context, capi.CANCELED))
+            elif net.send(bus, node, can_id, data):
                 self._contexts.setdefault((node, can_id), []).append(context)
             else:
                 self.queue_full += 1
-                full.append((descriptor, can_id, context))
+                full.append((descriptor, can_id, context, capi.TRANSMIT_QUEUE_FULL))
         return full
 
     def _deliver(self, sender: int | None, can_id: int, data: bytes, flags: int, end_ns: int, receivers: list[int],
