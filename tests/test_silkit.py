@@ -144,10 +144,11 @@ def test_a_silkit_run_without_external_units_is_the_virtual_run(runtime, tmp_pat
 
 
 def run_with_external_unit(runtime, out, duration_s: float = 3.0, faults: list | None = None,
-                           error_states: list | None = None):
+                           error_states: list | None = None, wire: list | None = None):
     """seed000 --silkit with train1/unit2 as a SIL Kit participant of the test's (the firmware of ecu_sim on SIL
     Kit's CAN API, nothing of the rig's network), with the scenario's ``faults`` and the error states its controller
-    is told appended to ``error_states``: (metrics, the unit's ECU, its transmit statuses)."""
+    is told appended to ``error_states`` and every frame of bus1 as it saw it, (end ns, id, data), its own at their
+    acknowledgement, to ``wire``: (metrics, the unit's ECU, its transmit statuses)."""
     import threading
 
     from hil.runtime.assembly import assemble
@@ -169,8 +170,22 @@ def run_with_external_unit(runtime, out, duration_s: float = 3.0, faults: list |
         lib = Library(str(runtime.library))
         unit = Participant(lib, "train1/unit2", registry.uri)
         can = unit.can_controller("CAN1", "bus1")
-        can.on_frame(lambda t, i, d, f: inbox.append((i, d, t * 1e-9)) if i in ecu.rx_ids else None)
-        can.on_transmit(lambda t, i, s: sent.append(s))
+        pending: dict[int, list[bytes]] = {}  # its own frames, by id, awaiting their acknowledgement
+
+        def on_frame(t: int, i: int, d: bytes, f: int) -> None:
+            if wire is not None:
+                wire.append((t, i, d))
+            if i in ecu.rx_ids:
+                inbox.append((i, d, t * 1e-9))
+
+        def on_transmit(t: int, i: int, status: int) -> None:
+            sent.append(status)
+            data = pending[i].pop(0)
+            if wire is not None and status == capi.TRANSMITTED:
+                wire.append((t, i, data))
+
+        can.on_frame(on_frame)
+        can.on_transmit(on_transmit)
         if error_states is not None:
             can.on_error_state(lambda t, state: error_states.append((t * 1e-9, state)))
 
@@ -179,6 +194,7 @@ def run_with_external_unit(runtime, out, duration_s: float = 3.0, faults: list |
                 ecu.on_frame(*inbox.pop(0))
             if now % 10_000_000 == 2_000_000:  # the ECU's 10 ms cycle, its phase on SIL Kit's 1 ms grid
                 for frame_id, data in ecu.cycle(now * 1e-9):
+                    pending.setdefault(frame_id, []).append(data)
                     can.send(frame_id, data)
 
         unit.on_step(step, STEP_NS)
@@ -193,10 +209,17 @@ def run_with_external_unit(runtime, out, duration_s: float = 3.0, faults: list |
 
 
 def test_an_external_unit_joins_in_virtual_time_and_its_commands_are_applied(runtime, tmp_path):
-    """The external unit's commands reach the plant (E2E and sequence accepted), the run stays safe around it,
-    and the same participants give the same run twice."""
-    metrics, ecu, sent = run_with_external_unit(runtime, tmp_path / "a")
+    """The external unit's commands reach the plant (E2E and sequence accepted), every frame of its bus (its own
+    included) is timed exactly without overlap, the run stays safe around it, and the same participants give the
+    same run twice."""
+    wire: list[tuple[int, int, bytes]] = []
+    metrics, ecu, sent = run_with_external_unit(runtime, tmp_path / "a", wire=wire)
     assert metrics["sim_time_s"] == pytest.approx(3.0)
+    # the CAN timing of bus1 as the external controller saw it: no two frames overlap, each takes its exact time
+    wire.sort()
+    gaps = [(b[0] - a[0]) - duration_ns(b[1], b[2]) for a, b in zip(wire, wire[1:])]
+    assert len(wire) >= 5000 and min(gaps) >= 0  # back to back at best
+    assert gaps.count(0) > 100  # and back to back often (a frame queued behind another starts at its end)
     assert ecu.counters.cycles == 300 and sent.count(capi.TRANSMITTED) == len(sent) >= 3 * 295
     assert not metrics["plant_command_rejects"], metrics["plant_command_rejects"]
     assert metrics["coupler_max_abs_m"] < 0.5 and not metrics["safety"]["collision"]["violated"]
