@@ -123,6 +123,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.external:  # added to the scenario's own, validated like them
         scenario = load_scenario(args.scenario, {**overrides, "ecu.external": [*scenario.ecu.external, *args.external]})
     silkit = _silkit_options(args)
+    if silkit is not None:
+        try:
+            silkit.check_buses([f"bus{i + 1}" for i in range(scenario.trains.count)])  # the rig's bus names
+        except ValueError as exc:
+            raise ScenarioError(str(exc)) from None
     if not args.realtime and args.silkit is None:  # before anything is written
         from hil.runtime.firmware import refuse_external_units
 
@@ -143,6 +148,7 @@ def _silkit_options(args: argparse.Namespace):
     """--silkit and its companions as SilKitOptions (None without --silkit); a value that cannot work is exit 2."""
     if args.silkit is None:
         given = [o for o, v in (("--silkit-step", args.silkit_step), ("--silkit-config", args.silkit_config),
+                                ("--silkit-network", args.silkit_network or None),
                                 ("--silkit-no-system-controller", args.silkit_no_system_controller or None))
                  if v is not None]
         if given:
@@ -162,11 +168,25 @@ def _silkit_options(args: argparse.Namespace):
     try:
         options = SilKitOptions(uri=args.silkit, step_s=0.001 if args.silkit_step is None else args.silkit_step,
                                 pace=(1.0 if args.pace is None else args.pace) if args.realtime else None,
-                                system_controller=not args.silkit_no_system_controller, config=config)
+                                system_controller=not args.silkit_no_system_controller, config=config,
+                                networks=_network_names(args.silkit_network))
         options.participant_config()  # a configuration pacing cannot be added to: refused before anything runs
     except ValueError as exc:
         raise ScenarioError(str(exc)) from None
     return options
+
+
+def _network_names(pairs: list[str]) -> dict[str, str]:
+    """--silkit-network BUS=NAME (repeatable) as {bus: SIL Kit network}."""
+    names: dict[str, str] = {}
+    for pair in pairs:
+        bus, sep, name = pair.partition("=")
+        if not sep or not bus.strip() or not name.strip():
+            raise ValueError(f"--silkit-network {pair!r}: expected BUS=NETWORK, e.g. bus1=CAN1")
+        names[bus.strip()] = name.strip()
+    if len(set(names.values())) < len(names):
+        raise ValueError(f"--silkit-network: two buses on one SIL Kit network ({pairs})")
+    return names
 
 
 def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict, silkit=None) -> int:
@@ -341,6 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--silkit-config", metavar="FILE",
                      help="--silkit: a SIL Kit participant configuration (YAML/JSON, as SIL Kit's tools take with "
                           "--configuration) for the rig's participant: logging, middleware (acceptors, domain sockets)")
+    run.add_argument("--silkit-network", action="append", default=[], metavar="BUS=NETWORK",
+                     help="--silkit: the SIL Kit network simulating BUS (default: the bus's name, bus1 ...), e.g. "
+                          "bus1=CAN1 (repeatable)")
     run.add_argument("--silkit-no-system-controller", action="store_true",
                      help="--silkit: another participant starts the simulation (Vector's sil-kit-system-controller "
                           "trainhil train1/unit2 ..., CANoe); by default the rig does, once the external units joined")

@@ -84,7 +84,7 @@ def _silkit_rig(scenario: Scenario, seed: int | None, db, options: "SilKitOption
     from hil.runtime.silkit_rig import SilKitRig
 
     rig = SilKitRig(scenario, seed, db=db, options=options)
-    buses = ",".join(bus.name for bus in rig.buses)
+    buses = ",".join(network.network for network in rig.networks)
     print(f"silkit registry={rig.registry_uri} participant=trainhil networks={buses} "
           f"external={','.join(scenario.ecu.external) or '-'}", flush=True)
     return rig

@@ -460,7 +460,8 @@ def test_vector_s_system_controller_starts_the_rig_and_the_c_ecu(runtime, c_ecu,
         ecu = subprocess.Popen([str(c_ecu), "--registry", registry.uri], stdout=subprocess.PIPE, text=True)
         try:
             code = main(["run", "seed000", "--silkit", registry.uri, "--silkit-no-system-controller", "--external",
-                         "train1/unit2", "--duration", "2", "--out", str(tmp_path / "o"), "--no-record", "--quiet"])
+                         "train1/unit2", "--silkit-network", "bus2=CAN2", "--duration", "2", "--out",
+                         str(tmp_path / "o"), "--no-record", "--quiet"])
             printed, _ = ecu.communicate(timeout=20)
             said, _ = controller.communicate(timeout=20)
         finally:
@@ -471,6 +472,7 @@ def test_vector_s_system_controller_starts_the_rig_and_the_c_ecu(runtime, c_ecu,
     assert "Simulation is now running" in said and "Simulation ended" in said and controller.returncode == 0, said
     metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert metrics["silkit"]["system_controller"] is False and not metrics["plant_command_rejects"]
+    assert metrics["silkit"]["networks"] == ["bus1", "CAN2", "bus3"]  # --silkit-network renames one
 
 
 def test_realtime_silkit_couples_sil_kit_time_to_the_wall_clock(runtime, tmp_path):
@@ -505,6 +507,9 @@ def test_realtime_silkit_couples_sil_kit_time_to_the_wall_clock(runtime, tmp_pat
     (["--silkit", "--ideal"], "not with --ideal"),
     (["--silkit", "--realtime", "--ecus-per-process", "2"], "--ecus-per-process and --run are for the process rig"),
     (["--silkit", "--silkit-config", "/nonexistent/sk.yaml"], "--silkit-config /nonexistent/sk.yaml: cannot read"),
+    (["--silkit", "--silkit-network", "bus9=CAN9"], "--silkit-network bus9: no such bus"),
+    (["--silkit", "--silkit-network", "bus1"], "expected BUS=NETWORK"),
+    (["--silkit", "--silkit-network", "bus1=CAN1", "--silkit-network", "bus2=CAN1"], "two buses on one"),
 ])
 def test_silkit_options_that_cannot_work_are_exit_2_before_anything_is_written(tmp_path, capsys, argv, message):
     from hil.cli import main

@@ -78,9 +78,15 @@ class SilKitRig(VirtualRig):
         if options.system_controller:
             self.participant.require([PARTICIPANT, *self.external_names])
         simulator = create_simulator(self.lib, self.participant.handle)
+        try:
+            options.check_buses([bus.name for bus in self.buses])
+        except ValueError:
+            self.close()
+            raise
         self.networks, self._forwarders = [], []
         for bus in self.buses:
-            network = CanNetworkSimulator(self.lib, self.participant.handle, bus.name, step_ns, self.sc.can.bitrate,
+            network = CanNetworkSimulator(self.lib, self.participant.handle, options.network_of(bus.name), step_ns,
+                                          self.sc.can.bitrate,
                                           self.sc.can.tx_queue_depth, bus=(self.net, bus.index), simulator=simulator,
                                           fd=self.sc.can.fd)
             self._forwarders.append(_forwarder(network))
@@ -160,6 +166,7 @@ class SilKitRig(VirtualRig):
             "registry": self.registry_uri, "participant": PARTICIPANT, "step_s": self.step_ns * 1e-9,
             "system_controller": self.options.system_controller, "external": self.external_names,
             "lost": [{"participant": name, "t_s": t * 1e-9} for name, t in self._lost],
+            "networks": [n.network for n in self.networks],
             "controllers": {n.network: len(n.controllers) for n in self.networks},
             "tx_queue_full": sum(n.queue_full for n in self.networks),
             "format_refused": sum(n.format_refused for n in self.networks),

@@ -1,7 +1,7 @@
 """How a run joins Vector SIL Kit (``hil run --silkit``): the registry, the step, wall-clock pacing, who coordinates."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 MIN_STEP_NS = 10_000  # below, a run crawls: every step costs SIL Kit's synchronisation of the participants
 
@@ -14,13 +14,15 @@ class SilKitOptions:
     time-synchronised participant to it). ``system_controller``: the rig starts the simulation when the external
     units' participants have joined; False leaves that to another participant (Vector's sil-kit-system-controller,
     CANoe), which must name ``trainhil`` and every external unit. ``config``: a SIL Kit participant configuration
-    (YAML or JSON text, as SIL Kit's tools take with ``--configuration``) for the rig's participant."""
+    (YAML or JSON text, as SIL Kit's tools take with ``--configuration``) for the rig's participant. ``networks``:
+    the SIL Kit network of a bus where it is not the bus's own name (``{"bus1": "CAN1"}``)."""
 
     uri: str = ""
     step_s: float = 0.001
     pace: float | None = None
     system_controller: bool = True
     config: str = ""
+    networks: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         ns = self.step_s * 1e9
@@ -32,6 +34,16 @@ class SilKitOptions:
         if self.pace is not None and "AnimationFactor" in self.config:
             raise ValueError("--realtime --silkit couples SIL Kit's time to the wall clock at --pace (AnimationFactor "
                              "1/pace); the --silkit-config file sets its own AnimationFactor: drop one of them")
+
+    def check_buses(self, buses: list[str]) -> None:
+        """ValueError when ``networks`` names a bus the run does not have."""
+        unknown = sorted(set(self.networks) - set(buses))
+        if unknown:
+            raise ValueError(f"--silkit-network {', '.join(unknown)}: no such bus (the run's buses: {', '.join(buses)})")
+
+    def network_of(self, bus: str) -> str:
+        """The SIL Kit network simulating ``bus``."""
+        return self.networks.get(bus, bus)
 
     def participant_config(self) -> str:
         """The rig participant's SIL Kit configuration: the given one, and wall-clock coupling when paced (a JSON
