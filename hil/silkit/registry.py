@@ -2,13 +2,25 @@
 file it writes, stopped with the run (or the test) that started it."""
 from __future__ import annotations
 
+import ctypes
+import signal
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from hil.silkit.runtime import SilKitRuntime
+
+
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """In the registry's child process: SIGTERM when the process that started it dies (killed, crashed), so no
+    registry outlives its run."""
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 class Registry:
@@ -22,7 +34,8 @@ class Registry:
         self.process = subprocess.Popen(
             [*launcher, str(runtime.tool("sil-kit-registry")), "--listen-uri", f"silkit://{host}:0",
              "--generate-configuration", str(config), "--log", "warn"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            preexec_fn=_die_with_parent if sys.platform == "linux" else None)
         self.uri = self._wait_for_uri(config, timeout_s)
 
     def _wait_for_uri(self, config: Path, timeout_s: float) -> str:

@@ -79,9 +79,18 @@ def install(target: Path | None = None) -> SilKitRuntime:
                     continue
                 if item.startswith(("SilKit_py/bin/", "SilKit_py/licenses/")) or item == "SilKit_py/libSilKit.so":
                     relative = Path(item).relative_to("SilKit_py")
-                    out = target / relative
-                    out.parent.mkdir(parents=True, exist_ok=True)
-                    out.write_bytes(wheel.read(item))
-                    if relative.parts[0] == "bin":
-                        out.chmod(0o755)
+                    _replace(target / relative, wheel.read(item), 0o755 if relative.parts[0] == "bin" else 0o644)
     return SilKitRuntime(target)
+
+
+def _replace(path: Path, data: bytes, mode: int) -> None:
+    """Write ``path`` as a new file renamed over the old one: a registry or a participant running from the old
+    one keeps it (writing into it would fail, "text file busy", or corrupt a loaded library)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_bytes(data)
+        tmp.chmod(mode)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
