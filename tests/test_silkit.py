@@ -517,3 +517,32 @@ def test_silkit_options_that_cannot_work_are_exit_2_before_anything_is_written(t
     assert main(["run", "seed000", *argv, "--duration", "1", "--out", str(tmp_path / "o")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_lost_participant_that_is_no_unit_of_the_rig_does_not_hang_it(runtime, c_ecu, tmp_path):
+    """Vector's system controller requires the rig and a C participant the rig knows nothing of (not in
+    ecu.external); that participant crashes at 1 s. SIL Kit's time stops (system state Error): the rig notices,
+    records it, leaves SIL Kit and finishes its run in virtual time."""
+    import subprocess
+
+    from hil.cli import main
+    from hil.silkit.registry import Registry
+
+    with Registry(runtime) as registry:
+        controller = subprocess.Popen([str(runtime.tool("sil-kit-system-controller")), "--connect-uri", registry.uri,
+                                       "--log", "off", "trainhil", "train1/unit2"], stdin=subprocess.DEVNULL,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        other = subprocess.Popen([str(c_ecu), "--registry", registry.uri, "--crash-at", "1"], stdout=subprocess.DEVNULL)
+        try:
+            code = main(["run", "seed000", "--silkit", registry.uri, "--silkit-no-system-controller", "--duration", "3",
+                         "--out", str(tmp_path / "o"), "--no-record", "--quiet"])
+            other.wait(20)
+        finally:
+            other.kill()
+            controller.kill()
+    assert code == 0
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert metrics["sim_time_s"] == pytest.approx(3.0) and metrics["interrupted"] is False
+    assert [lost["participant"] for lost in metrics["silkit"]["lost"]] == ["train1/unit2"]
+    assert 1.0 <= metrics["silkit"]["lost"][0]["t_s"] <= 1.01
+    assert metrics["safety"]["ecu_failure"]["violated"] is False  # none of the rig's units was lost

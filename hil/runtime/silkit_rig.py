@@ -26,6 +26,7 @@ from hil.runtime.firmware import EcuFactory, build_ecu
 from hil.runtime.train_db import TrainDb
 from hil.runtime.virtual import ProgressFn, VirtualRig, to_ns
 from hil.scenario.model import Scenario
+from hil.silkit import capi
 from hil.silkit.capi import Library, SilKitError
 from hil.silkit.options import SilKitOptions
 from hil.silkit.network_simulator import CanNetworkSimulator, create_simulator, start_simulator
@@ -97,7 +98,8 @@ class SilKitRig(VirtualRig):
         self._failure: BaseException | None = None
         self._started = threading.Event()
         self._end_ns = self._at_ns = 0  # the run's end, and the time of SIL Kit's latest step
-        self._lost: list[tuple[str, int]] = []  # external participants that disconnected mid-run, and when
+        self._gone: list[tuple[str, int]] = []  # participants that disconnected mid-run, and when
+        self._lost: list[tuple[str, int]] = []  # those of them lost (SIL Kit's system state Error), and when
         self._leaving = False
         self._reached_end = False
         self._step_offsets_s: list[float] = []  # paced: each step's wall-clock start minus its scheduled one
@@ -127,9 +129,10 @@ class SilKitRig(VirtualRig):
         """Run the SIL Kit lifecycle until ``duration_s`` of virtual time; the log as :meth:`VirtualRig.run`'s.
 
         Ctrl-C stops the lifecycle and returns what was run, as in virtual time. An external participant that
-        disconnects mid-run (killed, crashed) is recorded as its ECU's failure; SIL Kit's coordinated time cannot
-        advance past a lost participant, so the rig leaves SIL Kit and runs on to ``duration_s`` in virtual time,
-        the lost unit (and any other external one) sending nothing: the plant's fail-safe then holds it."""
+        disconnects mid-run (killed, crashed) is recorded as its ECU's failure (any other lost participant as an
+        error); SIL Kit's coordinated time cannot advance past a lost participant, so the rig leaves SIL Kit and
+        runs on to ``duration_s`` in virtual time, every external unit sending nothing: the plant's fail-safe then
+        holds them."""
         duration = self.sc.duration_s if duration_s is None else duration_s
         self._end_ns, self._chunk_ns, self._next_chunk = to_ns(duration), to_ns(chunk_s), to_ns(chunk_s)
         self._progress, self._on_chunk = progress, on_chunk
@@ -180,14 +183,19 @@ class SilKitRig(VirtualRig):
         return report
 
     def _on_disconnected(self, name: str) -> None:
-        """SIL Kit's thread: a participant left. An external unit's participant leaving before the end is lost."""
-        if name in self.external_names and self._started.is_set() and not self._reached_end:
-            self._lost.append((name, self._at_ns))
+        """SIL Kit's thread: a participant left before the run's end (gracefully or not: the system state says)."""
+        if self._started.is_set() and not self._reached_end:
+            self._gone.append((name, self._at_ns))
 
     def _leave_if_lost(self) -> None:
-        """The main thread, while SIL Kit runs: stop the lifecycle once a participant is lost (time cannot advance)."""
-        if self._lost and not self._leaving:
+        """The main thread, while SIL Kit runs: once SIL Kit's system state is Error (a participant, external unit or
+        not, left without shutting down: coordinated time cannot advance), the participants that left are lost;
+        stop the lifecycle."""
+        if self._leaving or not self._started.is_set() or self._reached_end:
+            return
+        if self.participant.system_state() == capi.STATE_ERROR:
             self._leaving = True
+            self._lost = list(self._gone) or [("(a participant)", self._at_ns)]
             names = ", ".join(name for name, _ in self._lost)
             self.participant.halt(f"trainhil: SIL Kit participant(s) {names} lost")
 
@@ -200,9 +208,12 @@ class SilKitRig(VirtualRig):
     def _run_on_without_silkit(self, progress: ProgressFn | None, on_chunk: Callable[[RunLog], None] | None) -> None:
         """Record each lost participant as its ECU's failure and run on to the end in virtual time alone."""
         for name, at_ns in self._lost:
-            self.log.event(at_ns * 1e-9, "ERROR", name,
-                           f"SIL Kit participant {name} disconnected without shutting down (killed or crashed); "
-                           f"its unit receives no command from now: {ECU_STOPPED}")
+            lost = f"SIL Kit participant {name} disconnected without shutting down (killed or crashed)"
+            if name in self.external_names:
+                self.log.event(at_ns * 1e-9, "ERROR", name, f"{lost}; its unit receives no command from now: "
+                                                            f"{ECU_STOPPED}")
+            else:
+                self.log.event(at_ns * 1e-9, "ERROR", "rig", lost)
         t = self.kernel.now * 1e-9
         self.log.event(t, "WARN", "rig", f"left SIL Kit at t = {t:.3f} s: its coordinated time cannot advance "
                                          "past a lost participant; the run goes on in virtual time, the external "

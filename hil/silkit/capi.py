@@ -23,7 +23,7 @@ SERVICE_CAN, SERVICE_PARTICIPANT, SERVICE_NETWORK_SIMULATION = 1, 7, 8
 
 # lifecycle (Orchestration.h)
 OPERATION_MODE_COORDINATED, OPERATION_MODE_AUTONOMOUS = 10, 20
-STATE_RUNNING, STATE_STOPPED, STATE_ERROR, STATE_SHUTDOWN = 50, 80, 90, 110
+STATE_RUNNING, STATE_STOPPED, STATE_ERROR, STATE_SHUTDOWN = 50, 80, 90, 110  # participant and system states
 
 # CAN (Can.h)
 FLAG_IDE, FLAG_RTR, FLAG_FDF, FLAG_BRS, FLAG_ESI = 1 << 9, 1 << 4, 1 << 12, 1 << 13, 1 << 14
@@ -137,6 +137,7 @@ PROTOTYPES: dict[str, list[Any]] = {
     "SilKit_TimeSyncService_SetSimulationStepHandler": [_P, _P, StepHandler, NanosecondsTime],
     "SilKit_SystemMonitor_Create": [_PP, _P],
     "SilKit_SystemMonitor_SetParticipantDisconnectedHandler": [_P, _P, DisconnectedHandler],
+    "SilKit_SystemMonitor_GetSystemState": [POINTER(c_int16), _P],
     "SilKit_Experimental_SystemController_Create": [_PP, _P],
     "SilKit_Experimental_SystemController_SetWorkflowConfiguration": [_P, POINTER(WorkflowConfiguration)],
     "SilKit_Experimental_SystemController_AbortSimulation": [_P],

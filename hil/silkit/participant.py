@@ -86,6 +86,7 @@ class Participant:
         lib.call("SilKit_TimeSyncService_Create", ctypes.byref(self.time_sync), self.lifecycle)
         self._keep: list[Any] = []
         self._system_controller: ctypes.c_void_p | None = None
+        self._monitor: ctypes.c_void_p | None = None
 
     def can_controller(self, name: str, network: str) -> CanController:
         return CanController(self, name, network)
@@ -126,16 +127,27 @@ class Participant:
         except capi.SilKitError:
             self.abort()
 
+    def _system_monitor(self) -> ctypes.c_void_p:
+        if self._monitor is None:
+            self._monitor = ctypes.c_void_p()
+            self.lib.call("SilKit_SystemMonitor_Create", ctypes.byref(self._monitor), self.handle)
+        return self._monitor
+
+    def system_state(self) -> int:
+        """SIL Kit's system state (``capi.STATE_*``): ``STATE_ERROR`` once a participant was lost, for instance."""
+        state = ctypes.c_int16()
+        self.lib.call("SilKit_SystemMonitor_GetSystemState", ctypes.byref(state), self._system_monitor())
+        return int(state.value)
+
     def on_disconnected(self, handler: Callable[[str], None]) -> None:
         """``handler(name)`` when another participant leaves (shut down, or its connection lost: killed, crashed)."""
-        monitor = ctypes.c_void_p()
-        self.lib.call("SilKit_SystemMonitor_Create", ctypes.byref(monitor), self.handle)
+        monitor = self._system_monitor()
 
         def callback(context: Any, system_monitor: Any, info: Any) -> None:
             handler((info.contents.participantName or b"").decode("utf-8", "replace"))
 
         disconnected = capi.DisconnectedHandler(callback)
-        self._keep += [monitor, disconnected]
+        self._keep.append(disconnected)
         self.lib.call("SilKit_SystemMonitor_SetParticipantDisconnectedHandler", monitor, None, disconnected)
 
     def run(self, poll: Callable[[], None] | None = None, poll_s: float = 0.1) -> int:
