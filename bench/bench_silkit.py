@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -21,33 +20,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hil.scenario import load_scenario  # noqa: E402
 from hil.session import run_scenario  # noqa: E402
-from hil.silkit.registry import Registry  # noqa: E402
 from hil.silkit.runtime import find_runtime  # noqa: E402
-from tests.test_silkit import run_with_external_unit  # noqa: E402
+from tests.test_silkit import build_c_ecu, run_with_c_ecu, run_with_external_unit  # noqa: E402
 
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def build_c_ecu(into: Path) -> Path | None:
-    """examples/silkit_ecu built with gcc as its header says; None without gcc."""
-    if shutil.which("gcc") is None:
-        return None
-    home, out = str(find_runtime().home), into / "silkit_ecu"
-    subprocess.run(["gcc", "-O2", "-Wall", "-o", str(out), str(ROOT / "examples" / "silkit_ecu" / "silkit_ecu.c"),
-                    f"-L{home}", "-lSilKit", f"-Wl,-rpath,{home}", "-lm"], check=True)
-    return out
-
-
-def run_with_c_ecu(binary: Path, out: Path, sim_s: float) -> None:
-    sc = load_scenario("seed000", {"ecu.external": ["train1/unit2"], "ecu.join_timeout_s": 20.0})
-    with Registry(find_runtime()) as registry:
-        ecu = subprocess.Popen([str(binary), "--registry", registry.uri], stdout=subprocess.DEVNULL)
-        try:
-            run_scenario(sc, out, duration_s=sim_s, record=False, silkit=registry.uri)
-            ecu.wait(20)
-        finally:
-            ecu.kill()
+def build_c_ecu_if_gcc(into: Path) -> Path | None:
+    """examples/silkit_ecu built as the tests build it; None without gcc."""
+    return build_c_ecu(find_runtime(), into) if shutil.which("gcc") else None
 
 
 def wall(kind: str, sim_s: float, c_ecu: Path | None) -> float:
@@ -56,7 +35,7 @@ def wall(kind: str, sim_s: float, c_ecu: Path | None) -> float:
         if kind == "external unit":
             run_with_external_unit(find_runtime(), Path(tmp), sim_s)
         elif kind == "C external unit":
-            run_with_c_ecu(c_ecu, Path(tmp), sim_s)  # type: ignore[arg-type]
+            run_with_c_ecu(find_runtime(), c_ecu, Path(tmp), sim_s)
         else:
             run_scenario(load_scenario("seed000"), Path(tmp), duration_s=sim_s, record=False,
                          silkit="" if kind == "silkit" else None)
@@ -69,7 +48,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as build:
-        c_ecu = build_c_ecu(Path(build))
+        c_ecu = build_c_ecu_if_gcc(Path(build))
         kinds = ["virtual", "silkit", "external unit"] + (["C external unit"] if c_ecu else [])
         best = {k: float("inf") for k in kinds}
         for _ in range(args.repeat):

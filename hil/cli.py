@@ -166,14 +166,12 @@ def _silkit_options(args: argparse.Namespace):
     except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"--silkit-config {args.silkit_config}: cannot read it ({exc})") from None
     try:
-        options = SilKitOptions(uri=args.silkit, step_s=0.001 if args.silkit_step is None else args.silkit_step,
-                                pace=(1.0 if args.pace is None else args.pace) if args.realtime else None,
-                                system_controller=not args.silkit_no_system_controller, config=config,
-                                networks=_network_names(args.silkit_network))
-        options.participant_config()  # a configuration pacing cannot be added to: refused before anything runs
+        return SilKitOptions(uri=args.silkit, step_s=0.001 if args.silkit_step is None else args.silkit_step,
+                             pace=(1.0 if args.pace is None else args.pace) if args.realtime else None,
+                             system_controller=not args.silkit_no_system_controller, config=config,
+                             networks=_network_names(args.silkit_network))
     except ValueError as exc:
         raise ScenarioError(str(exc)) from None
-    return options
 
 
 def _network_names(pairs: list[str]) -> dict[str, str]:

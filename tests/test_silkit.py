@@ -274,24 +274,31 @@ def test_a_registry_uri_where_none_answers_is_named(runtime, tmp_path, capsys):
     assert json.loads((tmp_path / "o" / "metrics.json").read_text())["status"] == "failed"
 
 
-@pytest.fixture(scope="module")
-def c_ecu(runtime, tmp_path_factory):
-    """examples/silkit_ecu built with gcc, as its header comment says."""
-    import shutil
+def build_c_ecu(runtime, into):
+    """examples/silkit_ecu built with gcc into the folder ``into``, as its header comment says (warnings are errors)."""
     import subprocess
     from pathlib import Path
 
-    if shutil.which("gcc") is None:
-        pytest.skip("no gcc to build examples/silkit_ecu")
     source = Path(__file__).resolve().parents[1] / "examples" / "silkit_ecu" / "silkit_ecu.c"
-    out = tmp_path_factory.mktemp("c-ecu") / "silkit_ecu"
+    out = Path(into) / "silkit_ecu"
     home = str(runtime.home)
     subprocess.run(["gcc", "-O2", "-Wall", "-Werror", "-o", str(out), str(source), f"-L{home}", "-lSilKit",
                     f"-Wl,-rpath,{home}", "-lm"], check=True)
     return out
 
 
-def run_with_c_ecu(runtime, binary, out):
+@pytest.fixture(scope="module")
+def c_ecu(runtime, tmp_path_factory):
+    """examples/silkit_ecu, built (skipped without gcc)."""
+    import shutil
+
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc to build examples/silkit_ecu")
+    return build_c_ecu(runtime, tmp_path_factory.mktemp("c-ecu"))
+
+
+def run_with_c_ecu(runtime, binary, out, duration_s: float = 3.0):
+    """seed000 --silkit for ``duration_s`` with the C ECU ``binary`` as train1/unit2: (metrics, what it printed)."""
     import subprocess
 
     from hil.scenario import load_scenario
@@ -303,7 +310,7 @@ def run_with_c_ecu(runtime, binary, out):
         ecu = subprocess.Popen([str(binary), "--registry", registry.uri, "--train", "1", "--unit", "2"],
                                stdout=subprocess.PIPE, text=True)
         try:
-            metrics = run_scenario(sc, out, duration_s=3, record=False, silkit=registry.uri).metrics
+            metrics = run_scenario(sc, out, duration_s=duration_s, record=False, silkit=registry.uri).metrics
             printed, _ = ecu.communicate(timeout=20)
         finally:
             ecu.kill()
@@ -546,3 +553,17 @@ def test_a_lost_participant_that_is_no_unit_of_the_rig_does_not_hang_it(runtime,
     assert [lost["participant"] for lost in metrics["silkit"]["lost"]] == ["train1/unit2"]
     assert 1.0 <= metrics["silkit"]["lost"][0]["t_s"] <= 1.01
     assert metrics["safety"]["ecu_failure"]["violated"] is False  # none of the rig's units was lost
+
+
+@pytest.mark.parametrize("config", ["Experimental:\n  TimeSynchronization:\n    AnimationFactor: 2.0\n",
+                                    '{"Logging": {"Sinks": [{"Type": "Stdout"}]}}'])
+def test_a_silkit_config_pacing_cannot_join_is_refused_with_realtime(tmp_path, capsys, config):
+    """--realtime adds an Experimental block to the rig's configuration: a file with its own, or a JSON one (which
+    cannot take a second block), is exit 2 before anything is written."""
+    from hil.cli import main
+
+    path = tmp_path / "rig.yaml"
+    path.write_text(config)
+    assert main(["run", "seed000", "--realtime", "--silkit", "--silkit-config", str(path), "--duration", "1",
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "adds an Experimental block" in capsys.readouterr().err and not (tmp_path / "o").exists()

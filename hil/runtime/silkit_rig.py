@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
-from collections.abc import Callable
 
 from ecu_sim.runtime import ECU_STOPPED, os_exit_stops_the_firmware
 from hil.can.transmission import Transmission
@@ -63,6 +63,7 @@ class SilKitRig(VirtualRig):
         super().__init__(scenario, seed, db, ecu_factory)
         self.external_names = list(scenario.ecu.external)
         self.options = options
+        options.check_buses([bus.name for bus in self.buses])  # before anything connects to SIL Kit
         self.step_ns = step_ns = round(options.step_s * 1e9)
         runtime = find_runtime()
         self.lib = Library(str(runtime.library))
@@ -79,11 +80,6 @@ class SilKitRig(VirtualRig):
         if options.system_controller:
             self.participant.require([PARTICIPANT, *self.external_names])
         simulator = create_simulator(self.lib, self.participant.handle)
-        try:
-            options.check_buses([bus.name for bus in self.buses])
-        except ValueError:
-            self.close()
-            raise
         self.networks, self._forwarders = [], []
         for bus in self.buses:
             network = CanNetworkSimulator(self.lib, self.participant.handle, options.network_of(bus.name), step_ns,

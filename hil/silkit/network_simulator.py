@@ -95,7 +95,6 @@ class CanNetworkSimulator:
         self._depth = tx_queue_depth
         self._by_node: dict[int, int] = {}  # engine node -> controller descriptor
         self._by_name: dict[str, int] = {}  # engine node name -> controller descriptor
-        self.error_states: list[tuple[int, int, int]] = []  # (controller, SIL Kit error state, t_ns) reported
         self._producer: Any = None
         self._keep: list[Any] = []
         self._controller_functions = capi.new(
@@ -201,7 +200,6 @@ class CanNetworkSimulator:
         descriptor = self._by_name.get(node_name)
         if state is None or descriptor is None:
             return
-        self.error_states.append((descriptor, state, t_ns))
         event = capi.new(capi.CanErrorStateChangeEvent, timestamp=t_ns, errorState=state)
         self._produce(event, [descriptor])
 

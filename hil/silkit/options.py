@@ -31,9 +31,10 @@ class SilKitOptions:
                              f"least {MIN_STEP_NS * 1e-9:g} s (each step costs SIL Kit's synchronisation, ~0.1 ms)")
         if self.pace is not None and not self.pace > 0:
             raise ValueError(f"--pace {self.pace}: expected a positive factor")
-        if self.pace is not None and "AnimationFactor" in self.config:
-            raise ValueError("--realtime --silkit couples SIL Kit's time to the wall clock at --pace (AnimationFactor "
-                             "1/pace); the --silkit-config file sets its own AnimationFactor: drop one of them")
+        if self.pace is not None and (self.config.lstrip().startswith("{") or "Experimental" in self.config):
+            raise ValueError("--realtime --silkit adds an Experimental block (AnimationFactor) to the rig's SIL Kit "
+                             "configuration; with --silkit-config, write the configuration in YAML without one, or "
+                             "set AnimationFactor yourself and leave out --realtime")
 
     def check_buses(self, buses: list[str]) -> None:
         """ValueError when ``networks`` names a bus the run does not have."""
@@ -47,12 +48,8 @@ class SilKitOptions:
 
     def participant_config(self) -> str:
         """The rig participant's SIL Kit configuration: the given one, and wall-clock coupling when paced (a JSON
-        configuration is YAML too, but a second top-level block cannot be appended to it: then it is refused)."""
+        configuration, or one with an Experimental block, cannot take it: refused when the options are made)."""
         if self.pace is None:
             return self.config
-        if self.config.lstrip().startswith("{") or "Experimental" in self.config:
-            raise ValueError("--realtime --silkit adds an Experimental block (AnimationFactor) to the rig's SIL Kit "
-                             "configuration; with --silkit-config, write the configuration in YAML without one, or "
-                             "set AnimationFactor yourself and leave out --realtime")
         pacing = f"Experimental:\n  TimeSynchronization:\n    AnimationFactor: {1.0 / self.pace!r}\n"
         return f"{self.config.rstrip()}\n{pacing}" if self.config.strip() else pacing
