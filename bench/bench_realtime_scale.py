@@ -34,6 +34,11 @@ from hil.scenario import load_scenario  # noqa: E402
 CYCLE_S = 0.01
 
 
+def scenario_for(n_ecus: int, name: str | None):
+    """The packaged scenario ``name`` unchanged (its own ECU count), or seed000-consensus scaled to ``n_ecus``."""
+    return load_scenario(name) if name else scaled_scenario(n_ecus)
+
+
 def scaled_scenario(n_ecus: int):
     """seed000-consensus with n_ecus units: as few trains as fit 16 units per bus, 3 km apart, 1 Mbit/s buses."""
     trains = max(1, -(-n_ecus // 16))
@@ -124,16 +129,16 @@ class CpuByRole:
         return out
 
 
-def virtual_cpu_per_sim_s(n_ecus: int, duration: float) -> float:
+def virtual_cpu_per_sim_s(sc, duration: float) -> float:
     """CPU seconds per simulated second of the same scenario in virtual time (one process, no recording)."""
-    rig = VirtualRig(scaled_scenario(n_ecus))
+    rig = VirtualRig(sc)
     c0 = time.process_time()
     rig.run(duration)
     return (time.process_time() - c0) / duration
 
 
-def one(n_ecus: int, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0) -> dict:
-    sc = scaled_scenario(n_ecus)
+def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0) -> dict:
+    n_ecus = sc.trains.count * sc.trains.units
     cpu0 = [0.0]
     by_role = CpuByRole()
 
@@ -169,7 +174,11 @@ def main() -> None:
                     help="the plant's polling before each publication, µs (several: side by side)")
     ap.add_argument("--duration", type=float, default=10.0, help="simulated seconds per run")
     ap.add_argument("--pace", type=float, default=1.0)
+    ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     args = ap.parse_args()
+    if args.scenario:
+        sc = load_scenario(args.scenario)
+        args.ecus = [sc.trains.count * sc.trains.units]
     print(f"{psutil.cpu_count()} CPUs, load average {psutil.getloadavg()[0]:.2f}; pace {args.pace:g}, "
           f"{args.duration:g} s per run, 100 Hz ECUs, 1 Mbit/s buses of up to 16 units")
     head = f"{'ECUs':>5} {'per proc':>8} {'p50 ms':>7} {'p99 ms':>7} {'misses':>7} {'skipped':>7} {'plant p99':>9} " \
@@ -179,9 +188,10 @@ def main() -> None:
     for n in args.ecus:
         for k, spin in [(k, spin) for k in args.per_process for spin in args.plant_spin_us]:
             t = time.monotonic()
-            r = one(n, k or None, args.duration, args.pace, spin)
-            r["per_process"] = k or default_ecus_per_process(n, units_per_train=scaled_scenario(n).trains.units)
-            virtual = virtual_cpu_per_sim_s(n, args.duration)
+            sc = scenario_for(n, args.scenario)
+            r = one(sc, k or None, args.duration, args.pace, spin)
+            r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units)
+            virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "
                   f"{r['cpu_per_sim_s']:11.2f}  {'yes' if r['keeps_up'] else 'no'}"
