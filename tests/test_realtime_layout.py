@@ -52,6 +52,9 @@ def test_ecu_processes_are_started_in_groups_of_the_layout(tmp_path, monkeypatch
     orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, per_process, 0.0)
     groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
     assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # one ECU process per train
+    assert [kind for kind, *_ in started] == ["plant", "ecu", "ecu", "ecu"]  # the radio is in the bus servers
+    started.clear()
+    orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, per_process, 0.0, radio_node=True)  # SocketCAN
     assert [kind for kind, *_ in started][:2] == ["plant", "radio"]
 
 

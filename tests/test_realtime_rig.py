@@ -213,10 +213,10 @@ def test_sigterm_to_the_orchestrator_stops_everything_and_keeps_the_files(rt, tm
         orch = psutil.Process(proc.pid)
         children: list[psutil.Process] = []
         deadline = time.time() + 60
-        while time.time() < deadline and len(children) < 4:  # plant, radio, 2 ECU processes
+        while time.time() < deadline and len(children) < 3:  # plant, 2 ECU processes (the radio is in the servers)
             children = orch.children(recursive=True)
             time.sleep(0.1)
-        assert len(children) >= 4, "the node processes did not start"
+        assert len(children) >= 3, "the node processes did not start"
         time.sleep(4.0)  # let them get ready and run a little
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=40)

@@ -178,8 +178,8 @@ class Network:
     def gateway_ids(self, bus: int) -> list[int]: ...
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
-           "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "FrameLink",
-           "wait_readable", "frame_error", "filters_accept"]
+           "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "RadioHub",
+           "FrameLink", "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
     """Sleep until one of ``fds`` is readable or ``timeout_s`` (wall) passed, the GIL released (no fds: a sleep)."""
@@ -204,9 +204,10 @@ class BusServerCore:
     def __init__(self, channel: str, listener_fd: int, tcp_fd: int | None, token: bytes | None, bitrate: int,
                  policy_name: str, depth: int, extended: bool, load_window_ns: int, pace: float, spin_ns: int,
                  max_clients: int, hello_timeout_s: float, keep_log: bool, fd: bool = False,
-                 data_bitrate: int | None = None) -> None:
+                 data_bitrate: int | None = None, radio: tuple[RadioHub, int] | None = None) -> None:
         """``fd``: a CAN FD bus (nodes send either format, each FRAME record says which), its data phase at
-        ``data_bitrate`` (default: ``bitrate``)."""
+        ``data_bitrate`` (default: ``bitrate``); ``radio``: the rig's radio hub and this bus's index in it (the
+        server joins the bus as node "RadioGW" and hands the hub every routed frame at its end)."""
     def now_ns(self) -> int: ...
     def stats(self) -> dict[str, float | int | None]: ...
     def take_log(self) -> tuple[bytes, bytes, int, int]: ...
@@ -225,6 +226,25 @@ class BusServerCore:
     def bus_errors(self) -> dict | None: ...
     def current(self) -> tuple[int, int] | None: ...
     def shutdown(self) -> None: ...
+
+class RadioHub:
+    """The radio between a real-time rig's bus servers (engine/src/radio_hub.rs): links and routes as ``Network``'s,
+    frames forwarded by the servers' threads; the links' draws are queued ahead in blocks by ``top_up``."""
+
+    starved: int  # frames dropped because a link's draws ran out (top_up not called often enough)
+
+    def __init__(self, pace: float, packing: Packing | None = None) -> None: ...
+    def add_link(self, name: str, range_m: float, blackouts: Sequence[tuple[float, float]], latency_ns: int,
+                 period_ns: int | None, loss_model: str, p: float, p_good_to_bad: float, p_bad_to_good: float,
+                 loss_good: float, loss_bad: float, initially_bad: bool,
+                 refill: Callable[[], tuple[list[float], list[float], list[int]]]) -> int: ...
+    def add_route(self, src_bus: int, src_id: int, dst_bus: int, dst_id: int, link: int, reverse: int | None) -> None: ...
+    def set_position_codec(self, codec: MessageCodec) -> None: ...
+    def set_impairment(self, link: int, blackout: bool, losses: Sequence[float], extra_ns: int,
+                       refill: Callable[[], list[float]]) -> None: ...
+    def top_up(self) -> None:
+        """Queue blocks of draws (each link's ``refill``, the faults' refill) until each has a few waiting."""
+    def link_stats(self, link: int) -> dict[str, int]: ...
 
 class FrameLink:
     """A node's bus socket read and written by the engine: frames go straight into routed mailboxes."""

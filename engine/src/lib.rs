@@ -31,6 +31,7 @@ pub mod network;
 pub mod packing;
 pub mod protocol;
 pub mod radio;
+pub mod radio_hub;
 pub mod rng;
 pub mod server;
 pub mod wire;

@@ -23,9 +23,7 @@ pub enum Event {
     External { token: u64, period: u64 },
 }
 
-/// The `refill` argument that asks for a block of the injected radio faults' draws (in `Draws::u_loss`) instead of
-/// a link's: one stream for every impaired link, taken in the order of the offers.
-pub const FAULT_DRAWS: usize = usize::MAX;
+pub use crate::radio::FAULT_DRAWS;
 
 /// A frame delivered into an inbox: (inbox, frame id, payload, end of transmission in ns).
 pub type InboxFrame = (usize, u32, Payload, u64);
@@ -255,28 +253,10 @@ impl Network {
     /// Offer a frame heard on `bus` to every matching route of the gateway.
     fn forward<E>(&mut self, bus: usize, frame_id: u32, data: Payload, t: u64,
                   refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<(), E> {
-        let Some(hops) = self.gateway.table.get(&(bus, frame_id)) else { return Ok(()) };
-        let hops = hops.clone();
         let pos = self.position_layouts.get(&frame_id).and_then(|l| l.first_value(data.as_slice()));
-        for hop in hops {
-            if pos.is_some() {
-                self.gateway.positions[hop.link] = pos;
-            }
-            let sender = self.gateway.positions[hop.link];
-            let receiver = hop.reverse.and_then(|r| self.gateway.positions[r]);
-            if self.gateway.links[hop.link].needs_draws() {
-                self.gateway.links[hop.link].draws = refill(hop.link)?;
-            }
-            let need = self.gateway.links[hop.link].impairment.as_ref().map_or(0, |imp| imp.losses.len());
-            while self.gateway.fault_draws.left() < need {
-                let block = refill(FAULT_DRAWS)?;
-                self.gateway.fault_draws.extend(&block.u_loss);
-            }
-            let (links, faults) = (&mut self.gateway.links, &mut self.gateway.fault_draws);
-            if let Some(deliver) = links[hop.link].offer(t as i64, sender, receiver, faults) {
-                let at = (deliver.max(0) as u64).max(self.queue.now);
-                self.queue.at(at, Event::RadioSend { bus: hop.dst_bus, frame_id: hop.dst_id, data });
-            }
+        for (dst_bus, dst_id, deliver) in self.gateway.forward(bus, frame_id, pos, t as i64, refill)? {
+            let at = (deliver.max(0) as u64).max(self.queue.now);
+            self.queue.at(at, Event::RadioSend { bus: dst_bus, frame_id: dst_id, data });
         }
         Ok(())
     }

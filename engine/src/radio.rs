@@ -7,6 +7,10 @@
 
 use std::collections::HashMap;
 
+/// The `refill` argument that asks for a block of the injected radio faults' draws (in `Draws::u_loss`) instead of
+/// a link's: one stream for every impaired link, taken in the order of the offers.
+pub const FAULT_DRAWS: usize = usize::MAX;
+
 /// One block of per-frame random numbers.
 #[derive(Debug, Default, Clone)]
 pub struct Draws {
@@ -228,6 +232,35 @@ impl Gateway {
 
     pub fn add_route(&mut self, src_bus: usize, src_id: u32, hop: Hop) {
         self.table.entry((src_bus, src_id)).or_default().push(hop);
+    }
+
+    /// Offer a frame heard on `bus` at `t` ns (carrying position `pos`, if any) to every route of its ID:
+    /// (destination bus, destination ID, delivery time ns) per frame the links deliver. `refill(link)` gives a
+    /// link its next block of draws, `refill(FAULT_DRAWS)` a block of the injected faults' draws (in `u_loss`).
+    pub fn forward<E>(&mut self, bus: usize, frame_id: u32, pos: Option<f64>, t: i64,
+                      refill: &mut dyn FnMut(usize) -> Result<Draws, E>) -> Result<Vec<(usize, u32, i64)>, E> {
+        let Some(hops) = self.table.get(&(bus, frame_id)) else { return Ok(Vec::new()) };
+        let hops = hops.clone();
+        let mut out = Vec::with_capacity(hops.len());
+        for hop in hops {
+            if pos.is_some() {
+                self.positions[hop.link] = pos;
+            }
+            let sender = self.positions[hop.link];
+            let receiver = hop.reverse.and_then(|r| self.positions[r]);
+            if self.links[hop.link].needs_draws() {
+                self.links[hop.link].draws = refill(hop.link)?;
+            }
+            let need = self.links[hop.link].impairment.as_ref().map_or(0, |imp| imp.losses.len());
+            while self.fault_draws.left() < need {
+                let block = refill(FAULT_DRAWS)?;
+                self.fault_draws.extend(&block.u_loss);
+            }
+            if let Some(deliver) = self.links[hop.link].offer(t, sender, receiver, &mut self.fault_draws) {
+                out.push((hop.dst_bus, hop.dst_id, deliver));
+            }
+        }
+        Ok(out)
     }
 
     /// The IDs the gateway listens to on `bus`.

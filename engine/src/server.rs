@@ -22,6 +22,7 @@ use crate::frame::BitTiming;
 
 use crate::histogram::Histogram;
 use crate::protocol::*;
+use crate::radio_hub::{Delivery, RadioHub};
 
 const READ_RECORDS: usize = 32; // per node and turn: a babbling node cannot stall the loop
 const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames beyond this (overruns)
@@ -181,6 +182,21 @@ pub struct Server {
     arbitrate_at: Option<u64>,
     /// The shortest frame this bus can carry (see `anticipate`).
     shortest_frame_ns: u64,
+    /// The rig's radio, when this bus is one of its trains' buses.
+    radio: Option<RadioPort>,
+}
+
+/// A server's end of the rig's radio (engine/src/radio_hub.rs).
+pub struct RadioPort {
+    hub: Arc<RadioHub>,
+    /// This bus's index among the hub's buses.
+    bus: usize,
+    /// The radio's node on this bus ("RadioGW"), which sends the frames it delivers.
+    node: usize,
+    /// IDs whose ends the hub must see (the gateway's routes from this bus).
+    routed: std::collections::HashSet<u32>,
+    /// Deliveries taken from the hub, not yet queued (their time is still to come), oldest first.
+    pending: std::collections::VecDeque<Delivery>,
 }
 
 /// A handle to a running server: stop it, read its state.
@@ -234,7 +250,9 @@ fn shortest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
     if format.is_fd() { classical.min(timing.frame_ns(0, &[], false, true, true).unwrap_or(0)) } else { classical }
 }
 
-pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> std::io::Result<ServerHandle> {
+/// `radio`: the rig's radio hub and this bus's index in it (the server joins it as node "RadioGW").
+pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, radio: Option<(Arc<RadioHub>, usize)>)
+             -> std::io::Result<ServerHandle> {
     let timing = BitTiming::new(cfg.bitrate, cfg.data_bitrate).ok_or_else(|| {
         std::io::Error::new(ErrorKind::InvalidInput, format!("bitrate {} (data {}) has no whole-ns bit time", cfg.bitrate, cfg.data_bitrate))
     })?;
@@ -254,19 +272,28 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>) -> st
     wake_r.set_nonblocking(true)?;
     wake_w.set_nonblocking(true)?;
     let shortest_frame_ns = shortest_frame_ns(&timing, cfg.format);
-    let bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
+    let mut bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
+    let mono0 = Instant::now(); // and the same instant on the epoch clock: records carry epoch times
+    let epoch0_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
+    let radio = match radio {
+        Some((hub, index)) => {
+            hub.register(index, mono0, wake_w.try_clone()?);
+            let routed = hub.core.lock().unwrap().routed_ids(index);
+            let node = bus.attach("RadioGW", Sink::None, None, false);
+            Some(RadioPort { hub, bus: index, node, routed, pending: Default::default() })
+        }
+        None => None,
+    };
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
         bad: BadInput::default(), clients: 0, now_ns: 0, messages: Vec::new(),
     }));
     let stop = Arc::new(AtomicBool::new(false));
-    let mono0 = Instant::now();
-    let epoch0_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
     let pace = cfg.pace;
     let mut server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        pollfds: Vec::new(), floor: 0, arbitrate_at: None, shortest_frame_ns,
+        pollfds: Vec::new(), floor: 0, arbitrate_at: None, shortest_frame_ns, radio,
     };
     let name = format!("bus-server {}", server.cfg.channel);
     let thread = std::thread::Builder::new().name(name).spawn(move || server.serve())?;
@@ -310,6 +337,9 @@ impl Server {
         if let Some(r) = self.next_read() {
             wake = wake.min((r + 1).saturating_sub(self.shortest_frame_ns)); // see `anticipate`
         }
+        if let Some(d) = self.radio.as_ref().and_then(|r| r.pending.front()) {
+            wake = wake.min(d.t_ns);
+        }
         (wake.saturating_sub(now) as f64 / self.cfg.pace) as i64
     }
 
@@ -319,13 +349,14 @@ impl Server {
         if shared.bus.errors.is_some() || shared.bus.guardian.is_some() || !self.clients.iter().any(|c| c.lazy) {
             return true;
         }
-        if !self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed) {
+        let routes = self.radio.as_ref().is_some_and(|r| !r.routed.is_empty());
+        if !routes && !self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed) {
             return false;
         }
         let current = shared.bus.current.map(|tx| (tx.frame_id, tx.extended));
         shared.bus.queued_ids().chain(current).any(|key| {
             self.receivers(key);
-            self.rx_cache[&key].iter().any(|&i| !self.clients[i].lazy)
+            self.rx_cache[&key].iter().any(|&i| !self.clients[i].lazy) || self.routed(key.0)
         })
     }
 
@@ -343,6 +374,32 @@ impl Server {
 
     fn next_read(&self) -> Option<u64> {
         self.clients.iter().filter_map(Client::next_read).min()
+    }
+
+    /// Whether frames of `frame_id` go to the radio at their end.
+    fn routed(&self, frame_id: u32) -> bool {
+        self.radio.as_ref().is_some_and(|r| r.routed.contains(&frame_id))
+    }
+
+    /// Move the radio's deliveries for this bus from the hub to the local queue (in time order).
+    fn take_radio(&mut self) {
+        if let Some(r) = self.radio.as_mut() {
+            let new = r.hub.core.lock().unwrap().take(r.bus);
+            if !new.is_empty() {
+                r.pending.extend(new);
+                r.pending.make_contiguous().sort_by_key(|d| d.t_ns);
+            }
+        }
+    }
+
+    /// Queue the radio's next delivery on the bus as its node, at its time (not before the floor).
+    fn radio_send(&mut self, shared: &mut Shared, t: u64) {
+        let Some(r) = self.radio.as_mut() else { return };
+        let Some(d) = r.pending.pop_front() else { return };
+        let format = shared.bus.format;
+        if shared.bus.enqueue_as(r.node, d.frame_id, d.data.as_slice(), t, None, format) && shared.bus.current.is_none() {
+            self.arbitrate_at.get_or_insert(t);
+        }
     }
 
     fn turn(&mut self) {
@@ -392,6 +449,7 @@ impl Server {
         if fds[2].revents != 0 {
             self.accept(&mut shared, true);
         }
+        self.take_radio();
         self.process_records(&mut shared, now);
         self.advance(&mut shared, now, true);
         self.anticipate(&mut shared, now);
@@ -541,6 +599,9 @@ impl Server {
             }
         }
         self.rx_cache.insert(key, receivers);
+        if let Some(r) = self.radio.as_ref().filter(|r| r.routed.contains(&tx.frame_id)) {
+            r.hub.core.lock().unwrap().offer(r.bus, tx.frame_id, tx.data.as_slice(), tx.t_end);
+        }
         shared.frames += 1;
         shared.busy_ns += tx.t_end - tx.t_start;
         shared.latency.add((tx.t_end - tx.t_enqueue) as i64);
@@ -715,6 +776,13 @@ impl Server {
                 if let Some(t) = self.next_record_time(i, now).filter(|&t| best.is_none_or(|(bt, _)| t < bt)) {
                     best = Some((t, i));
                 }
+            }
+            let radio = self.radio.as_ref().and_then(|r| r.pending.front()).map(|d| d.t_ns.max(self.floor.min(now)))
+                .filter(|&t| t <= now && best.is_none_or(|(bt, _)| t <= bt));
+            if let Some(t) = radio {
+                self.advance(shared, t, false);
+                self.radio_send(shared, t);
+                continue;
             }
             let Some((t, i)) = best else { break };
             self.advance(shared, t, false);
@@ -962,7 +1030,7 @@ mod tests {
             keep_log: true, token: None,
         };
         use std::os::fd::IntoRawFd;
-        (start(cfg, listener.into_raw_fd(), None).unwrap(), path, dir)
+        (start(cfg, listener.into_raw_fd(), None, None).unwrap(), path, dir)
     }
 
     fn hello(name: &str) -> [u8; RECORD_SIZE] {

@@ -12,7 +12,7 @@ frame rows) that are fed from the engine's trace once per chunk instead of once 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import trainhil_engine as engine
 
@@ -162,24 +162,44 @@ class EngineBus:
                     listener(tx)
 
 
-def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, RadioLink], units_per_train: int,
-                 forward_aux: bool, position_codecs, ids: RadioIds) -> None:
+class RadioTarget(Protocol):
+    """What carries the radio gateway in the engine: the virtual-time ``Network`` or the real-time ``RadioHub``."""
+
+    def add_link(self, name: str, range_m: float, blackouts: list[tuple[float, float]], latency_ns: int,
+                 period_ns: int | None, loss_model: str, p: float, p_good_to_bad: float, p_bad_to_good: float,
+                 loss_good: float, loss_bad: float, initially_bad: bool, refill: Callable) -> int: ...
+
+    def add_route(self, src_bus: int, src_id: int, dst_bus: int, dst_id: int, link: int, reverse: int | None) -> None: ...
+
+    def set_position_codec(self, codec: engine.MessageCodec) -> None: ...
+
+    def set_impairment(self, link: int, blackout: bool, losses: list[float], extra_ns: int, refill: Callable) -> None: ...
+
+
+def configure_radio(target: RadioTarget, n_buses: int, links: dict[str, RadioLink], units_per_train: int,
+                    forward_aux: bool, position_codecs, ids: RadioIds) -> None:
     """The radio gateway in the engine: the links (their random numbers drawn by the Python ``RadioLink`` objects,
-    so both models see the same losses and jitter), the routing table, and one gateway node per bus."""
+    so every model sees the same losses and jitter), the routing table and the position frames."""
     index: dict[str, int] = {}
     for name, link in links.items():
         cfg = link.cfg
         loss = cfg.loss
-        index[name] = net.add_link(
+        index[name] = target.add_link(
             name, cfg.range_m, [(b.start_m, b.end_m) for b in cfg.blackouts], link.latency_ns, link.period_ns,
             loss.model, loss.p, loss.p_good_to_bad, loss.p_bad_to_good, loss.loss_good, loss.loss_bad, link.starts_bad,
             link.next_draws)
-    for route in standard_routes(len(buses), units_per_train, forward_aux, ids):
+    for route in standard_routes(n_buses, units_per_train, forward_aux, ids):
         src, dst = (int(t) - 1 for t in route.link.split(">"))
-        net.add_route(route.src_bus, route.src_id, route.dst_bus, route.dst_id, index[route.link],
-                      index.get(link_name(dst, src)))
+        target.add_route(route.src_bus, route.src_id, route.dst_bus, route.dst_id, index[route.link],
+                         index.get(link_name(dst, src)))
     for codec in position_codecs:
-        net.set_position_codec(codec)
+        target.set_position_codec(codec)
+
+
+def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, RadioLink], units_per_train: int,
+                 forward_aux: bool, position_codecs, ids: RadioIds) -> None:
+    """The radio gateway in the virtual-time network (``configure_radio``) and one gateway node per bus."""
+    configure_radio(net, len(buses), links, units_per_train, forward_aux, position_codecs, ids)
     for bus in buses:
         net.attach_gateway(bus.index, "RadioGW")
 
@@ -187,7 +207,7 @@ def attach_radio(net: engine.Network, buses: list[EngineBus], links: dict[str, R
 FAULT_DRAWS_BLOCK = 1024
 
 
-def engine_impairments(net: engine.Network, names: list[str], rng) -> Callable:
+def engine_impairments(net: RadioTarget, names: list[str], rng) -> Callable:
     """``RadioFaults``' setter for the engine's links (named in their order in the engine): the burst losses draw
     from ``rng`` in blocks, one stream for every link, as the Python links draw from it one at a time."""
     index = {name: i for i, name in enumerate(names)}
@@ -201,7 +221,7 @@ def engine_impairments(net: engine.Network, names: list[str], rng) -> Callable:
     return apply
 
 
-def copy_link_stats(net: engine.Network, links: dict[str, RadioLink]) -> None:
+def copy_link_stats(net: engine.Network | engine.RadioHub, links: dict[str, RadioLink]) -> None:
     """The engine's link counters into the Python links (what the run log reports)."""
     for i, link in enumerate(links.values()):
         link.stats.update(net.link_stats(i))

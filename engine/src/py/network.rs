@@ -114,14 +114,10 @@ impl Network {
     fn add_link(&mut self, name: &str, range_m: f64, blackouts: Vec<(f64, f64)>, latency_ns: i64, period_ns: Option<i64>,
                 loss_model: &str, p: f64, p_good_to_bad: f64, p_bad_to_good: f64, loss_good: f64, loss_bad: f64,
                 initially_bad: bool, refill: Py<PyAny>) -> PyResult<usize> {
-        let loss = match loss_model {
-            "none" => Loss::None,
-            "bernoulli" => Loss::Bernoulli { p },
-            "gilbert_elliott" => Loss::GilbertElliott { p_gb: p_good_to_bad, p_bg: p_bad_to_good, loss_good, loss_bad },
-            other => return Err(PyValueError::new_err(format!("radio link {name}: unknown loss model '{other}'"))),
-        };
+        let link = make_link(name, range_m, blackouts, latency_ns, period_ns, loss_model, p, p_good_to_bad, p_bad_to_good,
+                             loss_good, loss_bad, initially_bad)?;
         self.refills.push(refill);
-        Ok(self.core.gateway.add_link(Link::new(name, range_m, blackouts, latency_ns, period_ns, loss, initially_bad)))
+        Ok(self.core.gateway.add_link(link))
     }
 
     /// Forward `src_id` heard on `src_bus` to `dst_bus` as `dst_id` over `link` (`reverse`: the other direction).
@@ -161,11 +157,7 @@ impl Network {
                 return Ok(Draws { u_loss, ..Draws::default() });
             }
             let block = refills[link].call0(py).map_err(EngineError)?;
-            let (u_step, u_loss, jitter_ns): (Vec<f64>, Vec<f64>, Vec<i64>) = block.extract(py).map_err(EngineError)?;
-            if u_step.is_empty() || u_loss.len() != u_step.len() || jitter_ns.len() != u_step.len() {
-                return Err(EngineError(PyValueError::new_err("radio refill must return three equal, non-empty lists")));
-            }
-            Ok(Draws { u_step, u_loss, jitter_ns, next: 0 })
+            draws_from(py, block).map_err(EngineError)
         };
         let out = self.core.advance(until_ns, &mut refill).map_err(|e| e.0);
         self.busy += started.elapsed();
@@ -322,16 +314,7 @@ impl Network {
     /// Counters of a radio link: offered, delivered, out_of_range, blackout, lost, rate_capped.
     fn link_stats<'py>(&self, py: Python<'py>, link: usize) -> PyResult<Bound<'py, PyDict>> {
         let l = self.core.gateway.links.get(link).ok_or_else(|| PyIndexError::new_err(format!("no radio link {link}")))?;
-        let s = l.stats;
-        let d = PyDict::new(py);
-        for (k, v) in [("offered", s.offered), ("delivered", s.delivered), ("out_of_range", s.out_of_range),
-                       ("blackout", s.blackout), ("lost", s.lost), ("rate_capped", s.rate_capped)] {
-            d.set_item(k, v)?;
-        }
-        if s.fault > 0 {
-            d.set_item("fault", s.fault)?; // as the Python links count it: only once a fault dropped a frame
-        }
-        Ok(d)
+        link_stats_dict(py, &l.stats)
     }
 
     /// Injected faults on radio link `link`: a blackout, burst losses (probabilities, one draw each in order), an
@@ -418,4 +401,40 @@ impl Network {
         }
         Ok(())
     }
+}
+
+/// One direction of a radio link from `add_link`'s arguments (the loss model by name).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn make_link(name: &str, range_m: f64, blackouts: Vec<(f64, f64)>, latency_ns: i64, period_ns: Option<i64>,
+                        loss_model: &str, p: f64, p_good_to_bad: f64, p_bad_to_good: f64, loss_good: f64, loss_bad: f64,
+                        initially_bad: bool) -> PyResult<Link> {
+    let loss = match loss_model {
+        "none" => Loss::None,
+        "bernoulli" => Loss::Bernoulli { p },
+        "gilbert_elliott" => Loss::GilbertElliott { p_gb: p_good_to_bad, p_bg: p_bad_to_good, loss_good, loss_bad },
+        other => return Err(PyValueError::new_err(format!("radio link {name}: unknown loss model '{other}'"))),
+    };
+    Ok(Link::new(name, range_m, blackouts, latency_ns, period_ns, loss, initially_bad))
+}
+
+/// A link's counters as the Python links keep them (`fault` only once a fault dropped a frame).
+pub(super) fn link_stats_dict<'py>(py: Python<'py>, s: &crate::radio::LinkStats) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    for (k, v) in [("offered", s.offered), ("delivered", s.delivered), ("out_of_range", s.out_of_range),
+                   ("blackout", s.blackout), ("lost", s.lost), ("rate_capped", s.rate_capped)] {
+        d.set_item(k, v)?;
+    }
+    if s.fault > 0 {
+        d.set_item("fault", s.fault)?;
+    }
+    Ok(d)
+}
+
+/// A block (u_step, u_loss, jitter_ns) from a link's `refill()`, checked.
+pub(super) fn draws_from(py: Python<'_>, block: Py<PyAny>) -> PyResult<Draws> {
+    let (u_step, u_loss, jitter_ns): (Vec<f64>, Vec<f64>, Vec<i64>) = block.extract(py)?;
+    if u_step.is_empty() || u_loss.len() != u_step.len() || jitter_ns.len() != u_step.len() {
+        return Err(PyValueError::new_err("radio refill must return three equal, non-empty lists"));
+    }
+    Ok(Draws { u_step, u_loss, jitter_ns, next: 0 })
 }

@@ -69,13 +69,15 @@ class PlantFaults:
 
 # --------------------------------------------------------------------------- radio node
 
+RADIO_FAULT_STREAM = 3000  # fault_rng key of the radio faults' draws (burst losses)
+
 
 class RadioNodeFaults:
     """In the radio node: fault lines from stdin (any thread) queued, applied by the node's loop."""
 
     def __init__(self, scenario, gateway, seed: int) -> None:
         self.specs = list(scenario.faults)
-        self.radio = RadioFaults(gateway.links, scenario.trains.count, fault_rng(seed, 3000))
+        self.radio = RadioFaults(gateway.links, scenario.trains.count, fault_rng(seed, RADIO_FAULT_STREAM))
         self.lines: queue.Queue[str] = queue.Queue()
 
     def on_line(self, line: str) -> None:
@@ -93,9 +95,11 @@ class RadioNodeFaults:
 
 
 class RealtimeFaults:
-    """In the orchestrator: bus faults on the servers, ECU processes killed, stopped and restarted."""
+    """In the orchestrator: bus faults on the servers, radio faults on the engine's radio (``radio``, an
+    ``EngineRadio``; without one, on SocketCAN, they go to the radio node), ECU processes killed, stopped and
+    restarted."""
 
-    def __init__(self, scenario, layout, servers: list, seed: int, db) -> None:
+    def __init__(self, scenario, layout, servers: list, seed: int, db, radio=None) -> None:
         self.sc, self.layout, self.seed = scenario, layout, seed
         self.specs = list(scenario.faults)
         self.watchdog = Watchdog(scenario.ecu.restart_after_s)
@@ -106,6 +110,10 @@ class RealtimeFaults:
         # error confinement and the guardian on every bus, in the engine's native bus servers
         self.buses = [EngineBusFaults(server, i, seed, periods, e2e_ok=ok, packing=packing)
                       for i, server in enumerate(servers)]
+        self.radio = None  # RadioFaults on the engine's radio links (the same fault stream as the radio node's)
+        if radio is not None:
+            rng = fault_rng(seed, RADIO_FAULT_STREAM)
+            self.radio = RadioFaults(radio.links, scenario.trains.count, rng, radio.impairment_setter(rng))
         self.events: list[Event] = []
         self.nodes: list[Any] = []  # the orchestrator's Nodes
         self.spawn: Callable[[int], Any] | None = None
@@ -166,6 +174,8 @@ class RealtimeFaults:
         elif kind in BUS_KINDS:
             bf = self.buses[spec.train - 1]  # the engine's server takes its lock itself
             bf.start(spec, k) if what == "start" else bf.end(spec, k)
+        elif kind in RADIO_KINDS and self.radio is not None:
+            (self.radio.start if what == "start" else self.radio.end)(spec, k)
         elif kind in RADIO_KINDS:
             radio = self._node("radio")
             if radio is not None:

@@ -1,4 +1,4 @@
-"""The real-time (HIL) run: bus servers, radio bridge, plant and ECU processes, started, paced, stopped, merged.
+"""The real-time (HIL) run: bus servers (with the radio), plant and ECU processes, started, paced, stopped, merged.
 
 ``run_realtime(scenario, out_dir, pace=...)`` is the real-time twin of ``hil.session.run_scenario``: it writes
 the same ``run.rrd`` and ``metrics.json`` (same keys, ``runtime = "realtime"``) plus the timing figures of the
@@ -7,10 +7,12 @@ real-time rig. Steps:
 1. One bus server per train bus, paced by ``pace``: the engine's ``NativeBusServer`` (a native thread each,
    outside the interpreter lock, CAN errors and bus faults included). Sleep-only (``spin_us = 0``). The ECU
    and plant nodes are lazy readers: a server hands them their frames at their read times, with a SYNC
-   (``hil/runtime/realtime/protocol.py``), and wakes at frame ends only for eager nodes (the radio, python-can).
-2. Node processes (same Python): the radio bridge, the plant + wayside, and the ECUs (``ecus_per_process``
+   (``hil/runtime/realtime/protocol.py``), and wakes at frame ends only for eager nodes (python-can) and for the
+   frames the radio takes. The radio is in the servers (``EngineRadio``): each forwards the routed frames that end
+   on its bus to the next train's server itself, with no process or Python per frame.
+2. Node processes (same Python): the plant + wayside, the ECUs (``ecus_per_process``
    units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
-   leaves, but one train's units at most in each). Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
+   leaves, but one train's units at most in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
@@ -51,6 +53,7 @@ from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
+from hil.runtime.realtime.engine_radio import EngineRadio
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.external import JOIN_LINE, ExternalUnitMissing, JoinWait
 from hil.runtime.realtime.live_tail import LiveTail
@@ -66,7 +69,7 @@ from hil.record.runlog import BusLog, Event, RunLog, RunResult
 from hil.record.safety import record_violations
 from hil.runtime.errors import RigDidNotStart
 from hil.runtime.firmware import import_roots
-from hil.runtime.train_db import load_train_db
+from hil.runtime.train_db import bus_packing, load_train_db
 from hil.scenario.model import Scenario
 
 READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a loaded 2-core machine is slow
@@ -183,8 +186,8 @@ def usable_cores() -> int:
 
 
 def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_train: int | None = None) -> int:
-    """ECUs per process when the user does not say: one ECU process per core left after the bus servers, the
-    plant and the radio take one, so the ECUs of a process share its wake-ups and no more Python processes start
+    """ECUs per process when the user does not say: one ECU process per core left after the bus servers (with
+    the radio in them) and the plant take one, so the ECUs of a process share its wake-ups and no more Python processes start
     than the cores can run; but no process hosts units of two trains (``units_per_train``), since each unit waits
     for its own bus's read time and units of several trains share their deadlines. On 2 cores: seed000's 3
     trains x 4 units in 3 processes, one train of 12 in one. ``bench/bench_realtime_scale.py`` measures the
@@ -240,6 +243,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     join = None  # JoinWait, while external units are expected
     sc_ = scenario.can
     servers: list[BusServer] = []
+    radio = None  # EngineRadio: the radio in the bus servers (emulated buses, two trains or more)
     nodes: list[Node] = []
     events: list[Event] = []
     wall0 = time.perf_counter()
@@ -253,14 +257,17 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     asc: list = []
     try:
         with _StopRequest() as stop:
+            if not socketcan and layout.n_trains > 1:
+                radio = EngineRadio(scenario, db, seed, pace, bus_packing(scenario, db))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
-                                    fd=sc_.fd, data_bitrate=sc_.data_rate if sc_.fd else None)
+                                    fd=sc_.fd, data_bitrate=sc_.data_rate if sc_.fd else None,
+                                    radio=radio.port(i) if radio is not None else None)
                 if fmt is not None:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
                 servers.append(server.start())
-            faults = _faults(scenario, layout, servers, seed, db)
+            faults = _faults(scenario, layout, servers, seed, db, radio)
             spool = BusSpool(servers, nodes_dir)  # the servers' frame rows to files as the run goes
             if on_channels is not None:
                 on_channels(channels(run, scenario))
@@ -268,7 +275,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
                                                                         units_per_train=scenario.trains.units)
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, per_process, plant_spin_us,
-                                 faults.solo_units if faults else (), external, env)
+                                 faults.solo_units if faults else (), external, env, radio_node=socketcan)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
                 say(f"{len(nodes)} node processes, pace {pace:g}" + (
@@ -312,6 +319,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             spool.close()
         for s in servers:
             s.close()
+        if radio is not None:
+            _close_radio(radio, nodes_dir, events)
         for w in asc:
             w.stop()
         remove_run_dir(run)
@@ -425,7 +434,17 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 # --------------------------------------------------------------------------- processes
 
 
-def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int, db: TrainDb):
+def _close_radio(radio: EngineRadio, nodes_dir: Path, events: list[Event]) -> None:
+    """The engine's radio stops; its links' counters go to ``radio.json``, as the radio node writes them."""
+    radio.close()
+    write_json_atomic(nodes_dir / "radio.json", {"links": radio.stats(), "starved": radio.starved})
+    if radio.starved:
+        events.append(Event(0.0, "ERROR", "radio", f"{radio.starved} radio frames dropped: the links' random "
+                                                   "numbers were not topped up in time"))
+
+
+def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int, db: TrainDb,
+            radio: EngineRadio | None = None):
     """The run's fault machinery (hil/runtime/realtime/faults.py), or None without faults and restart policy."""
     from hil.runtime.realtime.faults import RealtimeFaults
     from hil.faults.schedule import BUS_KINDS
@@ -435,7 +454,7 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
     if not servers and any(f.train for f in scenario.faults if f.kind in BUS_KINDS):
         raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
 
-    return RealtimeFaults(scenario, layout, servers, seed, db)
+    return RealtimeFaults(scenario, layout, servers, seed, db, radio)
 
 
 def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout,
@@ -453,12 +472,14 @@ def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float,
 
 
 def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, duration: float, pace: float,
-                 per_process: int, spin_us: float, solo=(), external=(), env: dict[str, str] | None = None) -> list[Node]:
-    """The plant first (``nodes[0]``), the radio, then the ECU processes; none for ``external`` units."""
+                 per_process: int, spin_us: float, solo=(), external=(), env: dict[str, str] | None = None,
+                 radio_node: bool = False) -> list[Node]:
+    """The plant first (``nodes[0]``), the radio (``radio_node``: on SocketCAN; on the emulated buses the radio is
+    in the bus servers), then the ECU processes; none for ``external`` units."""
     common = ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
               "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir)]
     specs = [("plant", "plant", ["hil.runtime.realtime.plant_node", "--spin-us", repr(spin_us)])]
-    if layout.n_trains > 1:
+    if radio_node and layout.n_trains > 1:
         specs.append(("radio", "radio", ["hil.runtime.realtime.radio_node"]))
     units = [u for u in range(layout.n_units) if u not in solo and u not in external]  # ECU faults: a process each
     groups = [units[k:k + per_process] for k in range(0, len(units), per_process)] + [[u] for u in sorted(solo)]

@@ -1,0 +1,75 @@
+"""The radio between the real-time rig's train buses, in the engine: the bus servers' threads forward the routed
+frames themselves (``trainhil_engine.RadioHub``, engine/src/radio_hub.rs), with no radio process, no socket and no
+Python per frame.
+
+The links, routes and random numbers are the virtual rig's (``configure_radio``, the run seed's "radio" stream),
+so both runtimes draw the same losses and jitter per offered frame. A serving thread cannot call Python, so the
+links' draws are queued ahead in blocks: a small thread here tops them up every ``TOP_UP_S`` (a link that ran dry
+would drop frames and count them, ``starved``). Radio faults set the links' impairments from the orchestrator
+(``impairment_setter``). On SocketCAN there are no bus servers: the radio is a node process there
+(``radio_node``).
+"""
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+import trainhil_engine as engine
+
+from ecu_sim.codec import TrainDb
+from hil.radio.gateway import RadioIds, build_links
+from hil.runtime.assembly import random_streams
+from hil.runtime.engine_net import configure_radio, engine_impairments
+from hil.scenario.layout import TrainLayout
+from hil.scenario.model import Scenario
+
+TOP_UP_S = 0.1  # wall seconds between top-ups of the links' draws
+
+
+class EngineRadio:
+    """The radio of a real-time run: ``port(i)`` goes to bus i's server; ``close()`` stops the top-ups and gives
+    the links' counters (``stats()``)."""
+
+    def __init__(self, sc: Scenario, db: TrainDb, seed: int, pace: float, packing: engine.Packing | None) -> None:
+        layout = TrainLayout.from_config(sc.trains)
+        self.links = build_links(sc.radio, layout.n_trains, random_streams(seed)["radio"])
+        self.hub = engine.RadioHub(pace, packing)
+        self._lock = threading.Lock()  # the hub's Python calls (top-ups, fault settings) one at a time
+        configure_radio(self.hub, layout.n_trains, self.links, layout.units_per_train, sc.radio.forward_aux,
+                        [db.agent_state(k) for k in range(layout.units_per_train)], RadioIds.from_db(db))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._top_up_loop, name="radio draws", daemon=True)
+        self._thread.start()
+
+    def port(self, bus: int) -> tuple[engine.RadioHub, int]:
+        """What bus ``bus``'s server is given (``NativeBusServer(radio=...)``)."""
+        return self.hub, bus
+
+    def impairment_setter(self, rng) -> Callable:
+        """``RadioFaults``' setter for these links, the faults' draws from ``rng`` (as in virtual time)."""
+        apply = engine_impairments(self.hub, list(self.links), rng)
+
+        def locked(name: str, imp) -> None:
+            with self._lock:
+                apply(name, imp)
+
+        return locked
+
+    def _top_up_loop(self) -> None:
+        while not self._stop.wait(TOP_UP_S):
+            with self._lock:
+                self.hub.top_up()
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        """Each link's counters by name (as the radio node's ``radio.json`` has them)."""
+        return {name: self.hub.link_stats(i) for i, name in enumerate(self.links)}
+
+    @property
+    def starved(self) -> int:
+        """Frames dropped because a link's draws ran out."""
+        return self.hub.starved
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()

@@ -1,0 +1,93 @@
+"""The radio in the real-time bus servers (issue 25, engine/src/radio_hub.rs): a routed frame that ends on one
+train's bus is queued on the next train's bus by the engine itself, at its end plus the link's latency, exactly,
+with no radio process; injected faults drop frames there and are counted as in virtual time."""
+from __future__ import annotations
+
+import time
+
+import can
+import numpy as np
+import pytest
+
+from hil.can.bus_log import BusLog
+from hil.can.frame import frame_bits
+from hil.faults.radio import RadioFaults
+from hil.runtime.realtime.engine_radio import EngineRadio
+from hil.runtime.realtime.native_server import NativeBusServer
+from hil.runtime.realtime.pycan_bus import TrainhilBus
+from hil.runtime.train_db import load_train_db
+from hil.scenario import load_scenario
+from hil.scenario.model import RadioBlackoutFault
+
+LATENCY_S = 0.005
+
+
+@pytest.fixture
+def rig(rt):
+    """seed000's three train buses with the engine's radio (5 ms latency, no jitter or loss)."""
+    sc = load_scenario("seed000", {"radio.latency_s": LATENCY_S})
+    db = load_train_db(sc)
+    radio = EngineRadio(sc, db, seed=1, pace=1.0, packing=None)
+    servers = [NativeBusServer("er", f"bus{i + 1}", sc.can.bitrate, log=BusLog(f"bus{i + 1}", sc.can.bitrate),
+                               radio=radio.port(i)).start() for i in range(3)]
+    try:
+        yield sc, db, radio
+    finally:
+        for s in servers:
+            s.close()
+        radio.close()
+
+
+def tail_state(db, x_m: float) -> tuple[int, bytes]:
+    """Train 1's tail unit's AgentState (routed over link 1>2 as the 'train ahead' frame)."""
+    msg = db.agent_state(3)
+    return msg.frame_id, msg.encode((x_m, 80.0), 1)
+
+
+def test_a_routed_frame_is_queued_on_the_next_bus_at_its_end_plus_the_latency(rig):
+    sc, db, radio = rig
+    sender = TrainhilBus("er/bus1", node_name="T1U4", receive_own_messages=True)
+    receiver = TrainhilBus("er/bus2", node_name="T2U1",
+                           can_filters=[{"can_id": db.radio_ahead_state.frame_id, "can_mask": 0x7FF}])
+    try:
+        frame_id, data = tail_state(db, 200_000.0)
+        sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+        own = sender.recv(1.0)
+        got = receiver.recv(1.0)
+        assert own is not None and got is not None, "the frame did not cross the radio"
+        assert got.arbitration_id == db.radio_ahead_state.frame_id and bytes(got.data) == data
+        # queued on the idle bus 2 at (end on bus 1) + latency, then on the wire for one frame time
+        duration = frame_bits(got.arbitration_id, bytes(got.data), False) / sc.can.bitrate
+        assert got.timestamp - own.timestamp == pytest.approx(LATENCY_S + duration, abs=3e-6)
+        time.sleep(0.05)
+        assert radio.stats()["1>2"] == {"offered": 1, "delivered": 1, "out_of_range": 0, "blackout": 0, "lost": 0,
+                                        "rate_capped": 0}
+        assert radio.stats()["2>1"]["offered"] == 0 and radio.starved == 0
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
+
+
+def test_an_injected_blackout_drops_the_frames_and_counts_them(rig):
+    sc, db, radio = rig
+    rng = np.random.default_rng(0)
+    faults = RadioFaults(radio.links, 3, rng, radio.impairment_setter(rng))
+    spec = RadioBlackoutFault(kind="radio_blackout", pair=1, at_s=0.0, duration_s=1.0)
+    sender = TrainhilBus("er/bus1", node_name="T1U4")
+    receiver = TrainhilBus("er/bus2", node_name="T2U1",
+                           can_filters=[{"can_id": db.radio_ahead_state.frame_id, "can_mask": 0x7FF}])
+    try:
+        faults.start(spec, 0)
+        frame_id, data = tail_state(db, 200_000.0)
+        sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+        assert receiver.recv(0.1) is None
+        faults.end(spec, 0)
+        sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+        assert receiver.recv(1.0) is not None
+        time.sleep(0.05)
+        stats = radio.stats()["1>2"]
+        assert (stats["offered"], stats["delivered"], stats.get("fault")) == (2, 1, 1)
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
+
