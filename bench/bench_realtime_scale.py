@@ -79,53 +79,72 @@ def role_of(proc: psutil.Process) -> str:
     return next((r.removesuffix("_node") for r in ROLES if r in cmd), "other")
 
 
+def thread_times(pid: int) -> dict[int, tuple[str, int, int]]:
+    """Every thread of process ``pid``: tid -> (name, CPU ns, time slices), from /proc's schedstat (exact, unlike
+    the tick-sampled utime/stime, which miss threads that wake briefly and often)."""
+    out: dict[int, tuple[str, int, int]] = {}
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            name = (task / "comm").read_text().strip()
+            ns, _wait, slices = (task / "schedstat").read_text().split()
+        except (OSError, ValueError):
+            continue
+        out[int(task.name)] = (name, int(ns), int(slices))
+    return out
+
+
 class CpuByRole:
-    """CPU seconds per role once every node is ready: the ECU, plant and radio processes (sampled every
-    ``every_s``, so a process's last fraction of a second is missed), and this process's threads: the bus
-    servers' native threads and the orchestrator's Python."""
+    """CPU seconds and wake-ups (time slices) per role once every node is ready: the ECU, plant and radio
+    processes, and this process's threads: the bus servers' native threads and the orchestrator's Python. Sampled
+    every ``every_s`` (a process's last fraction of a second is missed)."""
 
     def __init__(self, every_s: float = 0.25) -> None:
         self.every_s = every_s
         self.me = psutil.Process()
-        self.roles: dict[int, str] = {}
-        self.cpu: dict[int, float] = {}
-        self.threads: dict[int, float] = {}
+        self.roles: dict[int, str] = {}  # tid -> role
+        self.now: dict[int, tuple[int, int]] = {}  # tid -> (CPU ns, slices), latest sample
+        self.first: dict[int, tuple[int, int]] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
-    def _sample(self) -> None:
-        for c in self.me.children(recursive=True):
-            try:
-                t = c.cpu_times()
-            except psutil.Error:
-                continue
-            self.roles.setdefault(c.pid, role_of(c))
-            self.cpu[c.pid] = t.user + t.system
-        self.threads.update({t.id: t.user_time + t.system_time for t in self.me.threads()})  # ended ones stay
+    def _sample(self, initial: bool = False) -> None:
+        """Read every thread's counters; a thread seen first after the start counts from its birth."""
+        procs = [(self.me.pid, None)] + [(c.pid, c) for c in self.me.children(recursive=True)]
+        for pid, proc in procs:
+            for tid, (name, ns, slices) in thread_times(pid).items():
+                if tid not in self.roles:
+                    self.roles[tid] = self._role(pid, tid, name, proc)
+                    self.first[tid] = (ns, slices) if initial else (0, 0)
+                self.now[tid] = (ns, slices)
+
+    def _role(self, pid: int, tid: int, name: str, proc: psutil.Process | None) -> str:
+        if proc is not None:
+            return role_of(proc)
+        if name.startswith("bus-server"):
+            return "bus servers"
+        return "sampler" if tid == self._thread.native_id else "orchestrator"
 
     def start(self) -> None:
-        self._sample()
-        self.cpu0, self.threads0 = dict(self.cpu), dict(self.threads)
+        self._sample(initial=True)
         self._thread.start()
 
     def _loop(self) -> None:
         while not self._stop.wait(self.every_s):
             self._sample()
 
-    def stop(self) -> dict[str, float]:
+    def stop(self) -> dict[str, tuple[float, int]]:
+        """Role -> (CPU s, time slices) since ``start``."""
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join()
-        out: dict[str, float] = {}
-        for pid, cpu in self.cpu.items():
-            role = self.roles[pid]
-            out[role] = out.get(role, 0.0) + cpu - self.cpu0.get(pid, 0.0)
-        main_id = threading.main_thread().native_id
-        for tid, cpu in self.threads.items():
-            if tid == self._thread.native_id:
+        out: dict[str, tuple[float, int]] = {}
+        for tid, (ns, slices) in self.now.items():
+            role = self.roles[tid]
+            if role == "sampler":
                 continue
-            key = "orchestrator" if tid == main_id else "bus servers"
-            out[key] = out.get(key, 0.0) + cpu - self.threads0.get(tid, 0.0)
+            ns0, slices0 = self.first[tid]
+            cpu, n = out.get(role, (0.0, 0))
+            out[role] = (cpu + (ns - ns0) * 1e-9, n + slices - slices0)
         return out
 
 
@@ -162,7 +181,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "p99_ms": 1e3 * (p99 or 0), "misses": misses, "skipped": skipped, "cycles": cycles,
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
             "lost": m["frames_lost"], "cpu_per_sim_s": (cpu_seconds() - cpu0[0]) / duration, "keeps_up": keeps_up,
-            "interrupted": m["interrupted"], "cpu_by_role": {k: v / duration for k, v in sorted(roles.items())}}
+            "interrupted": m["interrupted"],
+            "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())}}
 
 
 def main() -> None:
@@ -197,7 +217,8 @@ def main() -> None:
                   f"{r['cpu_per_sim_s']:11.2f}  {'yes' if r['keeps_up'] else 'no'}"
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
-            print("      CPU s/sim s by role: " + ", ".join(f"{k} {v:.3f}" for k, v in r["cpu_by_role"].items()))
+            print("      CPU s/sim s by role (wake-ups per sim s, CPU per wake-up): " + ", ".join(
+                f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
             if r["keeps_up"]:
