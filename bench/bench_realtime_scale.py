@@ -156,7 +156,8 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
     return (time.process_time() - c0) / duration
 
 
-def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0) -> dict:
+def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
+        radio: str = "servers") -> dict:
     n_ecus = sc.trains.count * sc.trains.units
     cpu0 = [0.0]
     by_role = CpuByRole()
@@ -167,7 +168,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
 
     with tempfile.TemporaryDirectory() as d:
         res = run_realtime(sc, Path(d), pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
-                           plant_spin_us=plant_spin_us,
+                           plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
                            on_start=started)
     roles = by_role.stop()
     m = res.metrics
@@ -194,28 +195,33 @@ def main() -> None:
                     help="the plant's polling before each publication, µs (several: side by side)")
     ap.add_argument("--duration", type=float, default=10.0, help="simulated seconds per run")
     ap.add_argument("--pace", type=float, default=1.0)
+    ap.add_argument("--radio", nargs="+", choices=("servers", "process"), default=["servers"],
+                    help="the radio inside the bus servers (the rig's) or as a node process (before); several: side by side")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     args = ap.parse_args()
     if args.scenario:
         sc = load_scenario(args.scenario)
         args.ecus = [sc.trains.count * sc.trains.units]
+    what = args.scenario or "seed000-consensus scaled: 1 Mbit/s buses of up to 16 units"
     print(f"{psutil.cpu_count()} CPUs, load average {psutil.getloadavg()[0]:.2f}; pace {args.pace:g}, "
-          f"{args.duration:g} s per run, 100 Hz ECUs, 1 Mbit/s buses of up to 16 units")
+          f"{args.duration:g} s per run, 100 Hz ECUs; {what}")
     head = f"{'ECUs':>5} {'per proc':>8} {'p50 ms':>7} {'p99 ms':>7} {'misses':>7} {'skipped':>7} {'plant p99':>9} " \
            f"{'e2e p99':>8} {'lost':>6} {'CPU s/sim s':>11}  keeps up"
     print(head)
     best = 0
     for n in args.ecus:
-        for k, spin in [(k, spin) for k in args.per_process for spin in args.plant_spin_us]:
+        for k, spin, radio in [(k, spin, radio) for k in args.per_process for spin in args.plant_spin_us
+                               for radio in args.radio]:
             t = time.monotonic()
             sc = scenario_for(n, args.scenario)
-            r = one(sc, k or None, args.duration, args.pace, spin)
+            r = one(sc, k or None, args.duration, args.pace, spin, radio)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "
                   f"{r['cpu_per_sim_s']:11.2f}  {'yes' if r['keeps_up'] else 'no'}"
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
+                  f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (wake-ups per sim s, CPU per wake-up): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))

@@ -68,6 +68,34 @@ def test_a_routed_frame_is_queued_on_the_next_bus_at_its_end_plus_the_latency(ri
         receiver.shutdown()
 
 
+def test_a_lazy_reader_on_the_next_bus_gets_the_delivery_at_its_exact_time_without_a_wake_up_for_it(rig):
+    """Only lazy readers on bus 2: its server is not woken for the delivery, it takes it at its next wake-up
+    (before the reader's read time) and the frame still goes on the wire at end + latency."""
+    import trainhil_engine as engine
+
+    sc, db, radio = rig
+    sender = TrainhilBus("er/bus1", node_name="T1U4", receive_own_messages=True)
+    reader_bus = TrainhilBus("er/bus2", node_name="T2U1", lazy_reader=True,
+                             can_filters=[{"can_id": db.radio_ahead_state.frame_id, "can_mask": 0x7FF}])
+    reader = engine.FrameLink(reader_bus.fileno(), 0.0, 1.0, keep=True, lazy=True)
+    try:
+        t_read = time.time() + 0.05
+        reader.read_every(t_read, 0.0)
+        time.sleep(0.01)
+        frame_id, data = tail_state(db, 200_000.0)
+        sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+        own = sender.recv(1.0)
+        assert own is not None
+        assert reader.sync_to(t_read, 1.0), "no SYNC of the read time"
+        got = reader.take()
+        assert [(fid, d) for fid, d, _ in got] == [(db.radio_ahead_state.frame_id, data)]
+        duration = frame_bits(db.radio_ahead_state.frame_id, data, False) / sc.can.bitrate
+        assert got[0][2] - own.timestamp == pytest.approx(LATENCY_S + duration, abs=3e-6)
+    finally:
+        sender.shutdown()
+        reader_bus.shutdown()
+
+
 def test_an_injected_blackout_drops_the_frames_and_counts_them(rig):
     sc, db, radio = rig
     rng = np.random.default_rng(0)

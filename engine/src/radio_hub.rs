@@ -12,6 +12,7 @@
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::io::Write;
 use std::os::unix::net::UnixStream;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -28,10 +29,13 @@ pub struct Delivery {
     pub data: Payload,
 }
 
-/// One bus server as the hub sees it: its zero and its wake-up socket.
+/// One bus server as the hub sees it: its zero, its wake-up socket, and whether it must be woken for a delivery
+/// (it has an eager node or a per-frame error model; else it takes the delivery at its next wake-up, which comes
+/// before any reader can see past the delivery time).
 struct Port {
     mono0: Instant,
     wake: UnixStream,
+    eager: Arc<AtomicBool>,
 }
 
 /// Everything under the hub's lock.
@@ -99,7 +103,7 @@ impl HubCore {
                     for (dst, dst_id, at) in deliveries {
                         let local = (at - self.origin_ns(dst)).max(0) as u64;
                         self.inboxes.entry(dst).or_default().push(Delivery { t_ns: local, frame_id: dst_id, data: payload });
-                        if let Some(port) = self.ports.get(&dst) {
+                        if let Some(port) = self.ports.get(&dst).filter(|p| p.eager.load(Ordering::Relaxed)) {
                             let _ = (&port.wake).write(b"r");
                         }
                         made += 1;
@@ -158,9 +162,9 @@ impl RadioHub {
         (core.reserve.iter().map(VecDeque::len).collect(), core.fault_reserve.len())
     }
 
-    /// Bus `bus`'s server: its zero and a socket that wakes it.
-    pub fn register(&self, bus: usize, mono0: Instant, wake: UnixStream) {
-        self.core.lock().unwrap().ports.insert(bus, Port { mono0, wake });
+    /// Bus `bus`'s server: its zero, a socket that wakes it, and the flag it keeps saying whether it must be woken.
+    pub fn register(&self, bus: usize, mono0: Instant, wake: UnixStream, eager: Arc<AtomicBool>) {
+        self.core.lock().unwrap().ports.insert(bus, Port { mono0, wake, eager });
     }
 }
 
@@ -187,8 +191,9 @@ mod tests {
         let (r, w) = UnixStream::pair().unwrap();
         r.set_nonblocking(true).unwrap();
         let t0 = Instant::now();
-        hub.register(0, t0, UnixStream::pair().unwrap().1);
-        hub.register(1, t0, w);
+        hub.register(0, t0, UnixStream::pair().unwrap().1, Arc::new(AtomicBool::new(true)));
+        let eager = Arc::new(AtomicBool::new(true));
+        hub.register(1, t0, w, eager.clone());
         let mut core = hub.core.lock().unwrap();
         assert_eq!(core.offer(0, 0x100, &[1, 2, 3], 10_000), 1);
         assert_eq!(core.offer(0, 0x101, &[9], 10_000), 0); // not routed
@@ -198,6 +203,10 @@ mod tests {
         let mut buf = [0u8; 8];
         assert_eq!(std::io::Read::read(&mut &r, &mut buf).unwrap(), 1);
         assert_eq!(core.routed_ids(0), HashSet::from([0x100]));
+        eager.store(false, Ordering::Relaxed); // only lazy readers there: delivered without a wake-up
+        assert_eq!(core.offer(0, 0x100, &[4], 20_000), 1);
+        assert!(std::io::Read::read(&mut &r, &mut buf).is_err()); // WouldBlock
+        assert_eq!(core.take(1).len(), 1);
     }
 
     #[test]
@@ -205,8 +214,9 @@ mod tests {
         let hub = hub_1_to_2(0);
         hub.push_draws(0, block(4, 0));
         let t0 = Instant::now();
-        hub.register(0, t0, UnixStream::pair().unwrap().1);
-        hub.register(1, t0 + std::time::Duration::from_micros(300), UnixStream::pair().unwrap().1);
+        let flag = || Arc::new(AtomicBool::new(true));
+        hub.register(0, t0, UnixStream::pair().unwrap().1, flag());
+        hub.register(1, t0 + std::time::Duration::from_micros(300), UnixStream::pair().unwrap().1, flag());
         let mut core = hub.core.lock().unwrap();
         core.offer(0, 0x100, &[1], 1_000_000);
         assert_eq!(core.take(1)[0].t_ns, 700_000); // bus 2 started 300 µs later: its clock reads 300 µs less

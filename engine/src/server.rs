@@ -197,6 +197,8 @@ pub struct RadioPort {
     routed: std::collections::HashSet<u32>,
     /// Deliveries taken from the hub, not yet queued (their time is still to come), oldest first.
     pending: std::collections::VecDeque<Delivery>,
+    /// Whether the hub must wake this server for a delivery (kept up to date each turn; see `radio_hub::Port`).
+    eager: Arc<AtomicBool>,
 }
 
 /// A handle to a running server: stop it, read its state.
@@ -277,10 +279,11 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, radio
     let epoch0_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
     let radio = match radio {
         Some((hub, index)) => {
-            hub.register(index, mono0, wake_w.try_clone()?);
+            let eager = Arc::new(AtomicBool::new(true));
+            hub.register(index, mono0, wake_w.try_clone()?, eager.clone());
             let routed = hub.core.lock().unwrap().routed_ids(index);
             let node = bus.attach("RadioGW", Sink::None, None, false);
-            Some(RadioPort { hub, bus: index, node, routed, pending: Default::default() })
+            Some(RadioPort { hub, bus: index, node, routed, pending: Default::default(), eager })
         }
         None => None,
     };
@@ -465,6 +468,11 @@ impl Server {
             self.clients.retain(|c| !c.closed);
         }
         shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
+        if let Some(r) = &self.radio {
+            let eager = shared.bus.errors.is_some() || shared.bus.guardian.is_some()
+                || self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed);
+            r.eager.store(eager, Ordering::Relaxed);
+        }
         self.pollfds = fds;
     }
 

@@ -203,7 +203,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  can_log: str | bool | None = None,
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
-                 keep_signals: bool = True):
+                 keep_signals: bool = True, radio_in_servers: bool = True):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -214,7 +214,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     up, before the nodes start, so that an external device can join (``ecu.external``). ``keep_signals=False``
     (``hil run``): the merge lets the signals and the bus rows go chunk by chunk once written, so
     ``result.log`` holds the last of them only. ``live``: stream the
-    recording to a viewer as the run goes (hil/runtime/realtime/live_tail.py)."""
+    recording to a viewer as the run goes (hil/runtime/realtime/live_tail.py). ``radio_in_servers=False``: the
+    radio as a node process on the emulated buses too, as before it moved into the servers (benchmarks compare)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
@@ -257,7 +258,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     asc: list = []
     try:
         with _StopRequest() as stop:
-            if not socketcan and layout.n_trains > 1:
+            if not socketcan and layout.n_trains > 1 and radio_in_servers:
                 radio = EngineRadio(scenario, db, seed, pace, bus_packing(scenario, db))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
@@ -275,7 +276,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
                                                                         units_per_train=scenario.trains.units)
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, per_process, plant_spin_us,
-                                 faults.solo_units if faults else (), external, env, radio_node=socketcan)
+                                 faults.solo_units if faults else (), external, env, radio_node=radio is None)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
                 say(f"{len(nodes)} node processes, pace {pace:g}" + (

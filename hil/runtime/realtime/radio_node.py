@@ -1,4 +1,5 @@
-"""Radio bridge process: the virtual rig's RadioGateway (same links, routes and seeded draws) between train buses.
+"""Radio bridge process on SocketCAN: the virtual rig's RadioGateway (same links, routes and seeded draws) between
+train buses. On the emulated buses the radio is inside the bus servers instead (``engine_radio``).
 
     python -m hil.runtime.realtime.radio_node --run RUN --scenario-json FILE --seed N --duration S --pace F --out DIR
 
