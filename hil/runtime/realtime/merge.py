@@ -37,13 +37,14 @@ SIGNAL_CHUNK_ROWS = 4096  # signal rows merged at a time (each is 3 + 5 x units 
 
 def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: Sequence[Any], events: list[Event],
                 t0: float | None, pace: float, duration: float, wall: float, stop_reason: str | None,
-                sinks: Sequence[Sink] = (), keep_rows: bool = True):
+                sinks: Sequence[Sink] = (), keep_rows: bool = True, radio_stats: dict | None = None):
     """The nodes' files and the servers' spools as one RunLog in simulated time, and the timing metrics.
     ``servers``: the bus servers (``BusServer``), or anything with their ``log`` and ``epoch0`` (``hil recover``).
 
     The plant's signals and the buses' rows are read chunk by chunk into the log's statistics and into each of
     ``sinks`` (writers, with the first signal row each needs); ``keep_rows=False`` lets each chunk go once it is
-    counted and written, so the merge of a long run needs no memory for them."""
+    counted and written, so the merge of a long run needs no memory for them. ``radio_stats``: the radio links'
+    counters when the radio ran in the bus servers (else the radio node's ``radio.json``)."""
     log = RunLog(layout)
     log.reference_change_times = ReferenceProfile.from_config(sc.reference).change_times
     log.summary(sc.plant.coupler_band_m)  # the metrics' figures, kept as the chunks come
@@ -59,8 +60,9 @@ def merge_nodes(sc: Scenario, layout: TrainLayout, nodes_dir: Path, servers: Seq
         log.events.append(Event(float(plant.get("sim_time_s", 0.0)), "WARN", "rig", f"run stopped early: {stop_reason}"))
     log.events.sort(key=lambda e: e.t)
     log.plant_command_rejects = plant.get("command_rejects", {})
-    radio = (_read_json(nodes_dir / "radio.json") or {}).get("links", {})
-    log.radio_stats = radio
+    if radio_stats is None:
+        radio_stats = (_read_json(nodes_dir / "radio.json") or {}).get("links", {})
+    log.radio_stats = radio_stats
     for s in servers:
         shift = 0.0 if t0 is None else (t0 - s.epoch0) * pace
         log.buses.append(_stream_bus(s.log, nodes_dir, shift, None if t0 is None else duration, sinks, keep_rows))

@@ -245,6 +245,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     sc_ = scenario.can
     servers: list[BusServer] = []
     radio = None  # EngineRadio: the radio in the bus servers (emulated buses, two trains or more)
+    radio_stats = None  # its links' counters at the end
     nodes: list[Node] = []
     events: list[Event] = []
     wall0 = time.perf_counter()
@@ -321,7 +322,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         for s in servers:
             s.close()
         if radio is not None:
-            _close_radio(radio, nodes_dir, events)
+            radio_stats = _close_radio(radio, events)
         for w in asc:
             w.stop()
         remove_run_dir(run)
@@ -336,7 +337,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                              [s.log.name for s in servers]) if record else None
         sinks = ([(rrd, 0)] if rrd is not None else []) + ([(tail.writer, tail.sent)] if tail is not None else [])
         log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason,
-                                 sinks, keep_rows=keep_signals)
+                                 sinks, keep_rows=keep_signals, radio_stats=radio_stats)
         _finish_log(log, faults, t0, pace, scenario)
         for writer, _ in sinks:  # the rest to the recording and the viewer: events, timing
             write_rest(writer, log, nodes_dir)
@@ -344,7 +345,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         full = exc
         if log is None:  # it filled during the merge: again, without the recording
             log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall,
-                                     stop_reason, [], keep_rows=False)
+                                     stop_reason, [], keep_rows=False, radio_stats=radio_stats)
             _finish_log(log, faults, t0, pace, scenario)
         log.events.append(Event(log.sim_time_s, "ERROR", "rig", f"run.rrd cut: {exc.strerror}"))
     extra["realtime"]["bus_servers"] = server_stats
@@ -435,13 +436,13 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 # --------------------------------------------------------------------------- processes
 
 
-def _close_radio(radio: EngineRadio, nodes_dir: Path, events: list[Event]) -> None:
-    """The engine's radio stops; its links' counters go to ``radio.json``, as the radio node writes them."""
+def _close_radio(radio: EngineRadio, events: list[Event]) -> dict[str, dict[str, int]]:
+    """The engine's radio stops; its links' counters (for the merge: nothing is written, the disk may be full)."""
     radio.close()
-    write_json_atomic(nodes_dir / "radio.json", {"links": radio.stats(), "starved": radio.starved})
     if radio.starved:
         events.append(Event(0.0, "ERROR", "radio", f"{radio.starved} radio frames dropped: the links' random "
                                                    "numbers were not topped up in time"))
+    return radio.stats()
 
 
 def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], seed: int, db: TrainDb,
