@@ -4,7 +4,9 @@ Each cycle it reads the latest frame of every input stream (own sensor, neighbou
 AgentAux, the wayside reference), checks each with the E2E CRC and alive counter, judges freshness by
 age, builds the controller's :class:`~ecu_sim.view.LocalView`, runs the law, and encodes its outputs
 (TractionCmd, AgentState, AgentAux). It is clock-agnostic: the virtual-time runtime and a real-time
-process call ``on_frame`` when a frame arrives and ``cycle`` on the ECU's timer.
+process call ``on_frame`` when a frame arrives and ``cycle`` on the ECU's timer. The rig's runtimes call
+``cycle_outputs`` instead when a program keeps the standard ``cycle`` (``encodes_in_engine``): the same outputs,
+not yet encoded, which the engine encodes and sends in one call.
 
 Sample alignment: the plant samples every unit's sensors at the same instants and numbers them with the
 Sensor frame's alive counter. An ECU sends its AgentState/AgentAux with that same counter (so the counter
@@ -64,6 +66,9 @@ def os_exit_stops_the_firmware() -> Iterator[None]:
         os._exit = real
 
 
+Output = tuple[MessageCodec, tuple[float, ...], int]  # one frame of a cycle, not yet encoded: (message, values, counter)
+
+
 def guarded_cycle(ecu: "Ecu", t: float) -> list[tuple[int, bytes]]:
     """``ecu.cycle(t)``, with a program that raises (or calls sys.exit) stopped like a failed law, not the run."""
     if not ecu.alive:
@@ -73,6 +78,33 @@ def guarded_cycle(ecu: "Ecu", t: float) -> list[tuple[int, bytes]]:
     except (Exception, SystemExit) as exc:
         ecu.stop(t, f"ECU program failed: {exc!r}")
         return []
+
+
+def guarded_outputs(ecu: "Ecu", t: float) -> list[Output]:
+    """``ecu.cycle_outputs(t)`` (for an ECU that ``encodes_in_engine``), guarded as ``guarded_cycle``."""
+    if not ecu.alive:
+        return []
+    try:
+        return ecu.cycle_outputs(t)
+    except (Exception, SystemExit) as exc:
+        ecu.stop(t, f"ECU program failed: {exc!r}")
+        return []
+
+
+def send_guarded(ecu: "Ecu", t: float, send, *args) -> None:
+    """``send(*args)`` of an ECU's unencoded outputs: a value the codec refuses (NaN) stops the ECU as
+    ``guarded_cycle`` would have when it encoded it."""
+    try:
+        send(*args)
+    except ValueError as exc:
+        ecu.stop(t, f"ECU program failed: {exc!r}")
+
+
+def encodes_in_engine(ecu: "Ecu") -> bool:
+    """Whether the ECU's program keeps the standard ``cycle``, so a runtime may take its outputs unencoded
+    (``cycle_outputs``) and have the engine encode and send them in one call; a program that overrides ``cycle``
+    is called as it is."""
+    return type(ecu).cycle is Ecu.cycle
 
 
 class EcuSettings(Protocol):
@@ -253,6 +285,10 @@ class Ecu:
 
     def cycle(self, t: float) -> list[tuple[int, bytes]]:
         """Run one control cycle at time t; return the frames to send (id, data)."""
+        return [(codec.frame_id, codec.encode(values, counter)) for codec, values, counter in self.cycle_outputs(t)]
+
+    def cycle_outputs(self, t: float) -> list[Output]:
+        """Run one control cycle at time t; return its frames not yet encoded: (message, values, alive counter)."""
         if not self.alive:
             return []
         self.counters.cycles += 1
@@ -361,16 +397,14 @@ class Ecu:
             self._flags[key] = on
             self.events.append((t, level if on else "INFO", text if on else f"cleared: {text}"))
 
-    def _outputs(self, cmd: Command) -> list[tuple[int, bytes]]:
+    def _outputs(self, cmd: Command) -> list[Output]:
         """TractionCmd always; AgentState/AgentAux only with a fresh own sample, numbered by that sample."""
         self._cmd_counter = (self._cmd_counter + 1) & 0xF
-        c = self._out_cmd
-        frames = [(c.frame_id, c.encode((int(cmd.mode), cmd.force_n), self._cmd_counter))]
+        frames: list[Output] = [(self._out_cmd, (int(cmd.mode), cmd.force_n), self._cmd_counter)]
         if self._flags.get("sensor_stale") or self.sensor_fault or self._sensor_counter < 0:
             return frames
         v, k = self.view, self._sensor_counter
         accel = cmd.accel_mps2 if math.isfinite(cmd.accel_mps2) else cmd.force_n / self.agent.mass_kg
-        s, a = self._out_state, self._out_aux
-        frames.append((s.frame_id, s.encode((v.x, v.v), k)))
-        frames.append((a.frame_id, a.encode((accel, cmd.force_n), k)))
+        frames.append((self._out_state, (v.x, v.v), k))
+        frames.append((self._out_aux, (accel, cmd.force_n), k))
         return frames

@@ -134,6 +134,8 @@ class Network:
     def send(self, bus: int, node: int, frame_id: int, data: bytes | bytearray) -> bool: ...
     def send_frames(self, bus: int, node: int, frames: Sequence[tuple[int, bytes]]) -> None:
         """One node's batch at the current time (packed into containers on a bus with ``set_packing``)."""
+    def send_encoded(self, bus: int, node: int, outputs: Sequence[tuple[MessageCodec, Sequence[float], int]]) -> None:
+        """One ECU cycle's outputs (message, values, alive counter) encoded and queued as ``send_frames`` does."""
     def set_packing(self, bus: int, packing: Packing) -> None:
         """Pack the batches sent on this CAN FD bus and unpack them at its receivers (ValueError on classical CAN)."""
     has_commands: bool  # commands or rejected frames wait for drain_commands
@@ -268,3 +270,6 @@ class FrameLink:
     def send(self, frames: Sequence[tuple[int, bytes]], extended: bool = False, fd: bool = False,
              brs: bool = True) -> None:
         """FRAME records of [(frame_id, data)]: 29-bit IDs with ``extended``, CAN FD frames with ``fd`` (and BRS)."""
+    def send_encoded(self, outputs: Sequence[tuple[MessageCodec, Sequence[float], int]], extended: bool = False,
+                     fd: bool = False, brs: bool = True) -> None:
+        """One ECU cycle's outputs (message, values, alive counter), encoded and sent as ``send`` does, in one call."""

@@ -16,7 +16,7 @@ from typing import Any, Protocol
 
 import trainhil_engine as engine
 
-from ecu_sim.runtime import Ecu
+from ecu_sim.runtime import Ecu, Output
 from hil.can.transmission import Transmission
 from hil.radio.gateway import RadioIds, link_name, standard_routes
 from hil.radio.link import RadioLink
@@ -117,6 +117,12 @@ class EngineBus:
         """Queue several frames of one node at the current time (one call for an ECU's outputs); with frame
         packing, a batch holding a container's parts goes as that container."""
         self.net.send_frames(self.index, node, frames)
+        if self.after_send is not None:
+            self.after_send()
+
+    def send_outputs(self, node: int, outputs: list[Output]) -> None:
+        """One ECU cycle's outputs (message, values, counter), encoded and queued by the engine in one call."""
+        self.net.send_encoded(self.index, node, outputs)
         if self.after_send is not None:
             self.after_send()
 

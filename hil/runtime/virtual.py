@@ -20,7 +20,8 @@ from typing import Callable
 import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
-from ecu_sim.runtime import Ecu, guarded_cycle, os_exit_stops_the_firmware
+from ecu_sim.runtime import (Ecu, encodes_in_engine, guarded_cycle, guarded_outputs, os_exit_stops_the_firmware,
+                             send_guarded)
 from hil.runtime.plant_step import plant_step
 from hil.radio.gateway import RadioGateway, RadioIds, build_links
 from hil.plant.can_node import VALID_MODES, PlantCanNode
@@ -193,9 +194,12 @@ class VirtualRig:
 
     def _ecu_tick(self, u: int, t_ns: int) -> None:
         ecu = self.ecus[u]
-        frames = guarded_cycle(ecu, t_ns * 1e-9)
         bus, node = self.buses[self._train_of[u]], self._ecu_nodes[u]
-        if frames:
+        if encodes_in_engine(ecu):
+            outputs = guarded_outputs(ecu, t_ns * 1e-9)
+            if outputs:
+                send_guarded(ecu, t_ns * 1e-9, bus.send_outputs, node, outputs)
+        elif frames := guarded_cycle(ecu, t_ns * 1e-9):
             bus.send_frames(node, frames)
         if ecu.events:
             for t, level, text in ecu.events:

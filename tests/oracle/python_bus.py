@@ -32,6 +32,10 @@ class VirtualCanBus(CanBusModel):
         for frame_id, data in self.packing.pack(frames) if self.packing is not None else frames:
             self.send(node, frame_id, data)
 
+    def send_outputs(self, node: CanNode, outputs: list) -> None:
+        """One ECU cycle's outputs (message, values, counter), encoded here and queued as ``send_frames``."""
+        self.send_frames(node, [(codec.frame_id, codec.encode(values, counter)) for codec, values, counter in outputs])
+
     def _arbitrate_event(self, _: object = None) -> None:
         self._arbitration_pending = False
         tx = self.arbitrate(self.kernel.now)

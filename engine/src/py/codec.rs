@@ -27,6 +27,24 @@ pub struct MessageCodec {
 
 type SpecTuple = (String, u32, u32, bool, f64, f64, i64, i64);
 
+/// One output of an ECU cycle, not yet encoded: (message, physical values, alive counter).
+pub(super) type Output<'py> = (PyRef<'py, MessageCodec>, Vec<f64>, i64);
+
+impl MessageCodec {
+    /// Physical values -> frame payload (saturations counted, NaN an error naming the signal): `encode`'s work.
+    pub(super) fn encode_payload(&self, values: &[f64], counter: i64) -> PyResult<crate::bus::Payload> {
+        let mut out = [0u8; MAX_DATA];
+        let mut sat = self.saturations.lock().unwrap();
+        let n = self.layout.encode(values, counter, &mut sat, &mut out).map_err(codec_err)?;
+        Ok(crate::bus::Payload::new(&out[..n]))
+    }
+}
+
+/// A cycle's outputs encoded: [(frame_id, payload)].
+pub(super) fn encode_outputs(outputs: &[Output<'_>]) -> PyResult<Vec<(u32, crate::bus::Payload)>> {
+    outputs.iter().map(|(codec, values, counter)| Ok((codec.frame_id, codec.encode_payload(values, *counter)?))).collect()
+}
+
 #[pymethods]
 impl MessageCodec {
     /// `specs`: (name, start bit, length, signed, scale, offset, raw_min, raw_max) per payload signal, Intel order.
@@ -64,10 +82,7 @@ impl MessageCodec {
     /// Physical values (in `signals` order) -> frame bytes with alive counter and E2E CRC; out-of-range values
     /// saturate and are counted, NaN raises ValueError naming the signal.
     fn encode<'py>(&self, py: Python<'py>, values: Vec<f64>, counter: i64) -> PyResult<Bound<'py, PyBytes>> {
-        let mut out = [0u8; MAX_DATA];
-        let mut sat = self.saturations.lock().unwrap();
-        let n = self.layout.encode(&values, counter, &mut sat, &mut out).map_err(codec_err)?;
-        Ok(PyBytes::new(py, &out[..n]))
+        Ok(PyBytes::new(py, self.encode_payload(&values, counter)?.as_slice()))
     }
 
     /// Frame bytes -> physical values in `signals` order (E2E header not checked here).

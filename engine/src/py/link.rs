@@ -157,14 +157,29 @@ impl FrameLink {
     /// the bit-rate switch unless `brs` is false).
     #[pyo3(signature = (frames, extended = false, fd = false, brs = true))]
     fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
-        let flags = if extended { FLAG_EXTENDED } else { 0 } | format_flags(Format::of(fd, brs));
         let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
+        self.send_batch(&batch, extended, fd, brs)
+    }
+
+    /// Encode one ECU cycle's outputs [(codec, values, counter)] and send them as `send` does, in one call.
+    #[pyo3(signature = (outputs, extended = false, fd = false, brs = true))]
+    fn send_encoded(&self, outputs: Vec<Output<'_>>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
+        let frames = encode_outputs(&outputs)?;
+        let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_slice())).collect();
+        self.send_batch(&batch, extended, fd, brs)
+    }
+}
+
+impl FrameLink {
+    /// FRAME records of a batch (packed into containers with a packing); a lazy link stamps them now.
+    fn send_batch(&self, batch: &[(u32, &[u8])], extended: bool, fd: bool, brs: bool) -> PyResult<()> {
+        let flags = if extended { FLAG_EXTENDED } else { 0 } | format_flags(Format::of(fd, brs));
         let limit = if fd { MAX_DATA } else { crate::protocol::MAX_DLC };
         if let Some((id, data)) = batch.iter().find(|(_, d)| d.len() > limit) {
             return Err(link_err(LinkError::TooLong(*id, data.len(), limit)));
         }
         let packed = match &self.packing {
-            Some(p) => p.pack(&batch),
+            Some(p) => p.pack(batch),
             None => batch.iter().map(|&(id, d)| (id, Payload::new(d))).collect(),
         };
         let parts: Vec<(u32, &[u8])> = packed.iter().map(|(id, d)| (*id, d.as_slice())).collect();

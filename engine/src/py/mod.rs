@@ -46,7 +46,7 @@ mod radio_hub;
 mod server;
 
 use self::bus_events::{errors_summary, event_fields};
-use self::codec::{MessageCodec, Packing};
+use self::codec::{encode_outputs, MessageCodec, Output, Packing};
 use self::frames::*;
 use self::link::{wait_readable, FrameLink};
 use self::mailbox::Mailbox;

@@ -195,6 +195,18 @@ impl Network {
         Ok(())
     }
 
+    /// Encode one ECU cycle's outputs [(codec, values, counter)] and queue them as `send_frames` does: one call
+    /// per cycle instead of one per frame and one to send.
+    fn send_encoded(&mut self, bus: usize, node: usize, outputs: Vec<Output<'_>>) -> PyResult<()> {
+        self.check_node(bus, node)?;
+        let started = std::time::Instant::now();
+        let frames = encode_outputs(&outputs)?;
+        let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_slice())).collect();
+        self.core.send_batch(bus, node, &batch).map_err(frame_err)?;
+        self.busy += started.elapsed();
+        Ok(())
+    }
+
     /// Pack the batches sent on a CAN FD bus into `packing`'s containers, and unpack them at its receivers.
     fn set_packing(&mut self, bus: usize, packing: &Packing) -> PyResult<()> {
         let b = self.bus_mut(bus)?;

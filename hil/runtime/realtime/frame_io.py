@@ -5,7 +5,8 @@ SocketCAN. Both have one interface, so the node loops do not care which:
   wall seconds polled), handing every frame to ``on_frame(bus, frame_id, data, t_sim)`` or, for ECU mailboxes
   routed with ``route``, straight into the mailbox;
 * ``drain(on_frame)``: whatever waits now; ``wait_any(wall_s, on_frame)``: the first frames within ``wall_s``;
-* ``send(bus, frames)``: queue ``[(frame_id, data)]`` on bus ``bus``;
+* ``send(bus, frames)``: queue ``[(frame_id, data)]`` on bus ``bus``; ``send_outputs(bus, outputs)``: an ECU
+  cycle's unencoded outputs ``[(codec, values, counter)]``, encoded and sent by the engine in one call;
 * ``read_every(first, period, buses)``: the node's read times (simulated s) on some buses, for a lazy reader.
 
 A lazy reader (``lazy=True``, the ECU and plant nodes on the emulated buses) tells its bus servers when it reads
@@ -30,6 +31,7 @@ from typing import Callable
 import can
 import trainhil_engine as engine
 
+from ecu_sim.runtime import Output
 from hil.runtime.realtime.pacing import SimClock, drain, wait_until
 
 FrameHandler = Callable[[int, int, bytes, float], None]  # (bus index, frame id, data, simulated arrival time)
@@ -140,6 +142,9 @@ class EngineFrames:
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
         self.links[bus].send(frames, self.extended, self.fd, self.brs)
 
+    def send_outputs(self, bus: int, outputs: list[Output]) -> None:
+        self.links[bus].send_encoded(outputs, self.extended, self.fd, self.brs)
+
 
 class PythonCanFrames:
     """python-can in both directions (SocketCAN); routed mailboxes are filled from Python."""
@@ -182,6 +187,9 @@ class PythonCanFrames:
     def wait(self, sim_t: float, on_frame: FrameHandler | None, stop, spin_s: float = 0.0) -> None:
         self._handler = on_frame
         wait_until(self.clock, sim_t, self.buses, self._on_msg, spin_s)
+
+    def send_outputs(self, bus: int, outputs: list[Output]) -> None:
+        self.send(bus, [(codec.frame_id, codec.encode(values, counter)) for codec, values, counter in outputs])
 
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
         for frame_id, data in self.packing.pack(frames) if self.packing is not None else frames:
