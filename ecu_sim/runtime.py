@@ -103,8 +103,8 @@ def send_guarded(ecu: "Ecu", t: float, send, *args) -> None:
 def encodes_in_engine(ecu: "Ecu") -> bool:
     """Whether the ECU's program keeps the standard ``cycle``, so a runtime may take its outputs unencoded
     (``cycle_outputs``) and have the engine encode and send them in one call; a program that overrides ``cycle``
-    is called as it is."""
-    return type(ecu).cycle is Ecu.cycle
+    (in a subclass, or on the instance, as a factory may) is called as it is."""
+    return getattr(ecu.cycle, "__func__", None) is Ecu.cycle
 
 
 class EcuSettings(Protocol):

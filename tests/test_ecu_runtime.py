@@ -66,6 +66,39 @@ def test_cycle_decodes_inputs_and_encodes_three_outputs():
     assert DB.agent_state(1).decode(out[1][1]) == pytest.approx((1000.0, 50.0), abs=5e-4)
 
 
+def test_the_engine_encodes_a_cycle_s_outputs_in_one_call_as_cycle_would():
+    """``cycle_outputs`` are ``cycle``'s frames unencoded; the engine's one call encodes them to the same bytes."""
+    import trainhil_engine as engine
+
+    frames, outputs = [], []
+    for ecu, take in ((make_ecu()[0], frames), (make_ecu()[0], outputs)):
+        ecu.on_frame(*sensor(1, 1000.0, 50.0, 1), t=0.000)
+        take.extend(ecu.cycle(0.002) if take is frames else ecu.cycle_outputs(0.002))
+    net = engine.Network()
+    bus = net.add_bus("b", 500_000)
+    sender, (_, inbox) = net.attach_sender(bus, "ecu"), net.attach_inbox(bus, "rx", None)
+    net.send_encoded(bus, sender, outputs)
+    net.advance(10_000_000)
+    assert [(fid, data) for _, fid, data, _ in net.drain_inboxes()] == frames
+    with pytest.raises(ValueError, match="NaN|nan"):  # the codec refuses what encode refuses
+        net.send_encoded(bus, sender, [(outputs[0][0], (0.0, math.nan), 1)])
+
+
+def test_a_program_that_overrides_cycle_is_not_encoded_by_the_engine():
+    from ecu_sim.runtime import encodes_in_engine
+
+    class Quiet(Ecu):
+        def cycle(self, t: float) -> list[tuple[int, bytes]]:
+            return []
+
+    ecu = make_ecu()[0]
+    assert encodes_in_engine(ecu)
+    quiet = Quiet("q", ecu.agent, ecu.controller, DB, [], EcuConfig(cycle_s=0.01))
+    assert not encodes_in_engine(quiet)
+    ecu.cycle = lambda t: []  # a factory may patch the instance
+    assert not encodes_in_engine(ecu)
+
+
 def test_corrupted_frame_is_rejected_and_stale_sensor_brakes():
     ecu, law = make_ecu()
     fid, data = sensor(1, 1000.0, 50.0, 1)
