@@ -7,7 +7,8 @@
 * The orchestrator (``RealtimeFaults``) reads those lines and acts: an ECU crash is the ECU's process killed
   (SIGKILL), a hang is SIGSTOP and SIGCONT, a restart is a new process for the unit that joins the running rig
   (a reset controller); bus faults go to the bus servers' models (``hil.faults.bus.BusFaults``, under each
-  server's lock); radio faults go to the radio node's stdin (``RadioNodeFaults``). Units with an ECU fault get
+  server's lock); radio faults set the impairments of the engine's radio links in the bus servers (on SocketCAN,
+  they go to the radio node's stdin: ``RadioNodeFaults``). Units with an ECU fault get
   their own process. The watchdog (``ecu.restart_after_s``) restarts crashed and hung ECU processes;
   controller errors are restarted inside the ECU process (``hil.runtime.realtime.ecu_node``).
 * At the end, the bus servers' events are moved to simulated time, detections are matched (``report``), the
