@@ -71,21 +71,20 @@ Output = tuple[MessageCodec, tuple[float, ...], int]  # one frame of a cycle, no
 
 def guarded_cycle(ecu: "Ecu", t: float) -> list[tuple[int, bytes]]:
     """``ecu.cycle(t)``, with a program that raises (or calls sys.exit) stopped like a failed law, not the run."""
-    if not ecu.alive:
-        return []
-    try:
-        return ecu.cycle(t)
-    except (Exception, SystemExit) as exc:
-        ecu.stop(t, f"ECU program failed: {exc!r}")
-        return []
+    return _guarded(ecu, t, ecu.cycle)
 
 
 def guarded_outputs(ecu: "Ecu", t: float) -> list[Output]:
     """``ecu.cycle_outputs(t)`` (for an ECU that ``encodes_in_engine``), guarded as ``guarded_cycle``."""
+    return _guarded(ecu, t, ecu.cycle_outputs)
+
+
+def _guarded(ecu: "Ecu", t: float, cycle):
+    """``cycle(t)`` of a live ECU; a program that raises stops the ECU and sends nothing."""
     if not ecu.alive:
         return []
     try:
-        return ecu.cycle_outputs(t)
+        return cycle(t)
     except (Exception, SystemExit) as exc:
         ecu.stop(t, f"ECU program failed: {exc!r}")
         return []
