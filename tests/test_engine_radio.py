@@ -23,11 +23,12 @@ LATENCY_S = 0.005
 
 
 @pytest.fixture
-def rig(rt):
-    """seed000's three train buses with the engine's radio (5 ms latency, no jitter or loss)."""
+def rig(rt, tmp_path):
+    """seed000's three train buses with the engine's radio (5 ms latency, no jitter or loss), saving its counters
+    to ``tmp_path``."""
     sc = load_scenario("seed000", {"radio.latency_s": LATENCY_S})
     db = load_train_db(sc)
-    radio = EngineRadio(sc, db, seed=1, pace=1.0, packing=None)
+    radio = EngineRadio(sc, db, seed=1, pace=1.0, packing=None, save_to=tmp_path)
     servers = [NativeBusServer("er", f"bus{i + 1}", sc.can.bitrate, log=BusLog(f"bus{i + 1}", sc.can.bitrate),
                                radio=radio.port(i)).start() for i in range(3)]
     try:
@@ -94,6 +95,27 @@ def test_a_lazy_reader_on_the_next_bus_gets_the_delivery_at_its_exact_time_witho
     finally:
         sender.shutdown()
         reader_bus.shutdown()
+
+
+def test_the_counters_are_saved_as_the_run_goes_for_hil_recover(rig, tmp_path):
+    import json
+
+    from hil.runtime.realtime.engine_radio import SAVE_EVERY_S
+
+    sc, db, radio = rig
+    sender = TrainhilBus("er/bus1", node_name="T1U4")
+    try:
+        frame_id, data = tail_state(db, 200_000.0)
+        sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+        deadline = time.monotonic() + 10 * SAVE_EVERY_S
+        while time.monotonic() < deadline:
+            saved = json.loads((tmp_path / "radio.json").read_text()) if (tmp_path / "radio.json").exists() else {}
+            if saved.get("links", {}).get("1>2", {}).get("offered"):
+                break
+            time.sleep(0.1)
+        assert saved["links"]["1>2"]["offered"] == 1 and saved["starved"] == 0
+    finally:
+        sender.shutdown()
 
 
 def test_an_injected_blackout_drops_the_frames_and_counts_them(rig):

@@ -260,7 +260,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     try:
         with _StopRequest() as stop:
             if not socketcan and layout.n_trains > 1 and radio_in_servers:
-                radio = EngineRadio(scenario, db, seed, pace, bus_packing(scenario, db))
+                radio = EngineRadio(scenario, db, seed, pace, bus_packing(scenario, db), save_to=nodes_dir)
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
@@ -437,8 +437,9 @@ def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace:
 
 
 def _close_radio(radio: EngineRadio, events: list[Event]) -> dict[str, dict[str, int]]:
-    """The engine's radio stops; its links' counters (for the merge: nothing is written, the disk may be full)."""
+    """The engine's radio stops; its links' counters, for the merge (and in ``radio.json`` if the disk allows)."""
     radio.close()
+    radio.save()
     if radio.starved:
         events.append(Event(0.0, "ERROR", "radio", f"{radio.starved} radio frames dropped: the links' random "
                                                    "numbers were not topped up in time"))
