@@ -379,6 +379,16 @@ impl Server {
         self.clients.iter().filter_map(Client::next_read).min()
     }
 
+    /// Remove the closed clients. The others' indices shift, so the receivers cached by index are forgotten (a
+    /// frame that ended in the turn a node left cached them with the old indices).
+    fn remove_closed(&mut self) {
+        let before = self.clients.len();
+        self.clients.retain(|c| !c.closed);
+        if self.clients.len() != before {
+            self.rx_cache.clear();
+        }
+    }
+
     /// Whether frames of `frame_id` go to the radio at their end.
     fn routed(&self, frame_id: u32) -> bool {
         self.radio.as_ref().is_some_and(|r| r.routed.contains(&frame_id))
@@ -460,12 +470,12 @@ impl Server {
             let _ = shared.bus.arbitrate(now);
         }
         self.flush(&mut shared);
-        self.clients.retain(|c| !c.closed);
+        self.remove_closed();
         if now >= self.next_window {
             Self::close_windows(&mut shared, now, self.cfg.keep_log);
             self.next_window = (now / self.cfg.load_window_ns + 1) * self.cfg.load_window_ns;
             self.expire_handshakes(&mut shared);
-            self.clients.retain(|c| !c.closed);
+            self.remove_closed();
         }
         shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
         if let Some(r) = &self.radio {
@@ -1086,6 +1096,43 @@ mod tests {
         assert!((got[0].2 - (t_send + one_frame)).abs() < 2e-6, "{got:?}"); // queued at the instant it carries
         assert!((got[1].2 - got[0].2 - other).abs() < 2e-6, "{got:?}"); // it waited for the winner, then ran
         assert!((got[2].2 - (t_send + 0.02)).abs() < 2e-6, "{got:?}");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A node leaves in the turn in which a frame ends: the receivers of that frame, found after it left, must
+    /// not point past the clients once the closed one is removed (the server panicked on the next frame).
+    #[test]
+    fn a_node_that_leaves_as_a_frame_ends_does_not_confuse_the_receivers_of_later_frames() {
+        let (mut handle, path, dir) = serve("leave", 10_000, 10_000, Format::Classical);
+        let mut socks: Vec<UnixStream> = ["A", "S", "C"].iter().map(|n| {
+            let mut s = UnixStream::connect(&path).unwrap();
+            let mut r = hello(n);
+            if *n == "A" {
+                r[2] = OPTION_LAZY; // its socket is read every turn, even one the poll did not wake for it
+            }
+            s.write_all(&r).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            s
+        }).collect();
+        socks[1].write_all(&pack_frame(0x100, &[1; 8], 0, 0.0)).unwrap(); // about 11 ms on the wire at 10 kbit/s
+        std::thread::sleep(Duration::from_millis(8));
+        {
+            let _hold = handle.shared.lock().unwrap(); // the loop wakes at the frame's end and waits for the lock ...
+            std::thread::sleep(Duration::from_millis(6));
+            socks[0].shutdown(std::net::Shutdown::Both).unwrap(); // ... and finds A gone in that same turn
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        std::thread::sleep(Duration::from_millis(5));
+        socks[1].write_all(&pack_frame(0x100, &[2; 8], 0, 0.0)).unwrap(); // the same ID: its receivers are cached
+        let mut rec = [0u8; RECORD_SIZE];
+        for data in [1u8, 2] {
+            socks[2].read_exact(&mut rec).unwrap();
+            assert_eq!((rec[0], u32_at(&rec, 4), rec[16]), (KIND_FRAME, 0x100, data));
+        }
+        assert!(handle.running(), "the serving thread died");
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }
