@@ -141,3 +141,16 @@ def test_an_injected_blackout_drops_the_frames_and_counts_them(rig):
         sender.shutdown()
         receiver.shutdown()
 
+
+def test_the_radio_hub_refuses_what_the_virtual_network_refuses(rig):
+    """Routes and impairments are checked by the engine's gateway itself, the same for both runtimes."""
+    import trainhil_engine as engine
+
+    _, _, radio = rig
+    for target in (radio.hub, engine.Network()):
+        with pytest.raises(IndexError, match="no radio link 99"):
+            target.add_route(0, 0x100, 1, 0x300, 99, None)
+        with pytest.raises(IndexError, match="no radio link 99"):
+            target.set_impairment(99, True, [], 0, lambda: [0.5])
+    with pytest.raises(ValueError, match=r"radio link 1>2: loss probability 1.5 is not in \[0, 1\]"):
+        radio.hub.set_impairment(0, False, [1.5], 0, lambda: [0.5])

@@ -203,6 +203,15 @@ impl Link {
     }
 }
 
+/// Why the gateway refused a route or an impairment.
+#[derive(Debug, Clone, PartialEq)]
+pub enum GatewayError {
+    /// A link index that is not one of the gateway's.
+    NoLink(String),
+    /// A value out of its range.
+    Invalid(String),
+}
+
 /// One compiled route: forward to `dst_bus` as `dst_id` over link `link`, whose reverse is `reverse`.
 #[derive(Debug, Clone)]
 pub struct Hop {
@@ -232,6 +241,28 @@ impl Gateway {
 
     pub fn add_route(&mut self, src_bus: usize, src_id: u32, hop: Hop) {
         self.table.entry((src_bus, src_id)).or_default().push(hop);
+    }
+
+    /// `add_route`, once its link and reverse link are known to exist.
+    pub fn add_checked_route(&mut self, src_bus: usize, src_id: u32, hop: Hop) -> Result<(), GatewayError> {
+        let n = self.links.len();
+        if hop.link >= n || hop.reverse.is_some_and(|r| r >= n) {
+            return Err(GatewayError::NoLink(format!("route {src_bus}:{src_id:#x}: no radio link {}", hop.link)));
+        }
+        self.add_route(src_bus, src_id, hop);
+        Ok(())
+    }
+
+    /// Injected faults on link `link`: a blackout, burst losses (probabilities in [0, 1]), an extra latency; all
+    /// off: no impairment.
+    pub fn set_impairment(&mut self, link: usize, blackout: bool, losses: Vec<f64>, extra_ns: i64) -> Result<(), GatewayError> {
+        let l = self.links.get_mut(link).ok_or_else(|| GatewayError::NoLink(format!("no radio link {link}")))?;
+        if let Some(p) = losses.iter().find(|p| !(0.0..=1.0).contains(*p)) {
+            return Err(GatewayError::Invalid(format!("radio link {}: loss probability {p} is not in [0, 1]", l.name)));
+        }
+        let on = blackout || !losses.is_empty() || extra_ns != 0;
+        l.impairment = on.then_some(Impairment { blackout, losses, extra_ns });
+        Ok(())
     }
 
     /// Offer a frame heard on `bus` at `t` ns (carrying position `pos`, if any) to every route of its ID:
@@ -277,6 +308,21 @@ mod tests {
 
     fn draws(n: usize, u: f64, jitter: i64) -> Draws {
         Draws { u_step: vec![u; n], u_loss: vec![u; n], jitter_ns: vec![jitter; n], next: 0 }
+    }
+
+    #[test]
+    fn a_route_or_impairment_naming_a_missing_link_or_a_bad_probability_is_refused() {
+        let mut g = Gateway::default();
+        let l = g.add_link(Link::new("1>2", 1e4, vec![], 0, None, Loss::None, false));
+        assert!(g.add_checked_route(0, 0x100, Hop { dst_bus: 1, dst_id: 0x300, link: l, reverse: Some(1) }).is_err());
+        assert!(g.table.is_empty());
+        assert_eq!(g.add_checked_route(0, 0x100, Hop { dst_bus: 1, dst_id: 0x300, link: l, reverse: None }), Ok(()));
+        assert!(matches!(g.set_impairment(0, false, vec![1.5], 0), Err(GatewayError::Invalid(_))));
+        assert!(matches!(g.set_impairment(3, true, vec![], 0), Err(GatewayError::NoLink(_))));
+        assert_eq!(g.set_impairment(0, false, vec![0.5], 10), Ok(()));
+        assert_eq!(g.links[0].impairment, Some(Impairment { blackout: false, losses: vec![0.5], extra_ns: 10 }));
+        assert_eq!(g.set_impairment(0, false, vec![], 0), Ok(()));
+        assert_eq!(g.links[0].impairment, None);
     }
 
     #[test]

@@ -17,7 +17,7 @@ use crate::frame::{self, BitTiming, FrameError, MAX_DATA};
 use crate::mailbox as core_mailbox;
 use crate::network::{Network as CoreNetwork, FAULT_DRAWS};
 use crate::packing::{Container, Packing as CorePacking, Part};
-use crate::radio::{Draws, Hop, Impairment, Link, Loss};
+use crate::radio::{Draws, GatewayError, Hop, Link, Loss};
 
 fn frame_err(e: FrameError) -> PyErr {
     PyValueError::new_err(e.to_string())

@@ -122,11 +122,7 @@ impl Network {
 
     /// Forward `src_id` heard on `src_bus` to `dst_bus` as `dst_id` over `link` (`reverse`: the other direction).
     fn add_route(&mut self, src_bus: usize, src_id: u32, dst_bus: usize, dst_id: u32, link: usize, reverse: Option<usize>) -> PyResult<()> {
-        if link >= self.core.gateway.links.len() || reverse.is_some_and(|r| r >= self.core.gateway.links.len()) {
-            return Err(PyIndexError::new_err(format!("route {src_bus}:{src_id:#x}: no radio link {link}")));
-        }
-        self.core.gateway.add_route(src_bus, src_id, Hop { dst_bus, dst_id, link, reverse });
-        Ok(())
+        self.core.gateway.add_checked_route(src_bus, src_id, Hop { dst_bus, dst_id, link, reverse }).map_err(gateway_err)
     }
 
     /// Frames of this message carry their sender's position in their first signal (radio range, tunnels).
@@ -332,12 +328,7 @@ impl Network {
     /// Injected faults on radio link `link`: a blackout, burst losses (probabilities, one draw each in order), an
     /// extra latency; all off: no impairment. `refill()` returns a block of uniform draws (the faults' one stream).
     fn set_impairment(&mut self, link: usize, blackout: bool, losses: Vec<f64>, extra_ns: i64, refill: Py<PyAny>) -> PyResult<()> {
-        let l = self.core.gateway.links.get_mut(link).ok_or_else(|| PyIndexError::new_err(format!("no radio link {link}")))?;
-        if let Some(p) = losses.iter().find(|p| !(0.0..=1.0).contains(*p)) {
-            return Err(PyValueError::new_err(format!("radio link {}: loss probability {p} is not in [0, 1]", l.name)));
-        }
-        let on = blackout || !losses.is_empty() || extra_ns != 0;
-        l.impairment = on.then_some(Impairment { blackout, losses, extra_ns });
+        self.core.gateway.set_impairment(link, blackout, losses, extra_ns).map_err(gateway_err)?;
         self.fault_refill = Some(refill);
         Ok(())
     }
@@ -427,6 +418,14 @@ pub(super) fn make_link(name: &str, range_m: f64, blackouts: Vec<(f64, f64)>, la
         other => return Err(PyValueError::new_err(format!("radio link {name}: unknown loss model '{other}'"))),
     };
     Ok(Link::new(name, range_m, blackouts, latency_ns, period_ns, loss, initially_bad))
+}
+
+/// A gateway's refusal as a Python error: an unknown link an IndexError, a bad value a ValueError.
+pub(super) fn gateway_err(e: GatewayError) -> PyErr {
+    match e {
+        GatewayError::NoLink(why) => PyIndexError::new_err(why),
+        GatewayError::Invalid(why) => PyValueError::new_err(why),
+    }
 }
 
 /// A link's counters as the Python links keep them (`fault` only once a fault dropped a frame).

@@ -1,6 +1,6 @@
 //! `RadioHub`: the radio between a real-time rig's bus servers (engine/src/radio_hub.rs), as Python builds it.
 
-use super::network::{draws_from, link_stats_dict, make_link};
+use super::network::{draws_from, gateway_err, link_stats_dict, make_link};
 use super::*;
 use crate::radio_hub::RadioHub as CoreHub;
 
@@ -46,12 +46,7 @@ impl RadioHub {
     /// Forward `src_id` heard on `src_bus` to `dst_bus` as `dst_id` over `link` (`reverse`: the other direction).
     fn add_route(&self, src_bus: usize, src_id: u32, dst_bus: usize, dst_id: u32, link: usize, reverse: Option<usize>) -> PyResult<()> {
         let mut core = self.hub.core.lock().unwrap();
-        let n = core.gateway.links.len();
-        if link >= n || reverse.is_some_and(|r| r >= n) {
-            return Err(PyIndexError::new_err(format!("route {src_bus}:{src_id:#x}: no radio link {link}")));
-        }
-        core.gateway.add_route(src_bus, src_id, Hop { dst_bus, dst_id, link, reverse });
-        Ok(())
+        core.gateway.add_checked_route(src_bus, src_id, Hop { dst_bus, dst_id, link, reverse }).map_err(gateway_err)
     }
 
     /// Frames of this message carry their sender's position in their first signal (radio range, tunnels).
@@ -62,12 +57,7 @@ impl RadioHub {
     /// Injected faults on radio link `link` (as `Network.set_impairment`); the faults' draws are queued from now on.
     fn set_impairment(&mut self, py: Python<'_>, link: usize, blackout: bool, losses: Vec<f64>, extra_ns: i64,
                       refill: Py<PyAny>) -> PyResult<()> {
-        {
-            let mut core = self.hub.core.lock().unwrap();
-            let l = core.gateway.links.get_mut(link).ok_or_else(|| PyIndexError::new_err(format!("no radio link {link}")))?;
-            let on = blackout || !losses.is_empty() || extra_ns != 0;
-            l.impairment = on.then_some(Impairment { blackout, losses, extra_ns });
-        }
+        self.hub.core.lock().unwrap().gateway.set_impairment(link, blackout, losses, extra_ns).map_err(gateway_err)?;
         self.fault_refill = Some(refill);
         self.top_up(py)
     }
