@@ -30,9 +30,9 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Literal, NoReturn, Protocol
+from typing import Any, Literal, NoReturn, Protocol
 
 from trainhil_engine import Mailbox
 
@@ -74,11 +74,6 @@ def guarded_cycle(ecu: "Ecu", t: float) -> list[tuple[int, bytes]]:
     return _guarded(ecu, t, ecu.cycle)
 
 
-def guarded_outputs(ecu: "Ecu", t: float) -> list[Output]:
-    """``ecu.cycle_outputs(t)`` (for an ECU that ``encodes_in_engine``), guarded as ``guarded_cycle``."""
-    return _guarded(ecu, t, ecu.cycle_outputs)
-
-
 def _guarded(ecu: "Ecu", t: float, cycle):
     """``cycle(t)`` of a live ECU; a program that raises stops the ECU and sends nothing."""
     if not ecu.alive:
@@ -90,13 +85,26 @@ def _guarded(ecu: "Ecu", t: float, cycle):
         return []
 
 
-def send_guarded(ecu: "Ecu", t: float, send, *args) -> None:
-    """``send(*args)`` of an ECU's unencoded outputs: a value the codec refuses (NaN) stops the ECU as
-    ``guarded_cycle`` would have when it encoded it."""
-    try:
-        send(*args)
-    except ValueError as exc:
-        ecu.stop(t, f"ECU program failed: {exc!r}")
+def cycle_and_send(ecu: "Ecu", t: float, key, send_outputs: Callable[[Any, list[Output]], None],
+                   send_frames: Callable[[Any, list[tuple[int, bytes]]], None]) -> None:
+    """One guarded cycle of ``ecu`` at ``t``, what it produced sent to ``key`` (a runtime's node or bus): its outputs
+    unencoded through ``send_outputs`` (the engine encodes and sends them in one call) when its program keeps the
+    standard ``cycle`` (``encodes_in_engine``), else its frames through ``send_frames``. A value the codec refuses
+    (NaN) stops the ECU as ``guarded_cycle`` does when ``cycle`` encodes it."""
+    if not encodes_in_engine(ecu):
+        if frames := guarded_cycle(ecu, t):
+            send_frames(key, frames)
+        return
+    if outputs := _guarded(ecu, t, ecu.cycle_outputs):
+        try:
+            send_outputs(key, outputs)
+        except ValueError as exc:
+            ecu.stop(t, f"ECU program failed: {exc!r}")
+
+
+def encode_outputs(outputs: list[Output]) -> list[tuple[int, bytes]]:
+    """A cycle's outputs as frames (id, data), encoded here: where no engine call sends them (python-can)."""
+    return [(codec.frame_id, codec.encode(values, counter)) for codec, values, counter in outputs]
 
 
 def encodes_in_engine(ecu: "Ecu") -> bool:
@@ -284,7 +292,7 @@ class Ecu:
 
     def cycle(self, t: float) -> list[tuple[int, bytes]]:
         """Run one control cycle at time t; return the frames to send (id, data)."""
-        return [(codec.frame_id, codec.encode(values, counter)) for codec, values, counter in self.cycle_outputs(t)]
+        return encode_outputs(self.cycle_outputs(t))
 
     def cycle_outputs(self, t: float) -> list[Output]:
         """Run one control cycle at time t; return its frames not yet encoded: (message, values, alive counter)."""

@@ -99,6 +99,27 @@ def test_a_program_that_overrides_cycle_is_not_encoded_by_the_engine():
     assert not encodes_in_engine(ecu)
 
 
+def test_cycle_and_send_takes_the_engine_path_or_the_frames_and_stops_an_ecu_whose_outputs_are_refused():
+    from ecu_sim.runtime import ECU_STOPPED, cycle_and_send, encode_outputs
+
+    sent: list[tuple[str, object, list]] = []
+    ecu = make_ecu()[0]
+    ecu.on_frame(*sensor(1, 1000.0, 50.0, 1), t=0.0)
+    cycle_and_send(ecu, 0.002, "node", lambda k, o: sent.append(("outputs", k, o)), lambda k, f: sent.append(("frames", k, f)))
+    assert [(kind, key) for kind, key, _ in sent] == [("outputs", "node")] and len(encode_outputs(sent[0][2])) == 3
+    ecu.cycle = lambda t: [(0x123, b"x")]  # a patched program: its frames as they are
+    cycle_and_send(ecu, 0.012, "node", lambda k, o: sent.append(("outputs", k, o)), lambda k, f: sent.append(("frames", k, f)))
+    assert sent[-1] == ("frames", "node", [(0x123, b"x")])
+
+    def refuse(key, outputs):
+        raise ValueError("signal Force is NaN")
+
+    other = make_ecu()[0]
+    other.on_frame(*sensor(1, 1000.0, 50.0, 1), t=0.0)
+    cycle_and_send(other, 0.002, "node", refuse, lambda k, f: None)
+    assert not other.alive and ECU_STOPPED in other.events[-1][2] and "signal Force is NaN" in other.events[-1][2]
+
+
 def test_corrupted_frame_is_rejected_and_stale_sensor_brakes():
     ecu, law = make_ecu()
     fid, data = sensor(1, 1000.0, 50.0, 1)

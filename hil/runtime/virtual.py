@@ -20,8 +20,7 @@ from typing import Callable
 import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
-from ecu_sim.runtime import (Ecu, encodes_in_engine, guarded_cycle, guarded_outputs, os_exit_stops_the_firmware,
-                             send_guarded)
+from ecu_sim.runtime import Ecu, cycle_and_send, os_exit_stops_the_firmware
 from hil.runtime.plant_step import plant_step
 from hil.radio.gateway import RadioGateway, RadioIds, build_links
 from hil.plant.can_node import VALID_MODES, PlantCanNode
@@ -194,13 +193,8 @@ class VirtualRig:
 
     def _ecu_tick(self, u: int, t_ns: int) -> None:
         ecu = self.ecus[u]
-        bus, node = self.buses[self._train_of[u]], self._ecu_nodes[u]
-        if encodes_in_engine(ecu):
-            outputs = guarded_outputs(ecu, t_ns * 1e-9)
-            if outputs:
-                send_guarded(ecu, t_ns * 1e-9, bus.send_outputs, node, outputs)
-        elif frames := guarded_cycle(ecu, t_ns * 1e-9):
-            bus.send_frames(node, frames)
+        bus = self.buses[self._train_of[u]]
+        cycle_and_send(ecu, t_ns * 1e-9, self._ecu_nodes[u], bus.send_outputs, bus.send_frames)
         if ecu.events:
             for t, level, text in ecu.events:
                 self.log.event(t, level, ecu.name, text)

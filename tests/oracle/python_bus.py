@@ -6,6 +6,7 @@ The default network is the compiled engine (``hil/runtime/engine_net.py``); both
 """
 from __future__ import annotations
 
+from ecu_sim.runtime import encode_outputs
 from tests.oracle.bus_model import CanBusModel, CanNode
 from hil.runtime.kernel import Kernel
 
@@ -34,7 +35,7 @@ class VirtualCanBus(CanBusModel):
 
     def send_outputs(self, node: CanNode, outputs: list) -> None:
         """One ECU cycle's outputs (message, values, counter), encoded here and queued as ``send_frames``."""
-        self.send_frames(node, [(codec.frame_id, codec.encode(values, counter)) for codec, values, counter in outputs])
+        self.send_frames(node, encode_outputs(outputs))
 
     def _arbitrate_event(self, _: object = None) -> None:
         self._arbitration_pending = False

@@ -19,7 +19,7 @@ import math
 import sys
 from pathlib import Path
 
-from ecu_sim.runtime import encodes_in_engine, guarded_cycle, guarded_outputs, send_guarded
+from ecu_sim.runtime import cycle_and_send
 from hil.faults.schedule import needs_fault_machinery
 from hil.faults.watchdog import Watchdog, restart_text
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
@@ -135,12 +135,7 @@ class UnitCycles:
         u, deadline = item
         now = self.kernel.clock.now()
         ecu = self.ecus[u]
-        if encodes_in_engine(ecu):
-            outputs = guarded_outputs(ecu, now)
-            if outputs:
-                send_guarded(ecu, now, self.io.send_outputs, self.bus_of[u], outputs)
-        elif frames := guarded_cycle(ecu, now):
-            self.io.send(self.bus_of[u], frames)
+        cycle_and_send(ecu, now, self.bus_of[u], self.io.send_outputs, self.io.send)
         if self.watchdog is not None:
             _watch(self.watchdog, self.ecus, u, now)
         overrun = self.stats[u].add(now - deadline, deadline)

@@ -31,7 +31,7 @@ from typing import Callable
 import can
 import trainhil_engine as engine
 
-from ecu_sim.runtime import Output
+from ecu_sim.runtime import Output, encode_outputs
 from hil.runtime.realtime.pacing import SimClock, drain, wait_until
 
 FrameHandler = Callable[[int, int, bytes, float], None]  # (bus index, frame id, data, simulated arrival time)
@@ -189,7 +189,7 @@ class PythonCanFrames:
         wait_until(self.clock, sim_t, self.buses, self._on_msg, spin_s)
 
     def send_outputs(self, bus: int, outputs: list[Output]) -> None:
-        self.send(bus, [(codec.frame_id, codec.encode(values, counter)) for codec, values, counter in outputs])
+        self.send(bus, encode_outputs(outputs))
 
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
         for frame_id, data in self.packing.pack(frames) if self.packing is not None else frames:
