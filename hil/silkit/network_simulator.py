@@ -172,7 +172,7 @@ class CanNetworkSimulator:
 
     def inject(self, sent_at: int) -> None:
         """Queue the requests that arrived since the last half step on the engine bus, whose clock is at
-        ``sent_at``; a full TX queue is acknowledged to its sender."""
+        ``sent_at``; a request refused (a full TX queue, a format the bus does not carry) is acknowledged so."""
         net, bus = self._engine()
         for descriptor, can_id, context, status in self._queue(net, bus):
             self._acknowledge(descriptor, can_id, status, sent_at, context)
@@ -233,20 +233,20 @@ class CanNetworkSimulator:
         with self._lock:
             arrived, self._arrived = self._arrived, []
             nodes = {d: c.node for d, c in self.controllers.items()}
-        full = []
+        refused = []
         for descriptor, can_id, flags, data, context in sorted(arrived, key=lambda r: r[0]):  # stable: keeps order
             node = nodes.get(descriptor)
             if node is None:
                 continue
             if not self._fits(flags, data):
                 self.format_refused += 1
-                full.append((descriptor, can_id, context, capi.CANCELED))
+                refused.append((descriptor, can_id, context, capi.CANCELED))
             elif net.send(bus, node, can_id, data):
                 self._contexts.setdefault((node, can_id), []).append(context)
             else:
                 self.queue_full += 1
-                full.append((descriptor, can_id, context, capi.TRANSMIT_QUEUE_FULL))
-        return full
+                refused.append((descriptor, can_id, context, capi.TRANSMIT_QUEUE_FULL))
+        return refused
 
     def _deliver(self, sender: int | None, can_id: int, data: bytes, flags: int, end_ns: int, receivers: list[int],
                  context: Any) -> None:
