@@ -29,17 +29,16 @@ pub struct Delivery {
     pub data: Payload,
 }
 
-/// One bus server as the hub sees it: its zero, its wake-up socket, and whether it must be woken for a delivery
-/// (it has an eager node or a per-frame error model; else it takes the delivery at its next wake-up, which comes
-/// before any reader can see past the delivery time).
+/// One bus server as the hub sees it: how far its zero lies after the hub's, its wake-up socket, and whether it must
+/// be woken for a delivery (it has an eager node or a per-frame error model; else it takes the delivery at its next
+/// wake-up, which comes before any reader can see past the delivery time).
 struct Port {
-    mono0: Instant,
+    origin_ns: i64,
     wake: UnixStream,
     eager: Arc<AtomicBool>,
 }
 
 /// Everything under the hub's lock.
-#[derive(Default)]
 pub struct HubCore {
     pub gateway: Gateway,
     layouts: HashMap<u32, Arc<MessageLayout>>,
@@ -50,6 +49,8 @@ pub struct HubCore {
     fault_reserve: VecDeque<Vec<f64>>,
     inboxes: HashMap<usize, Vec<Delivery>>,
     ports: HashMap<usize, Port>,
+    /// The hub's time zero (made before any server, whose zeros come after it) and the rig's pace.
+    zero: Instant,
     pace: f64,
     /// Frames a link dropped because its draws ran out (the owner did not top them up in time).
     pub starved: u64,
@@ -58,16 +59,14 @@ pub struct HubCore {
 struct Starved;
 
 impl HubCore {
-    /// A bus's time (ns) in the hub's time: the earliest registered server's.
+    /// A bus's time (ns) in the hub's time.
     fn to_hub(&self, bus: usize, t: u64) -> i64 {
         t as i64 + self.origin_ns(bus)
     }
 
     /// How far bus `bus`'s zero lies after the hub's (model ns), 0 for an unknown bus.
     fn origin_ns(&self, bus: usize) -> i64 {
-        let Some(port) = self.ports.get(&bus) else { return 0 };
-        let first = self.ports.values().map(|p| p.mono0).min().unwrap_or(port.mono0);
-        (port.mono0.duration_since(first).as_nanos() as f64 * self.pace) as i64
+        self.ports.get(&bus).map_or(0, |p| p.origin_ns)
     }
 
     /// The IDs on `bus` that its server must hand to the hub at their ends (containers that carry a routed part).
@@ -124,14 +123,16 @@ impl HubCore {
 }
 
 /// The hub the servers of one rig share.
-#[derive(Default)]
 pub struct RadioHub {
     pub core: Mutex<HubCore>,
 }
 
 impl RadioHub {
     pub fn new(packing: Option<Arc<Packing>>, pace: f64) -> RadioHub {
-        RadioHub { core: Mutex::new(HubCore { packing, pace, ..HubCore::default() }) }
+        RadioHub { core: Mutex::new(HubCore {
+            gateway: Gateway::default(), layouts: HashMap::new(), packing, reserve: Vec::new(), fault_reserve: VecDeque::new(),
+            inboxes: HashMap::new(), ports: HashMap::new(), zero: Instant::now(), pace, starved: 0,
+        }) }
     }
 
     /// Frames of `layout`'s ID carry their sender's position in their first signal (range, tunnels).
@@ -164,7 +165,9 @@ impl RadioHub {
 
     /// Bus `bus`'s server: its zero, a socket that wakes it, and the flag it keeps saying whether it must be woken.
     pub fn register(&self, bus: usize, mono0: Instant, wake: UnixStream, eager: Arc<AtomicBool>) {
-        self.core.lock().unwrap().ports.insert(bus, Port { mono0, wake, eager });
+        let mut core = self.core.lock().unwrap();
+        let origin_ns = (mono0.saturating_duration_since(core.zero).as_nanos() as f64 * core.pace) as i64;
+        core.ports.insert(bus, Port { origin_ns, wake, eager });
     }
 }
 
