@@ -332,13 +332,11 @@ impl Server {
     fn timeout_ns(&mut self, shared: &Shared) -> i64 {
         let now = self.now();
         let mut wake = now + self.cfg.load_window_ns;
-        if let Some(tx) = shared.bus.current {
-            if self.wakes_at_frame_ends(shared) {
-                wake = wake.min(tx.t_end.saturating_sub(self.cfg.spin_ns));
-            }
+        if let Some(end) = self.frame_end_wake(shared) {
+            wake = wake.min(end.saturating_sub(self.cfg.spin_ns));
         }
         if let Some(r) = self.next_read() {
-            wake = wake.min((r + 1).saturating_sub(self.shortest_frame_ns)); // see `anticipate`
+            wake = wake.min(self.sync_wake(shared, r));
         }
         if let Some(d) = self.radio.as_ref().and_then(|r| r.pending.front()) {
             wake = wake.min(d.t_ns);
@@ -346,21 +344,36 @@ impl Server {
         (wake.saturating_sub(now) as f64 / self.cfg.pace) as i64
     }
 
-    /// Whether the loop must wake at frame ends: always, unless every node that could take the frames on the
-    /// wire and in the queues is a lazy reader (and the bus has no error model or guardian, which act per frame).
-    fn wakes_at_frame_ends(&mut self, shared: &Shared) -> bool {
+    /// When the loop can give the SYNC of read time `r` (see `anticipate`): one shortest frame before it, or when
+    /// the frame on the wire ends if it ends by `r` (until then the SYNC must wait for it; the loop sleeps to it).
+    fn sync_wake(&self, shared: &Shared, r: u64) -> u64 {
+        let early = (r + 1).saturating_sub(self.shortest_frame_ns);
+        match shared.bus.current {
+            Some(tx) if tx.t_end <= r => early.max(tx.t_end),
+            _ => early,
+        }
+    }
+
+    /// When the loop must wake for a frame's end (None: no frame needs it). A frame needs its end when a node
+    /// takes it as it ends (an eager node, the radio's routes) or the bus has an error model or guardian (they act
+    /// at every frame): at the earliest such a frame can end (`Bus::earliest_end`), not at every end of the frames
+    /// before it; whatever the loop did not wake for, `advance` runs in time order at the next wake-up.
+    fn frame_end_wake(&mut self, shared: &Shared) -> Option<u64> {
+        let tx = shared.bus.current?;
         if shared.bus.errors.is_some() || shared.bus.guardian.is_some() || !self.clients.iter().any(|c| c.lazy) {
-            return true;
+            return Some(tx.t_end);
         }
         let routes = self.radio.as_ref().is_some_and(|r| !r.routed.is_empty());
         if !routes && !self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed) {
-            return false;
+            return None;
         }
-        let current = shared.bus.current.map(|tx| (tx.frame_id, tx.extended));
-        shared.bus.queued_ids().chain(current).any(|key| {
-            self.receivers(key);
-            self.rx_cache[&key].iter().any(|&i| !self.clients[i].lazy) || self.routed(key.0)
-        })
+        shared.bus.earliest_end(|id, ext| self.needs_end((id, ext)))
+    }
+
+    /// Whether a frame of `key` must be handed over at its end: an eager node takes it, or the radio routes it.
+    fn needs_end(&mut self, key: (u32, bool)) -> bool {
+        self.receivers(key);
+        self.rx_cache[&key].iter().any(|&i| !self.clients[i].lazy) || self.routed(key.0)
     }
 
     /// Cache the clients whose filters take frames of `key` (in `rx_cache`, until the clients or their filters

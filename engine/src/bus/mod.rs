@@ -346,6 +346,46 @@ impl Bus {
         heap.chain(fifos)
     }
 
+    /// The queued frames in the order they would go on the wire if no other frame came (arbitration by priority;
+    /// under `Policy::Fifo`, among the heads of the nodes' queues).
+    pub fn queue_order(&self) -> Vec<Item> {
+        match self.policy {
+            Policy::Priority => {
+                let mut items: Vec<Item> = self.heap.iter().map(|Reverse(item)| *item).collect();
+                items.sort();
+                items
+            }
+            Policy::Fifo => {
+                let mut heads = vec![0usize; self.nodes.len()];
+                let mut out = Vec::new();
+                loop {
+                    let best = (0..self.nodes.len()).filter_map(|i| self.nodes[i].fifo.get(heads[i]).map(|it| (it.key, i))).min();
+                    let Some((_, i)) = best else { return out };
+                    out.push(self.nodes[i].fifo[heads[i]]);
+                    heads[i] += 1;
+                }
+            }
+        }
+    }
+
+    /// The end of the first frame `wanted` accepts (the one on the wire, then the queued ones in `queue_order`),
+    /// if no other frame came and none failed: the earliest it can end, since a frame that comes later can only
+    /// win arbitration before it. None: no such frame.
+    pub fn earliest_end(&self, mut wanted: impl FnMut(u32, bool) -> bool) -> Option<u64> {
+        let tx = self.current?;
+        if wanted(tx.frame_id, tx.extended) {
+            return Some(tx.t_end);
+        }
+        let mut t = tx.t_end;
+        for item in self.queue_order() {
+            t += self.timing.frame_ns(item.frame_id, item.data.as_slice(), item.extended, item.format.is_fd(), item.format.brs()).ok()?;
+            if wanted(item.frame_id, item.extended) {
+                return Some(t);
+            }
+        }
+        None
+    }
+
     /// Whether any frame is queued.
     pub fn pending(&self) -> bool {
         match self.policy {
@@ -522,6 +562,46 @@ mod tests {
             t = end;
         }
         assert_eq!(order, vec![0x200, 0x300, 0x010]); // 0x010 waits behind A's 0x300: priority inversion
+    }
+
+    /// Run the bus with nothing more queued; the end of the first frame with `id`.
+    fn end_of(b: &mut Bus, id: u32) -> u64 {
+        loop {
+            let tx = b.complete();
+            if tx.frame_id == id {
+                return tx.t_end;
+            }
+            b.arbitrate(tx.t_end).unwrap();
+        }
+    }
+
+    #[test]
+    fn the_earliest_end_of_a_queued_frame_is_its_end_if_nothing_comes_and_a_bound_if_something_does() {
+        for policy in [Policy::Priority, Policy::Fifo] {
+            let mut b = bus(policy);
+            let a = b.attach("A", Sink::None, None, false);
+            let c = b.attach("C", Sink::None, None, false);
+            b.enqueue(a, 0x300, &[1; 8], 0, None);
+            b.enqueue(a, 0x050, &[2; 4], 0, None);
+            b.enqueue(c, 0x200, &[3; 2], 0, None);
+            b.arbitrate(0).unwrap();
+            let first = if policy == Policy::Priority { 0x050 } else { 0x200 }; // FIFO: A's 0x300 is before its 0x050
+            assert_eq!(b.current.unwrap().frame_id, first);
+            assert_eq!(b.earliest_end(|id, _| id == first), Some(b.busy_until));
+            assert_eq!(b.earliest_end(|id, _| id == 0x7FF), None);
+            let earliest = b.earliest_end(|id, _| id == 0x300).unwrap();
+            assert_eq!(end_of(&mut b, 0x300), earliest, "{policy:?}: nothing else came");
+            // the same queue, and a frame that comes later and wins arbitration before 0x300: it can only be later
+            let mut b = bus(policy);
+            let a = b.attach("A", Sink::None, None, false);
+            let c = b.attach("C", Sink::None, None, false);
+            b.enqueue(a, 0x300, &[1; 8], 0, None);
+            b.enqueue(a, 0x050, &[2; 4], 0, None);
+            b.enqueue(c, 0x200, &[3; 2], 0, None);
+            b.arbitrate(0).unwrap();
+            b.enqueue(c, 0x010, &[4; 8], 1, None);
+            assert!(end_of(&mut b, 0x300) > earliest, "{policy:?}: a later frame delays it");
+        }
     }
 
     #[test]

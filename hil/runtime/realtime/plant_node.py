@@ -185,7 +185,8 @@ class PlantNode:
         self.target = 0
         if self.n_steps > 0:
             self.kernel.at(0, self.publish, 0)
-            self.frames.read_every(0.0, self.publish_every * step)  # a lazy reader: synced at each publication
+            # a lazy reader: synced at each publication on the train buses (the wayside's connections hear nothing)
+            self.frames.read_every(0.0, self.publish_every * step, list(range(len(self.buses))))
         self.kernel.at(to_ns(self.n_steps * step), self.finish)
 
     def publish(self, target: int) -> None:
