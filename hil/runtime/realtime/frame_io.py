@@ -126,18 +126,21 @@ class EngineFrames:
         """Until every bus server has synced us to ``sim_t`` (asking once if it is not a foreseen read time), or
         SYNC_GRACE_S past it (a server that does not answer: go on with what came). Called at ``sim_t``: a server
         that can settle it sends the SYNC a little before (its ``anticipate``), so the node wakes once, on its own
-        timer, rather than after the server's wake-up."""
+        timer, rather than after the server's wake-up. The buses are waited for together (one sleep for whichever
+        SYNC comes next), so a node on several buses does not wake once per bus."""
         t = self._epoch(sim_t)
         buses = self._foreseen(sim_t)
         if not buses:
             buses = set(range(len(self.links)))
             for link in self.links:
                 link.read_every(t, 0.0)
-        for link in (self.links[i] for i in sorted(buses)):
-            while not stop:
-                left = self.clock.wall_until(sim_t)
-                if link.sync_to(t, min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S)) or left < -SYNC_GRACE_S:
-                    break
+        waiting = [self.links[i] for i in sorted(buses)]
+        while not stop:
+            waiting = [link for link in waiting if not link.sync_to(t, 0.0)]
+            left = self.clock.wall_until(sim_t)
+            if not waiting or left < -SYNC_GRACE_S:
+                return
+            engine.wait_readable([link.fd for link in waiting], min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S))
 
     def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
         self.links[bus].send(frames, self.extended, self.fd, self.brs)
