@@ -9,6 +9,7 @@ slack at 1 ns (measured when the rig was designed: asyncio-style sleeps are 0.3-
 from __future__ import annotations
 
 import ctypes
+import gc
 import math
 import os
 import select
@@ -23,8 +24,8 @@ import numpy as np
 
 from hil.runtime.realtime.streamed_series import StreamedSeries
 
-__all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "handshake", "linger", "wait_until", "set_timer_slack",
-           "set_fifo_priority"]
+__all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "freeze_setup_heap", "handshake", "linger", "wait_until",
+           "set_timer_slack", "set_fifo_priority"]
 PR_SET_TIMERSLACK = 29
 
 
@@ -130,8 +131,19 @@ class StopFlag:
         return self.event.is_set()
 
 
+def freeze_setup_heap() -> None:
+    """Leave the objects a node made while setting up (modules, the DBC, the firmware) out of every later garbage
+    collection, so a collection during the run walks only the objects of the run. A node's heap is cold in the
+    cache after each sleep, so a full walk of it is dear: measured on seed000 (bench_realtime_scale.py, 2 cores),
+    ECU processes -35 % CPU, the plant -25 %. Virtual time, one process with a warm heap, gains nothing."""
+    gc.collect()
+    gc.freeze()
+
+
 def handshake(stop: StopFlag) -> float:
-    """Print "ready", wait for "go <T0 epoch>" on stdin, return T0 (exit quietly on "stop" or EOF)."""
+    """Print "ready", wait for "go <T0 epoch>" on stdin, return T0 (exit quietly on "stop" or EOF). The node's
+    set-up is over: its heap is frozen first (``freeze_setup_heap``)."""
+    freeze_setup_heap()
     print("ready", flush=True)
     while True:
         line = sys.stdin.readline()
