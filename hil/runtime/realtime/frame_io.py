@@ -37,6 +37,7 @@ from hil.runtime.realtime.pacing import SimClock, drain, wait_until
 FrameHandler = Callable[[int, int, bytes, float], None]  # (bus index, frame id, data, simulated arrival time)
 MAX_SLEEP_S = 0.05  # wall seconds between stop checks
 SYNC_GRACE_S = 0.05  # wall seconds a lazy reader waits past its read time for the server's SYNC
+SYNC_TOLERANCE_S = 1e-6  # a link synced this close to a read time is synced to it (engine/src/protocol.rs)
 
 
 class EngineFrames:
@@ -130,10 +131,10 @@ class EngineFrames:
         SYNC comes next), so a node on several buses does not wake once per bus."""
         t = self._epoch(sim_t)
         buses = self._foreseen(sim_t)
-        if not buses:
-            buses = set(range(len(self.links)))
-            for link in self.links:
-                link.read_every(t, 0.0)
+        if not buses:  # asked once, on the buses not yet synced to it (another event at this time was)
+            buses = {i for i, link in enumerate(self.links) if link.synced < t - SYNC_TOLERANCE_S}
+            for i in buses:
+                self.links[i].read_every(t, 0.0)
         waiting = [self.links[i] for i in sorted(buses)]
         while not stop:
             waiting = [link for link in waiting if not link.sync_to(t, 0.0)]
