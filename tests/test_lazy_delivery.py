@@ -39,8 +39,8 @@ def test_a_lazy_reader_gets_exactly_the_frames_that_ended_by_each_read_time(serv
         sent_at = []
         for k in range(6):  # one frame every half period: half of them end after a read time they precede
             time.sleep(max(0.0, first + k * PERIOD_S / 2 - 0.004 - time.time()))
+            sent_at.append(time.time())  # before the send: the frame cannot end sooner than one frame after it
             sender.send(can.Message(arbitration_id=0x100 + k, data=bytes(8), is_extended_id=False))
-            sent_at.append(time.time())
         seen: list[tuple[int, float, float]] = []
         for j in range(4):
             t_read = first + j * PERIOD_S
