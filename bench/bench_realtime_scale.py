@@ -215,7 +215,7 @@ def main() -> None:
             t = time.monotonic()
             sc = scenario_for(n, args.scenario)
             r = one(sc, k or None, args.duration, args.pace, spin, radio)
-            r["per_process"] = k or default_ecus_per_process(n)
+            r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "

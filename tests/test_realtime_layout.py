@@ -11,6 +11,7 @@ from hil.runtime.realtime.orchestrator import default_ecus_per_process, usable_c
     (12, 2, 12),   # 2 cores: the bus servers, plant and radio take one, every ECU shares the other
     (12, 1, 12),
     (12, 4, 4),    # 3 ECU processes
+    (64, 2, 64),
     (64, 8, 10),   # 7 ECU processes, the last one lighter
     (1, 16, 1),
 ])
@@ -18,15 +19,14 @@ def test_one_ecu_process_per_core_the_rest_of_the_rig_leaves(n_ecus: int, cores:
     assert default_ecus_per_process(n_ecus, cores) == expected
 
 
-@pytest.mark.parametrize("n_ecus, cores, expected", [
-    (64, 2, 16),   # four processes of 16, not one of 64
-    (17, 2, 9),
-    (100, 2, 15),  # seven processes
-    (64, 8, 10),   # the cores ask for more processes than the cap
+@pytest.mark.parametrize("n_ecus, cores, units_per_train, expected", [
+    (12, 2, 4, 4),     # seed000 on 2 cores: one process per train
+    (12, 2, 12, 12),   # one train of 12: one process
+    (64, 2, 16, 16),   # four trains of 16
+    (12, 8, 12, 2),    # many cores: a train spread over processes
 ])
-def test_no_process_hosts_more_than_sixteen_units(n_ecus: int, cores: int, expected: int) -> None:
-    assert default_ecus_per_process(n_ecus, cores) == expected
-    assert expected <= orchestrator.MAX_UNITS_PER_PROCESS
+def test_no_process_hosts_units_of_two_trains(n_ecus: int, cores: int, units_per_train: int, expected: int) -> None:
+    assert default_ecus_per_process(n_ecus, cores, units_per_train) == expected
 
 
 def test_the_cores_are_this_process_s_affinity(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -48,15 +48,11 @@ def test_ecu_processes_are_started_in_groups_of_the_layout(tmp_path, monkeypatch
 
     sc = load_scenario("seed000")
     layout = TrainLayout.from_config(sc.trains)
-    per_process = default_ecus_per_process(layout.n_units, cores=2)
+    per_process = default_ecus_per_process(layout.n_units, cores=2, units_per_train=sc.trains.units)
     orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, per_process, 0.0)
     groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
-    assert groups == [list(range(12))]  # 2 cores: one ECU process for the three trains
-    assert [kind for kind, *_ in started] == ["plant", "ecu"]  # the radio is in the bus servers
-    started.clear()
-    orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, 4, 0.0)  # --ecus-per-process 4
-    groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
-    assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]
+    assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # one ECU process per train
+    assert [kind for kind, *_ in started] == ["plant", "ecu", "ecu", "ecu"]  # the radio is in the bus servers
     started.clear()
     orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, per_process, 0.0, radio_node=True)  # SocketCAN
     assert [kind for kind, *_ in started][:2] == ["plant", "radio"]

@@ -115,7 +115,7 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: simulated seconds per wall second (default 1.0 = wall clock; 0.5 slower, 10 faster)")
     g.add_argument("--ecus-per-process", type=int, default=None, metavar="N",
                    help="with --realtime: host N ECUs per process (default: one ECU process per core left after "
-                        "the bus servers and the plant, at most 16 units in each)")
+                        "the bus servers, plant and radio, one train's units at most in each)")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")

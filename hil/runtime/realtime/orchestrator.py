@@ -12,7 +12,7 @@ real-time rig. Steps:
    on its bus to the next train's server itself, with no process or Python per frame.
 2. Node processes (same Python): the plant + wayside, the ECUs (``ecus_per_process``
    units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
-   leaves, with at most 16 units in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
+   leaves, but one train's units at most in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
@@ -185,20 +185,18 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-MAX_UNITS_PER_PROCESS = 16  # a process runs its units one after another (see default_ecus_per_process)
-
-
-def default_ecus_per_process(n_ecus: int, cores: int | None = None) -> int:
+def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_train: int | None = None) -> int:
     """ECUs per process when the user does not say: one ECU process per core left after the bus servers (with
-    the radio in them) and the plant take one, so the ECUs of a process share its wake-ups and no more Python
-    processes start than the cores can run; more where a process would host more than MAX_UNITS_PER_PROCESS
-    units, since a process runs the units due at one instant one after another. A process may host units of
-    several trains (it waits for their buses' SYNCs together). Measured side by side on 2 cores
-    (``bench/bench_realtime_scale.py --per-process``): seed000's 12 units in one process cost 0.21-0.25 CPU-s
-    per simulated second against 0.29-0.33 in one process per train, at the same p99; 64 units in one process
-    fall behind (28 misses in 20 s), in four of 16 none."""
-    ecu_processes = max(1, (usable_cores() if cores is None else cores) - 1, math.ceil(n_ecus / MAX_UNITS_PER_PROCESS))
-    return max(1, math.ceil(n_ecus / ecu_processes))
+    the radio in them) and the plant take one, so the ECUs of a process share its wake-ups and no more Python processes start
+    than the cores can run; but no process hosts units of two trains (``units_per_train``): units of several trains
+    share their deadlines, and a process runs the units due at one instant one after another. On 2 cores: seed000's
+    3 trains x 4 units in 3 processes, one train of 12 in one. Measured side by side, interleaved
+    (``bench/bench_realtime_scale.py --scenario seed000 --per-process 4 12 4 12 4 12``): seed000's 12 units in one
+    process cost 15 % less CPU (0.30-0.32 against 0.35-0.39 CPU-s per simulated second) but run later (p50
+    0.8-0.9 ms against 0.5, p99 1.9-2.5 ms against 1.4-1.6, a few misses); 64 units in one process fall behind."""
+    ecu_processes = max(1, (usable_cores() if cores is None else cores) - 1)
+    per_process = max(1, math.ceil(n_ecus / ecu_processes))
+    return per_process if units_per_train is None else max(1, min(per_process, units_per_train))
 
 
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
@@ -278,7 +276,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if on_channels is not None:
                 on_channels(channels(run, scenario))
             env = node_environment(scenario)
-            per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external))
+            per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
+                                                                        units_per_train=scenario.trains.units)
             nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
