@@ -575,16 +575,22 @@ mod tests {
         }
     }
 
+    /// Nodes A and C with three frames queued at 0 (A: 0x300 then 0x050; C: 0x200), the first on the wire.
+    fn three_queued(policy: Policy) -> (Bus, usize) {
+        let mut b = bus(policy);
+        let a = b.attach("A", Sink::None, None, false);
+        let c = b.attach("C", Sink::None, None, false);
+        b.enqueue(a, 0x300, &[1; 8], 0, None);
+        b.enqueue(a, 0x050, &[2; 4], 0, None);
+        b.enqueue(c, 0x200, &[3; 2], 0, None);
+        b.arbitrate(0).unwrap();
+        (b, c)
+    }
+
     #[test]
     fn the_earliest_end_of_a_queued_frame_is_its_end_if_nothing_comes_and_a_bound_if_something_does() {
         for policy in [Policy::Priority, Policy::Fifo] {
-            let mut b = bus(policy);
-            let a = b.attach("A", Sink::None, None, false);
-            let c = b.attach("C", Sink::None, None, false);
-            b.enqueue(a, 0x300, &[1; 8], 0, None);
-            b.enqueue(a, 0x050, &[2; 4], 0, None);
-            b.enqueue(c, 0x200, &[3; 2], 0, None);
-            b.arbitrate(0).unwrap();
+            let (mut b, _) = three_queued(policy);
             let first = if policy == Policy::Priority { 0x050 } else { 0x200 }; // FIFO: A's 0x300 is before its 0x050
             assert_eq!(b.current.unwrap().frame_id, first);
             assert_eq!(b.earliest_end(|id, _| id == first), Some(b.busy_until));
@@ -592,13 +598,7 @@ mod tests {
             let earliest = b.earliest_end(|id, _| id == 0x300).unwrap();
             assert_eq!(end_of(&mut b, 0x300), earliest, "{policy:?}: nothing else came");
             // the same queue, and a frame that comes later and wins arbitration before 0x300: it can only be later
-            let mut b = bus(policy);
-            let a = b.attach("A", Sink::None, None, false);
-            let c = b.attach("C", Sink::None, None, false);
-            b.enqueue(a, 0x300, &[1; 8], 0, None);
-            b.enqueue(a, 0x050, &[2; 4], 0, None);
-            b.enqueue(c, 0x200, &[3; 2], 0, None);
-            b.arbitrate(0).unwrap();
+            let (mut b, c) = three_queued(policy);
             b.enqueue(c, 0x010, &[4; 8], 1, None);
             assert!(end_of(&mut b, 0x300) > earliest, "{policy:?}: a later frame delays it");
         }
