@@ -223,7 +223,7 @@ def main() -> None:
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
-            print("      CPU s/sim s by role (wake-ups per sim s, CPU per wake-up): " + ", ".join(
+            print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
