@@ -181,7 +181,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
     return {"ecus": n_ecus, "per_process": per_process, "p50_ms": 1e3 * (m["cycle_lateness_p50_s"] or 0),
             "p99_ms": 1e3 * (p99 or 0), "misses": misses, "skipped": skipped, "cycles": cycles,
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
-            "lost": m["frames_lost"], "cpu_per_sim_s": (cpu_seconds() - cpu0[0]) / duration, "keeps_up": keeps_up,
+            "lost": m["frames_lost"], "lost_on_buses": [b.frames_dropped for b in res.log.buses],
+            "cpu_per_sim_s": (cpu_seconds() - cpu0[0]) / duration, "keeps_up": keeps_up,
             "interrupted": m["interrupted"],
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())}}
 
@@ -225,6 +226,10 @@ def main() -> None:
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))
+            if r["lost"]:
+                on_buses = sum(r["lost_on_buses"])
+                print(f"      lost: {on_buses} dropped from TX queues (by bus {r['lost_on_buses']}), "
+                      f"{r['lost'] - on_buses} offered to the radio and not delivered")
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
             if r["keeps_up"]:
