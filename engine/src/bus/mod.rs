@@ -326,14 +326,7 @@ impl Bus {
         match self.policy {
             Policy::Priority => self.heap.pop().map(|Reverse(item)| item),
             Policy::Fifo => {
-                let mut best: Option<usize> = None;
-                for (i, n) in self.nodes.iter().enumerate() {
-                    if let Some(head) = n.fifo.front() {
-                        if best.is_none_or(|b| head.key < self.nodes[b].fifo[0].key) {
-                            best = Some(i);
-                        }
-                    }
-                }
+                let best = self.fifo_winner(|i| self.nodes[i].fifo.front());
                 best.and_then(|b| self.nodes[b].fifo.pop_front())
             }
         }
@@ -344,6 +337,20 @@ impl Bus {
         let heap = self.heap.iter().map(|Reverse(item)| (item.frame_id, item.extended));
         let fifos = self.nodes.iter().flat_map(|n| n.fifo.iter().map(|item| (item.frame_id, item.extended)));
         heap.chain(fifos)
+    }
+
+    /// Under `Policy::Fifo`, the node whose frame wins arbitration among the frames `head(node)` offers (each
+    /// node's oldest queued frame; the lowest key, the first node on a tie).
+    fn fifo_winner<'a>(&'a self, head: impl Fn(usize) -> Option<&'a Item>) -> Option<usize> {
+        let mut best: Option<(u64, usize)> = None;
+        for i in 0..self.nodes.len() {
+            if let Some(item) = head(i) {
+                if best.is_none_or(|(key, _)| item.key < key) {
+                    best = Some((item.key, i));
+                }
+            }
+        }
+        best.map(|(_, i)| i)
     }
 
     /// The queued frames in the order they would go on the wire if no other frame came (arbitration by priority;
@@ -358,12 +365,11 @@ impl Bus {
             Policy::Fifo => {
                 let mut heads = vec![0usize; self.nodes.len()];
                 let mut out = Vec::new();
-                loop {
-                    let best = (0..self.nodes.len()).filter_map(|i| self.nodes[i].fifo.get(heads[i]).map(|it| (it.key, i))).min();
-                    let Some((_, i)) = best else { return out };
+                while let Some(i) = self.fifo_winner(|i| self.nodes[i].fifo.get(heads[i])) {
                     out.push(self.nodes[i].fifo[heads[i]]);
                     heads[i] += 1;
                 }
+                out
             }
         }
     }
