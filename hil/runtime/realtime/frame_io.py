@@ -37,7 +37,6 @@ from hil.runtime.realtime.pacing import SimClock, drain, wait_until
 FrameHandler = Callable[[int, int, bytes, float], None]  # (bus index, frame id, data, simulated arrival time)
 MAX_SLEEP_S = 0.05  # wall seconds between stop checks
 SYNC_GRACE_S = 0.05  # wall seconds a lazy reader waits past its read time for the server's SYNC
-SYNC_TOLERANCE_S = 1e-6  # a link synced this close to a read time is synced to it (engine/src/protocol.rs)
 
 
 class EngineFrames:
@@ -132,7 +131,7 @@ class EngineFrames:
         t = self._epoch(sim_t)
         buses = self._foreseen(sim_t)
         if not buses:  # asked once, on the buses not yet synced to it (another event at this time was)
-            buses = {i for i, link in enumerate(self.links) if link.synced < t - SYNC_TOLERANCE_S}
+            buses = {i for i, link in enumerate(self.links) if not link.sync_to(t, 0.0)}
             for i in buses:
                 self.links[i].read_every(t, 0.0)
         waiting = [self.links[i] for i in sorted(buses)]
