@@ -83,3 +83,36 @@ def test_a_read_time_nobody_foresaw_is_asked_for_once(server):
     finally:
         sender.shutdown()
         reader_bus.shutdown()
+
+
+class FakeLink:
+    """A lazy FrameLink whose server syncs every read asked for at once; it counts the reads asked for."""
+
+    def __init__(self) -> None:
+        self.asked: list[float] = []
+        self.synced = float("-inf")
+        self.fd = -1
+
+    def read_every(self, first: float, period: float) -> None:
+        self.asked.append(first)
+
+    def sync_to(self, t: float, timeout_s: float) -> bool:
+        if t in self.asked:
+            self.synced = max(self.synced, t)
+        return self.synced >= t
+
+
+def test_a_node_on_several_buses_asks_each_bus_once_for_a_read_several_events_share():
+    """Units of two trains due at one unforeseen instant: the first event asks both buses and waits for both SYNCs,
+    the second finds them synced and asks nothing."""
+    from hil.runtime.realtime.frame_io import EngineFrames
+    from hil.runtime.realtime.pacing import SimClock
+
+    frames = EngineFrames.__new__(EngineFrames)  # the engine links replaced by fakes
+    frames.clock, frames.lazy, frames._schedules = SimClock(time.time(), 1.0), True, []
+    frames.links = [FakeLink(), FakeLink()]
+    sim_t = frames.clock.now()
+    for _ in range(2):
+        frames._wait_synced(sim_t, stop=False)
+    assert [len(link.asked) for link in frames.links] == [1, 1]
+    assert all(link.synced == frames._epoch(sim_t) for link in frames.links)
