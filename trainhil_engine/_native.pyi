@@ -206,10 +206,12 @@ class BusServerCore:
     def __init__(self, channel: str, listener_fd: int, tcp_fd: int | None, token: bytes | None, bitrate: int,
                  policy_name: str, depth: int, extended: bool, load_window_ns: int, pace: float, spin_ns: int,
                  max_clients: int, hello_timeout_s: float, keep_log: bool, fd: bool = False,
-                 data_bitrate: int | None = None, radio: tuple[RadioHub, int] | None = None) -> None:
+                 data_bitrate: int | None = None, radio: tuple[RadioHub, int] | None = None,
+                 bell_fd: int | None = None) -> None:
         """``fd``: a CAN FD bus (nodes send either format, each FRAME record says which), its data phase at
         ``data_bitrate`` (default: ``bitrate``); ``radio``: the rig's radio hub and this bus's index in it (the
-        server joins the bus as node "RadioGW" and hands the hub every routed frame at its end)."""
+        server joins the bus as node "RadioGW" and hands the hub every routed frame at its end); ``bell_fd``: the
+        bus's bell FIFO opened read-write and non-blocking, which quiet readers ring (taken over, closed on error)."""
     def now_ns(self) -> int: ...
     def stats(self) -> dict[str, float | int | None]: ...
     def take_log(self) -> tuple[bytes, bytes, int, int]: ...
@@ -255,8 +257,11 @@ class FrameLink:
     received: int
     synced: float
 
-    def __init__(self, fd: int, t0: float, pace: float, keep: bool = False, lazy: bool = False) -> None:
-        """``lazy``: the connection said OPTION_LAZY; frames come in at ``sync_to``, sent frames carry their time."""
+    def __init__(self, fd: int, t0: float, pace: float, keep: bool = False, lazy: bool = False,
+                 bell: int | None = None) -> None:
+        """``lazy``: the connection said OPTION_LAZY; frames come in at ``sync_to``, sent frames carry their time.
+        ``bell``: it also said OPTION_QUIET; the write end of the server's bell FIFO (kept open by the caller), rung
+        when the server must see a record now (a read request, a frame its BELL records name)."""
     def read_every(self, first: float, period: float) -> None:
         """A lazy link's read times: ``first`` (epoch s), then every ``period`` s (0: once)."""
     def sync_to(self, t: float, timeout_s: float) -> bool:

@@ -4,10 +4,14 @@
 //!
 //! A lazy link (HELLO option `OPTION_LAZY`) reads only up to its horizon: `wait_synced(t)` waits for the server's
 //! SYNC of read time `t` and hands over the frames that ended by then, never one that ended later.
+//!
+//! A quiet link (also `OPTION_QUIET`) does not wake its server by writing: the server reads its records at its
+//! next wake-up. The link rings the server's bell (a FIFO) after a record the server must see now: a READ_EVERY,
+//! or a frame the server's BELL records name (one it hands over at its end: to an eager node, to the radio).
 
 use std::os::fd::RawFd;
 
-use crate::protocol::{pack_frame_records, pack_read_every, read_frames, RECORD_SIZE};
+use crate::protocol::{pack_frame_records, pack_read_every, read_frames, BellSet, RECORD_SIZE};
 
 /// Why the link cannot go on.
 #[derive(Debug)]
@@ -37,6 +41,10 @@ pub struct Link {
     horizon: f64,
     /// The latest SYNC read (epoch s).
     synced: f64,
+    /// A quiet link's bell: the write end of the server's FIFO (owned by the caller).
+    bell: Option<RawFd>,
+    /// Which frames ring it (the server's BELL records read so far).
+    rings: BellSet,
 }
 
 fn would_block(err: &std::io::Error) -> bool {
@@ -46,12 +54,32 @@ fn would_block(err: &std::io::Error) -> bool {
 impl Link {
     /// `fd`: a connected, handshaken, non-blocking socket.
     pub fn new(fd: RawFd) -> Link {
-        Link { fd, partial: Vec::new(), horizon: f64::INFINITY, synced: f64::NEG_INFINITY }
+        Link { fd, partial: Vec::new(), horizon: f64::INFINITY, synced: f64::NEG_INFINITY, bell: None,
+               rings: BellSet::default() }
     }
 
     /// A lazy link: nothing is handed over before the first `wait_synced`.
     pub fn lazy(fd: RawFd) -> Link {
         Link { horizon: f64::NEG_INFINITY, ..Link::new(fd) }
+    }
+
+    /// A quiet lazy link (the connection said OPTION_LAZY and OPTION_QUIET): `bell`, the write end of the server's
+    /// bell FIFO, non-blocking.
+    pub fn quiet(fd: RawFd, bell: RawFd) -> Link {
+        Link { bell: Some(bell), ..Link::lazy(fd) }
+    }
+
+    /// Wake the server now (a quiet link). A full FIFO already holds wake-ups the server has not read: nothing lost.
+    fn ring(&self) {
+        if let Some(bell) = self.bell {
+            // SAFETY: one byte from our own buffer to a descriptor the caller keeps open.
+            unsafe { libc::write(bell, b"!".as_ptr() as *const libc::c_void, 1) };
+        }
+    }
+
+    /// Whether the server must see a frame of `can_id` at once (a quiet link: the BELL records say).
+    pub fn rings_for(&self, can_id: u32) -> bool {
+        self.bell.is_some() && self.rings.rings(can_id)
     }
 
     /// The latest read time the server has synced this link to (epoch s).
@@ -61,7 +89,9 @@ impl Link {
 
     /// Ask for read times: `first` (epoch s), then every `period` s (0: once).
     pub fn read_every(&self, first: f64, period: f64) -> Result<(), LinkError> {
-        self.write_all(&pack_read_every(first, period))
+        self.write_all(&pack_read_every(first, period))?;
+        self.ring();
+        Ok(())
     }
 
     /// Hand over every frame that ended by read time `t` (epoch s), waiting up to `timeout_s` (wall) for the
@@ -111,13 +141,13 @@ impl Link {
 
     /// The records read so far, up to the horizon.
     fn hand_over(&mut self, each: &mut impl FnMut(u32, u8, f64, &[u8])) {
-        let used = read_frames(&self.partial, self.horizon, &mut self.synced, each);
+        let used = read_frames(&self.partial, self.horizon, &mut self.synced, &mut self.rings, each);
         self.partial.drain(..used);
     }
 
     /// Write `frames` as FRAME records with `flags`, stamped `stamp` (the epoch second they were sent, which a lazy
     /// link's server queues them at; 0: when the server reads them); an FD frame's payload is padded to a CAN FD
-    /// length. Waits while the socket is full.
+    /// length. Waits while the socket is full. A quiet link rings the bell if one of them must be seen now.
     pub fn send(&self, frames: &[(u32, &[u8])], flags: u8, stamp: f64) -> Result<(), LinkError> {
         let fd = flags & crate::protocol::FLAG_FD != 0;
         let limit = if fd { crate::frame::MAX_DATA } else { crate::protocol::MAX_DLC };
@@ -131,7 +161,11 @@ impl Link {
             payload.resize(padded, 0);
             pack_frame_records(id, &payload, flags, stamp, &mut out);
         }
-        self.write_all(&out)
+        self.write_all(&out)?;
+        if frames.iter().any(|&(id, _)| self.rings_for(id)) {
+            self.ring();
+        }
+        Ok(())
     }
 
     fn write_all(&self, out: &[u8]) -> Result<(), LinkError> {
@@ -200,5 +234,37 @@ mod tests {
         assert_eq!(got, vec![0x10]); // 0x11 ended after the read time
         assert!(!rx.wait_synced(2.0, 0.01, |id, _, _, _| got.push(id)).unwrap()); // no SYNC of 2.0: timed out
         assert_eq!(got, vec![0x10, 0x11]); // what came before the missing SYNC is handed over
+    }
+
+    /// Bytes waiting on a non-blocking socket or FIFO.
+    fn waiting(fd: RawFd) -> usize {
+        let mut buf = [0u8; 256];
+        // SAFETY: reading into our own buffer.
+        let n = unsafe { libc::read(fd, buf.as_mut_ptr() as *mut libc::c_void, buf.len()) };
+        n.max(0) as usize
+    }
+
+    #[test]
+    fn a_quiet_link_rings_for_read_requests_and_for_the_frames_its_server_names_only() {
+        let (node, server) = UnixStream::pair().unwrap();
+        let (bell_w, bell_r) = UnixStream::pair().unwrap(); // stands for the server's FIFO
+        for s in [&node, &server, &bell_w, &bell_r] {
+            s.set_nonblocking(true).unwrap();
+        }
+        let mut link = Link::quiet(node.as_raw_fd(), bell_w.as_raw_fd());
+        link.send(&[(0x10, &[1])], 0, 1.0).unwrap();
+        assert_eq!(waiting(bell_r.as_raw_fd()), 1); // no BELL record yet: every frame rings
+        use std::io::Write;
+        (&server).write_all(&crate::protocol::pack_bell(false, &[0x20])).unwrap();
+        (&server).write_all(&crate::protocol::pack_sync(1.5)).unwrap(); // read in stream order, at a read time
+        assert!(link.wait_synced(1.5, 1.0, |_, _, _, _| {}).unwrap());
+        link.send(&[(0x10, &[1]), (0x11, &[2])], 0, 1.0).unwrap();
+        assert_eq!(waiting(bell_r.as_raw_fd()), 0); // the server does not need these now
+        link.send(&[(0x10, &[1]), (0x20, &[2])], 0, 1.0).unwrap();
+        assert_eq!(waiting(bell_r.as_raw_fd()), 1);
+        link.read_every(2.0, 0.01).unwrap();
+        assert_eq!(waiting(bell_r.as_raw_fd()), 1);
+        assert_eq!(waiting(server.as_raw_fd()), 6 * RECORD_SIZE); // every record was written all the same
+        assert!(!Link::lazy(node.as_raw_fd()).rings_for(0x20)); // no bell: nothing to ring
     }
 }

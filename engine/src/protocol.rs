@@ -64,6 +64,18 @@ pub const KIND_SYNC: u8 = 11;
 pub const SYNC_TOLERANCE_S: f64 = 1e-6;
 /// Read schedules one lazy reader may hold at once.
 pub const MAX_READ_SCHEDULES: usize = 256;
+/// HELLO options: bit 2, a quiet lazy reader (with OPTION_LAZY). Its records do not wake the server, which reads
+/// them at its next wake-up and queues its frames at the instants they carry; the node rings the server's bell (a
+/// FIFO beside the socket, `<bus>.bell`) when the server must see a record now: a READ_EVERY, a frame the server
+/// hands over at its end (BELL records say which), anything else it writes.
+pub const OPTION_QUIET: u8 = 0x04;
+/// Server to a quiet reader: which of its frames it rings the bell for. Byte 1: BELL_EVERY (every frame) and
+/// BELL_RESET (this record starts a new set: forget the IDs before); byte 2: how many IDs follow (up to
+/// BELL_IDS_PER_RECORD, u32 from byte 4).
+pub const KIND_BELL: u8 = 12;
+pub const BELL_EVERY: u8 = 0x01;
+pub const BELL_RESET: u8 = 0x02;
+pub const BELL_IDS_PER_RECORD: usize = 5;
 /// A FILTER's format match: any, standard IDs only, extended IDs only.
 pub const MATCH_ANY: u8 = 0;
 pub const MATCH_STANDARD: u8 = 1;
@@ -89,7 +101,9 @@ pub fn constants() -> Vec<(&'static str, f64)> {
         ("MATCH_ANY", MATCH_ANY as f64), ("MATCH_STANDARD", MATCH_STANDARD as f64),
         ("MATCH_EXTENDED", MATCH_EXTENDED as f64), ("OPTION_LAZY", OPTION_LAZY as f64),
         ("KIND_READ_EVERY", KIND_READ_EVERY as f64), ("KIND_SYNC", KIND_SYNC as f64),
-        ("MAX_READ_SCHEDULES", MAX_READ_SCHEDULES as f64),
+        ("MAX_READ_SCHEDULES", MAX_READ_SCHEDULES as f64), ("OPTION_QUIET", OPTION_QUIET as f64),
+        ("KIND_BELL", KIND_BELL as f64), ("BELL_EVERY", BELL_EVERY as f64), ("BELL_RESET", BELL_RESET as f64),
+        ("BELL_IDS_PER_RECORD", BELL_IDS_PER_RECORD as f64),
     ]
 }
 
@@ -227,6 +241,59 @@ pub fn pack_sync(stamp: f64) -> [u8; RECORD_SIZE] {
     r
 }
 
+/// The BELL records of a set: ring for every frame (`every`), else for the frames of `ids`.
+pub fn pack_bell(every: bool, ids: &[u32]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut chunks: Vec<&[u32]> = ids.chunks(BELL_IDS_PER_RECORD).collect();
+    if chunks.is_empty() {
+        chunks.push(&[]);
+    }
+    for (k, chunk) in chunks.iter().enumerate() {
+        let mut r = [0u8; RECORD_SIZE];
+        r[0] = KIND_BELL;
+        r[1] = if every { BELL_EVERY } else { 0 } | if k == 0 { BELL_RESET } else { 0 };
+        r[2] = chunk.len() as u8;
+        for (j, id) in chunk.iter().enumerate() {
+            r[4 + 4 * j..8 + 4 * j].copy_from_slice(&id.to_le_bytes());
+        }
+        out.extend_from_slice(&r);
+    }
+    out
+}
+
+/// A quiet reader's view of when to ring its server's bell (the BELL records read so far): for every frame until
+/// the server has said otherwise.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BellSet {
+    pub every: bool,
+    pub ids: std::collections::HashSet<u32>,
+}
+
+impl Default for BellSet {
+    fn default() -> Self {
+        BellSet { every: true, ids: Default::default() }
+    }
+}
+
+impl BellSet {
+    /// Take one BELL record in.
+    pub fn apply(&mut self, r: &[u8]) {
+        if r[1] & BELL_RESET != 0 {
+            self.ids.clear();
+            self.every = false;
+        }
+        self.every |= r[1] & BELL_EVERY != 0;
+        for j in 0..(r[2] as usize).min(BELL_IDS_PER_RECORD) {
+            self.ids.insert(u32_at(r, 4 + 4 * j));
+        }
+    }
+
+    /// Whether a frame of `can_id` must ring the bell.
+    pub fn rings(&self, can_id: u32) -> bool {
+        self.every || self.ids.contains(&can_id)
+    }
+}
+
 /// The f64 in bytes 8..16 of a record (a FRAME's stamp, a SYNC's or READ_EVERY's time).
 pub fn stamp_of(r: &[u8]) -> f64 {
     f64::from_le_bytes(r[8..16].try_into().unwrap())
@@ -235,8 +302,10 @@ pub fn stamp_of(r: &[u8]) -> f64 {
 /// Reads the whole frames at the start of `buf`, a stream of records from a bus server, and calls
 /// `each(can_id, flags, stamp, data)` for each; returns the bytes used. A SYNC record sets `synced` to its time;
 /// reading stops once `synced` reaches `horizon` (a lazy reader's read time; an eager reader passes infinity).
-/// Other records are skipped; a CAN FD frame whose FRAME_DATA records are not all in `buf` yet waits.
-pub fn read_frames(buf: &[u8], horizon: f64, synced: &mut f64, mut each: impl FnMut(u32, u8, f64, &[u8])) -> usize {
+/// A BELL record goes into `bell`; other records are skipped; a CAN FD frame whose FRAME_DATA records are not all
+/// in `buf` yet waits.
+pub fn read_frames(buf: &[u8], horizon: f64, synced: &mut f64, bell: &mut BellSet,
+                   mut each: impl FnMut(u32, u8, f64, &[u8])) -> usize {
     let mut off = 0;
     let mut data = [0u8; MAX_FD_DLC];
     while off + RECORD_SIZE <= buf.len() && *synced < horizon - SYNC_TOLERANCE_S {
@@ -244,6 +313,8 @@ pub fn read_frames(buf: &[u8], horizon: f64, synced: &mut f64, mut each: impl Fn
         if r[0] != KIND_FRAME {
             if r[0] == KIND_SYNC {
                 *synced = synced.max(stamp_of(r));
+            } else if r[0] == KIND_BELL {
+                bell.apply(r);
             }
             off += RECORD_SIZE; // FILTERS_ACK and the like: no frame
             continue;
@@ -281,14 +352,35 @@ mod tests {
     #[test]
     fn kinds_and_flags_are_distinct() {
         let kinds = [KIND_FRAME, KIND_HELLO, KIND_WELCOME, KIND_FILTERS, KIND_FILTER, KIND_FILTERS_ACK, KIND_AUTH,
-                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC];
+                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC, KIND_BELL];
         let mut sorted = kinds.to_vec();
         sorted.sort();
         sorted.dedup();
         assert_eq!(sorted.len(), kinds.len());
         let flags = [FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_ECHO, FLAG_FD, FLAG_BRS];
         assert_eq!(flags.iter().fold(0u8, |acc, f| { assert_eq!(acc & f, 0); acc | f }), KNOWN_FLAGS);
-        assert_eq!(constants().len(), 37);
+        assert_eq!(constants().len(), 42);
+    }
+
+    #[test]
+    fn a_quiet_reader_rings_for_every_frame_until_bell_records_name_a_set_and_a_reset_replaces_it() {
+        let mut bell = BellSet::default();
+        assert!(bell.rings(0x123));
+        let ids: Vec<u32> = (0x100..0x107).collect(); // two records: 5 and 2 IDs
+        let stream = pack_bell(false, &ids);
+        assert_eq!(stream.len(), 2 * RECORD_SIZE);
+        let mut synced = f64::NEG_INFINITY;
+        let used = read_frames(&stream, f64::INFINITY, &mut synced, &mut bell, |_, _, _, _| panic!("no frame"));
+        assert_eq!(used, stream.len());
+        assert!(bell.rings(0x100) && bell.rings(0x106) && !bell.rings(0x107) && !bell.rings(0x123));
+        for r in pack_bell(true, &[]).chunks(RECORD_SIZE) {
+            bell.apply(r);
+        }
+        assert!(bell.rings(0x123) && bell.ids.is_empty()); // every frame, the old set forgotten
+        for r in pack_bell(false, &[0x7FF]).chunks(RECORD_SIZE) {
+            bell.apply(r);
+        }
+        assert_eq!(bell, BellSet { every: false, ids: [0x7FF].into() });
     }
 
     #[test]
@@ -326,11 +418,11 @@ mod tests {
         let mut seen = Vec::new();
         let mut synced = f64::NEG_INFINITY;
         // Everything but the last record: the long frame waits.
-        let used = read_frames(&stream[..stream.len() - RECORD_SIZE], f64::INFINITY, &mut synced,
+        let used = read_frames(&stream[..stream.len() - RECORD_SIZE], f64::INFINITY, &mut synced, &mut BellSet::default(),
                                |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
         assert_eq!(used, 2 * RECORD_SIZE);
         assert_eq!(seen, vec![(0x123, 0, 1.5, vec![1, 2, 3])]);
-        let used = read_frames(&stream[used..], f64::INFINITY, &mut synced, |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
+        let used = read_frames(&stream[used..], f64::INFINITY, &mut synced, &mut BellSet::default(), |id, flags, t, d| seen.push((id, flags, t, d.to_vec())));
         assert_eq!(used, MAX_FRAME_RECORDS * RECORD_SIZE);
         assert_eq!(seen[1], (0x1ABCDEF, FLAG_FD | FLAG_BRS | FLAG_EXTENDED, 2.5, long));
     }
@@ -343,10 +435,10 @@ mod tests {
         pack_frame_records(0x11, &[2], 0, 1.7, &mut stream);
         stream.extend_from_slice(&pack_sync(2.0));
         let (mut synced, mut seen) = (f64::NEG_INFINITY, Vec::new());
-        let used = read_frames(&stream, 1.5, &mut synced, |id, _, _, _| seen.push(id));
+        let used = read_frames(&stream, 1.5, &mut synced, &mut BellSet::default(), |id, _, _, _| seen.push(id));
         assert_eq!((used, synced, seen.clone()), (2 * RECORD_SIZE, 1.5, vec![0x10]));
-        assert_eq!(read_frames(&stream[used..], 1.5, &mut synced, |id, _, _, _| seen.push(id)), 0); // reached
-        let used = read_frames(&stream[used..], 2.0, &mut synced, |id, _, _, _| seen.push(id));
+        assert_eq!(read_frames(&stream[used..], 1.5, &mut synced, &mut BellSet::default(), |id, _, _, _| seen.push(id)), 0); // reached
+        let used = read_frames(&stream[used..], 2.0, &mut synced, &mut BellSet::default(), |id, _, _, _| seen.push(id));
         assert_eq!((used, synced, seen), (2 * RECORD_SIZE, 2.0, vec![0x10, 0x11]));
     }
 }

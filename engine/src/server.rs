@@ -27,6 +27,18 @@ use crate::radio_hub::{Delivery, RadioHub};
 const READ_RECORDS: usize = 32; // per node and turn: a babbling node cannot stall the loop
 const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames beyond this (overruns)
 const LOG_FIRST: u64 = 10;
+/// The poll set: the wake-up pipe, the unix listener, the TCP listener, the bell, then one per client.
+const FIRST_CLIENT_FD: usize = 4;
+
+/// Read and forget the bytes that woke the loop (its own wake-up pipe, the bell).
+fn drain_wake_ups(source: &mut impl Read) {
+    let mut buf = [0u8; 64];
+    while let Ok(n) = source.read(&mut buf) {
+        if n == 0 {
+            break;
+        }
+    }
+}
 
 /// A CAN FD frame whose FRAME_DATA records are still coming.
 #[derive(Debug, Clone)]
@@ -83,6 +95,8 @@ pub struct Shared {
     pub bad: BadInput,
     pub clients: usize,
     pub now_ns: u64,
+    /// Turns of the serving loop so far (each one a wake-up of its thread).
+    pub turns: u64,
     /// Log lines for the owner to report (bad input, joins and leaves).
     pub messages: Vec<(String, String)>,
 }
@@ -138,6 +152,8 @@ struct Client {
     lazy: bool,
     /// Its read times: (next, period) in bus ns, period 0 for a single read.
     reads: Vec<(u64, u64)>,
+    /// A quiet lazy reader (`OPTION_QUIET`): its records do not wake the loop (it rings the bell when they must).
+    quiet: bool,
 }
 
 impl Client {
@@ -184,6 +200,12 @@ pub struct Server {
     shortest_frame_ns: u64,
     /// The rig's radio, when this bus is one of its trains' buses.
     radio: Option<RadioPort>,
+    /// The bell quiet readers ring (the read end of `<bus>.bell`, a FIFO): without one, no reader is quiet.
+    bell: Option<std::fs::File>,
+    /// What the quiet readers were last told to ring for: every frame (true), or the radio's routes only.
+    bell_every: bool,
+    /// A quiet reader wrote more than one turn reads: turn again at once.
+    more_waiting: bool,
 }
 
 /// A server's end of the rig's radio (engine/src/radio_hub.rs).
@@ -252,9 +274,10 @@ fn shortest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
     if format.is_fd() { classical.min(timing.frame_ns(0, &[], false, true, true).unwrap_or(0)) } else { classical }
 }
 
-/// `radio`: the rig's radio hub and this bus's index in it (the server joins it as node "RadioGW").
-pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, radio: Option<(Arc<RadioHub>, usize)>)
-             -> std::io::Result<ServerHandle> {
+/// `bell`: the bus's bell FIFO (quiet readers ring it), opened read-write and non-blocking; `radio`: the rig's
+/// radio hub and this bus's index in it (the server joins it as node "RadioGW").
+pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell: Option<std::fs::File>,
+             radio: Option<(Arc<RadioHub>, usize)>) -> std::io::Result<ServerHandle> {
     let timing = BitTiming::new(cfg.bitrate, cfg.data_bitrate).ok_or_else(|| {
         std::io::Error::new(ErrorKind::InvalidInput, format!("bitrate {} (data {}) has no whole-ns bit time", cfg.bitrate, cfg.data_bitrate))
     })?;
@@ -289,14 +312,15 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, radio
     };
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
-        bad: BadInput::default(), clients: 0, now_ns: 0, messages: Vec::new(),
+        bad: BadInput::default(), clients: 0, now_ns: 0, turns: 0, messages: Vec::new(),
     }));
     let stop = Arc::new(AtomicBool::new(false));
     let pace = cfg.pace;
     let mut server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        pollfds: Vec::new(), floor: 0, arbitrate_at: None, shortest_frame_ns, radio,
+        pollfds: Vec::new(), floor: 0, arbitrate_at: None, shortest_frame_ns, radio, bell, bell_every: true,
+        more_waiting: false,
     };
     let name = format!("bus-server {}", server.cfg.channel);
     let thread = std::thread::Builder::new().name(name).spawn(move || server.serve())?;
@@ -330,6 +354,9 @@ impl Server {
     /// How long to sleep: to the end of the frame on the wire when someone must have it then (an eager node,
     /// or the error model, which acts at every frame), to the next read time of a lazy reader, else a load window.
     fn timeout_ns(&mut self, shared: &Shared) -> i64 {
+        if std::mem::take(&mut self.more_waiting) {
+            return 0;
+        }
         let now = self.now();
         let mut wake = now + self.cfg.load_window_ns;
         if let Some(end) = self.frame_end_wake(shared) {
@@ -439,8 +466,10 @@ impl Server {
         fds.push(libc::pollfd { fd: self.wake.as_raw_fd(), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.listener.as_raw_fd(), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.tcp.as_ref().map_or(-1, |l| l.as_raw_fd()), events: libc::POLLIN, revents: 0 });
+        fds.push(libc::pollfd { fd: self.bell.as_ref().map_or(-1, |b| b.as_raw_fd()), events: libc::POLLIN, revents: 0 });
         for c in &self.clients {
-            let events = libc::POLLIN | if c.flush_to == 0 { 0 } else { libc::POLLOUT };
+            // a quiet reader's records wait for the next wake-up (a hang-up or error is reported all the same)
+            let events = if c.quiet { 0 } else { libc::POLLIN } | if c.flush_to == 0 { 0 } else { libc::POLLOUT };
             fds.push(libc::pollfd { fd: c.stream.fd(), events, revents: 0 });
         }
         let ts = libc::timespec { tv_sec: (timeout / 1_000_000_000) as libc::time_t, tv_nsec: (timeout % 1_000_000_000) as libc::c_long };
@@ -452,17 +481,18 @@ impl Server {
         let shared_arc = self.shared.clone();
         let mut shared = shared_arc.lock().unwrap();
         shared.now_ns = now;
+        shared.turns += 1;
         if fds[0].revents != 0 {
-            let mut buf = [0u8; 64];
-            while let Ok(n) = self.wake.read(&mut buf) {
-                if n == 0 {
-                    break;
-                }
+            drain_wake_ups(&mut self.wake);
+        }
+        if fds[3].revents != 0 {
+            if let Some(bell) = self.bell.as_mut() {
+                drain_wake_ups(bell);
             }
         }
         let n_clients = self.clients.len();
-        for (k, pfd) in fds.iter().enumerate().skip(3).take(n_clients) {
-            let i = k - 3;
+        for (k, pfd) in fds.iter().enumerate().skip(FIRST_CLIENT_FD).take(n_clients) {
+            let i = k - FIRST_CLIENT_FD;
             // a lazy reader's frames carry their time: read what came since the poll too, so fewer are late
             let readable = pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 || self.clients[i].lazy;
             if readable && !self.clients[i].closed {
@@ -491,12 +521,37 @@ impl Server {
             self.remove_closed();
         }
         shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
+        let every_end = self.every_end_needed(&shared);
         if let Some(r) = &self.radio {
-            let eager = shared.bus.errors.is_some() || shared.bus.guardian.is_some()
-                || self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed);
-            r.eager.store(eager, Ordering::Relaxed);
+            r.eager.store(every_end, Ordering::Relaxed);
+        }
+        if every_end != self.bell_every {
+            self.bell_every = every_end;
+            self.tell_bell();
         }
         self.pollfds = fds;
+    }
+
+    /// Whether someone takes every frame at its end: an eager node, the error model or the guardian (they act at
+    /// every frame). Then the radio wakes this server for its deliveries and quiet readers ring for every frame.
+    fn every_end_needed(&self, shared: &Shared) -> bool {
+        shared.bus.errors.is_some() || shared.bus.guardian.is_some()
+            || self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed)
+    }
+
+    /// The BELL records of what quiet readers must ring for now: every frame, or those the radio takes.
+    fn bell_records(&self) -> Vec<u8> {
+        let mut routed: Vec<u32> = self.radio.as_ref().map(|r| r.routed.iter().copied().collect()).unwrap_or_default();
+        routed.sort_unstable();
+        pack_bell(self.bell_every, &routed)
+    }
+
+    /// Tell every quiet reader what to ring for (the set changed).
+    fn tell_bell(&mut self) {
+        let records = self.bell_records();
+        for c in self.clients.iter_mut().filter(|c| c.quiet && !c.closed) {
+            c.push_now(&records);
+        }
     }
 
     /// Run the bus to `until` (`inclusive`: events at `until` too): complete every transmission that ended and
@@ -742,6 +797,7 @@ impl Server {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
                 authed: !tcp, t_open: Instant::now(), long: None, rx_off: 0, flush_to: 0, lazy: false, reads: Vec::new(),
+                quiet: false,
             });
         }
     }
@@ -796,6 +852,9 @@ impl Server {
             return;
         }
         self.clients[i].rx.extend_from_slice(&chunk[..n]);
+        if n == chunk.len() && self.clients[i].quiet {
+            self.more_waiting = true; // the rest would otherwise wait for a wake-up it does not cause
+        }
     }
 
     /// The nodes' whole records, in time order across the nodes: a lazy reader's FRAME at the time it carries
@@ -1000,8 +1059,14 @@ impl Server {
         c.name = name;
         c.receive_own = options & OPTION_RECEIVE_OWN != 0;
         c.lazy = options & OPTION_LAZY != 0;
+        c.quiet = c.lazy && options & OPTION_QUIET != 0 && self.bell.is_some();
         c.node = Some(node);
         c.push_now(&welcome);
+        if c.quiet {
+            let records = self.bell_records();
+            self.clients[i].push_now(&records);
+        }
+        let c = &self.clients[i];
         self.rx_cache.clear();
         shared.messages.push(("INFO".into(), format!("bus {}: node {} (#{}) joined", self.cfg.channel, c.name, c.cid)));
         Ok(())
@@ -1050,6 +1115,12 @@ mod tests {
 
     /// A server on a socket in its own temporary directory: (handle, socket path, directory).
     fn serve(tag: &str, bitrate: u64, data_bitrate: u64, format: Format) -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
+        serve_with(tag, bitrate, data_bitrate, format, 100_000_000, None)
+    }
+
+    /// `serve` with a load window and a bell (the read end of a socket pair standing for the FIFO).
+    fn serve_with(tag: &str, bitrate: u64, data_bitrate: u64, format: Format, load_window_ns: u64, bell: Option<std::fs::File>)
+                  -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
         let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("b.sock");
@@ -1057,11 +1128,67 @@ mod tests {
         let listener = UnixListener::bind(&path).unwrap();
         let cfg = ServerConfig {
             channel: "t/b".into(), bitrate, data_bitrate, format, policy: Policy::Priority, depth: 8, extended: false,
-            load_window_ns: 100_000_000, pace: 1.0, spin_ns: 0, max_clients: 8, hello_timeout: Duration::from_secs(5),
+            load_window_ns, pace: 1.0, spin_ns: 0, max_clients: 8, hello_timeout: Duration::from_secs(5),
             keep_log: true, token: None,
         };
         use std::os::fd::IntoRawFd;
-        (start(cfg, listener.into_raw_fd(), None, None).unwrap(), path, dir)
+        (start(cfg, listener.into_raw_fd(), None, bell, None).unwrap(), path, dir)
+    }
+
+    fn turns(handle: &ServerHandle) -> u64 {
+        handle.shared.lock().unwrap().turns
+    }
+
+    /// A quiet node's frame does not wake the server; the server reads it at its next wake-up (here a reader's
+    /// SYNC) and queues it at the instant it carries, so the reader gets it with its exact end. Its bell does wake
+    /// the server.
+    #[test]
+    fn a_quiet_nodes_frame_waits_for_the_next_wake_up_and_keeps_its_instant_and_its_bell_wakes_the_server() {
+        let (bell_w, bell_r) = UnixStream::pair().unwrap();
+        bell_r.set_nonblocking(true).unwrap();
+        let (mut handle, path, dir) = serve_with("quiet", 500_000, 500_000, Format::Classical, 1_000_000_000,
+                                                 Some(std::fs::File::from(std::os::fd::OwnedFd::from(bell_r))));
+        let connect = |name: &str, options: u8| {
+            let mut s = UnixStream::connect(&path).unwrap();
+            let mut r = hello(name);
+            r[2] = options;
+            s.write_all(&r).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_WELCOME);
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            s
+        };
+        let mut quiet = connect("Q", OPTION_LAZY | OPTION_QUIET);
+        let mut rec = [0u8; RECORD_SIZE];
+        quiet.read_exact(&mut rec).unwrap();
+        assert_eq!((rec[0], rec[1] & BELL_EVERY, rec[2]), (KIND_BELL, 0, 0)); // nothing to ring for: no radio, no eager node
+        let mut reader = connect("R", OPTION_LAZY);
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
+        let t_read = now() + 0.03;
+        reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        let before = turns(&handle);
+        let t_send = now();
+        quiet.write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(turns(&handle), before, "a quiet node's frame woke the server");
+        let mut got = Vec::new();
+        while got.len() < 2 {
+            reader.read_exact(&mut rec).unwrap();
+            got.push((rec[0], stamp_of(&rec)));
+        }
+        let one_frame = BitTiming::new(500_000, 500_000).unwrap().frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        assert_eq!((got[0].0, got[1].0), (KIND_FRAME, KIND_SYNC));
+        assert!((got[0].1 - (t_send + one_frame)).abs() < 2e-6, "{got:?}"); // ended one frame after its instant
+        std::thread::sleep(Duration::from_millis(2));
+        let before = turns(&handle);
+        (&bell_w).write_all(b"!").unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        assert!(turns(&handle) > before, "the bell did not wake the server");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     fn hello(name: &str) -> [u8; RECORD_SIZE] {

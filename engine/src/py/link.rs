@@ -78,13 +78,20 @@ impl FrameLink {
     /// `fd`: the connected, handshaken, non-blocking socket of a node (still owned by the caller). A frame's
     /// simulated time is (its epoch stamp - t0) * pace. `keep`: frames without a route are kept for `take`.
     /// `lazy`: the connection said OPTION_LAZY; frames come in at `sync_to`, and sent frames carry their time.
+    /// `bell`: the connection also said OPTION_QUIET; the write end of the server's bell FIFO (owned by the caller),
+    /// rung when the server must see a record now.
     #[new]
-    #[pyo3(signature = (fd, t0, pace, keep = false, lazy = false))]
-    fn new(fd: i32, t0: f64, pace: f64, keep: bool, lazy: bool) -> PyResult<Self> {
+    #[pyo3(signature = (fd, t0, pace, keep = false, lazy = false, bell = None))]
+    fn new(fd: i32, t0: f64, pace: f64, keep: bool, lazy: bool, bell: Option<i32>) -> PyResult<Self> {
         if !(pace.is_finite() && pace > 0.0) {
             return Err(PyValueError::new_err(format!("pace={pace} must be positive")));
         }
-        let link = if lazy { Link::lazy(fd) } else { Link::new(fd) };
+        let link = match (lazy, bell) {
+            (true, Some(bell)) => Link::quiet(fd, bell),
+            (true, None) => Link::lazy(fd),
+            (false, None) => Link::new(fd),
+            (false, Some(_)) => return Err(PyValueError::new_err("a bell is for a lazy link")),
+        };
         Ok(FrameLink { link, t0, pace, routes: Default::default(), received: 0, keep, kept: Vec::new(), packing: None,
                        lazy })
     }

@@ -13,6 +13,7 @@ pub(super) fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns
     let d = PyDict::new(py);
     d.set_item("now_ns", now_ns)?;
     d.set_item("clients", s.clients)?;
+    d.set_item("turns", s.turns)?;
     d.set_item("frames", s.frames)?;
     d.set_item("busy_ns", s.busy_ns)?;
     d.set_item("frames_dropped", s.bus.frames_dropped())?;
@@ -35,15 +36,19 @@ pub(super) fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns
 #[pymethods]
 impl BusServerCore {
     /// Serve on listening sockets the caller made (their fds are taken over: pass duplicates); `radio`: the rig's
-    /// radio hub and this bus's index in it.
+    /// radio hub and this bus's index in it; `bell_fd`: the bus's bell FIFO opened read-write and non-blocking
+    /// (taken over too), which quiet readers ring.
     #[new]
     #[pyo3(signature = (channel, listener_fd, tcp_fd, token, bitrate, policy_name, depth, extended, load_window_ns, pace,
-                        spin_ns, max_clients, hello_timeout_s, keep_log, fd = false, data_bitrate = None, radio = None))]
+                        spin_ns, max_clients, hello_timeout_s, keep_log, fd = false, data_bitrate = None, radio = None,
+                        bell_fd = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(channel: String, listener_fd: i32, tcp_fd: Option<i32>, token: Option<Vec<u8>>, bitrate: u64, policy_name: &str,
            depth: usize, extended: bool, load_window_ns: u64, pace: f64, spin_ns: u64, max_clients: usize,
            hello_timeout_s: f64, keep_log: bool, fd: bool, data_bitrate: Option<u64>,
-           radio: Option<(PyRef<'_, RadioHub>, usize)>) -> PyResult<Self> {
+           radio: Option<(PyRef<'_, RadioHub>, usize)>, bell_fd: Option<i32>) -> PyResult<Self> {
+        // SAFETY: the caller hands the bell's descriptor over; owned (and closed on any error) from here on.
+        let bell = bell_fd.map(|fd| std::fs::File::from(unsafe { <std::os::fd::OwnedFd as std::os::fd::FromRawFd>::from_raw_fd(fd) }));
         let data_bitrate = data_bitrate.unwrap_or(bitrate);
         if data_bitrate < bitrate || (!fd && data_bitrate != bitrate) {
             return Err(PyValueError::new_err(format!("data bitrate {data_bitrate}: a CAN FD bus's, at least the nominal {bitrate}")));
@@ -61,7 +66,7 @@ impl BusServerCore {
             hello_timeout: std::time::Duration::from_secs_f64(hello_timeout_s.max(0.0)), keep_log, token,
         };
         let radio = radio.map(|(hub, bus)| (hub.hub.clone(), bus));
-        let handle = crate::server::start(cfg, listener_fd, tcp_fd, radio)
+        let handle = crate::server::start(cfg, listener_fd, tcp_fd, bell, radio)
             .map_err(|e| PyValueError::new_err(format!("bus server cannot start: {e}")))?;
         Ok(BusServerCore { handle: Some(handle), bitrate })
     }

@@ -13,7 +13,8 @@ A lazy reader (``lazy=True``, the ECU and plant nodes on the emulated buses) tel
 (``read_every``; an unforeseen wait asks once), and the servers hand its frames over only then, with a SYNC: no
 server wakes at each frame end for it, and ``wait`` blocks on the sockets until the SYNC of its time, so it sees
 exactly the frames that ended by then. Its sent frames carry the instant they were sent, at which the server
-queues them.
+queues them. Where the server has a bell, the reader is also quiet: its sends do not wake the server, which reads
+them at its next wake-up, unless the server needs a frame at its end (the engine link rings the bell then).
 
 With a CAN FD frame packing (``can.dbc = "train_fd.dbc"``), each ``send`` batch goes as its containers and every
 container received is handed over as the frames it carries (``trainhil_engine.Packing``), in both classes.
@@ -33,10 +34,16 @@ import trainhil_engine as engine
 
 from ecu_sim.runtime import Output, encode_outputs
 from hil.runtime.realtime.pacing import SimClock, drain, wait_until
+from hil.runtime.realtime.pycan_bus import TrainhilBus
 
 FrameHandler = Callable[[int, int, bytes, float], None]  # (bus index, frame id, data, simulated arrival time)
 MAX_SLEEP_S = 0.05  # wall seconds between stop checks
 SYNC_GRACE_S = 0.05  # wall seconds a lazy reader waits past its read time for the server's SYNC
+
+
+def _bell(bus: can.BusABC) -> int | None:
+    """The server's bell a quiet reader's link rings (``TrainhilBus.bell_fileno``), None for any other bus."""
+    return bus.bell_fileno() if isinstance(bus, TrainhilBus) else None
 
 
 class EngineFrames:
@@ -45,7 +52,8 @@ class EngineFrames:
     def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True,
                  packing: engine.Packing | None = None, lazy: bool = False) -> None:
         self.clock, self.extended, self.fd, self.brs, self.lazy = clock, extended, fd, brs, lazy
-        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True, lazy=lazy) for bus in buses]
+        self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True, lazy=lazy, bell=_bell(bus))
+                      for bus in buses]
         self._schedules: list[tuple[int, int, int]] = []  # a lazy reader's (next read, period, bus), µs: a heap
         if packing is not None:
             for link in self.links:

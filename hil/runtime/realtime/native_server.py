@@ -2,8 +2,8 @@
 native thread outside the interpreter lock (``trainhil_engine.BusServerCore``, engine/src/server.rs).
 
 This side makes the sockets exactly as ``BusServer`` does (owner-only run directory, the socket bound under a
-temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file) and hands
-their file descriptors to the engine. A small Python thread wakes a few times a second to report the engine's log
+temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file), and the bell
+its quiet readers ring (``<bus>.bell``, ``sockets.make_bell``), and hands their file descriptors to the engine. A small Python thread wakes a few times a second to report the engine's log
 lines through ``logging`` and to feed ``frame_listeners`` (CAN logs). CAN error confinement, the bus fault
 injectors and the guardian run in the engine's bus (``enable_bus_errors`` ..., driven by
 ``hil.faults.bus.EngineBusFaults``).
@@ -20,7 +20,9 @@ import trainhil_engine as engine
 
 from hil.can.transmission import Transmission
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServerStats
-from hil.runtime.realtime.sockets import bind_unix_socket, check_server_args, listen_tcp, remove_endpoints, socket_path
+from hil.runtime.realtime.sockets import (
+    bind_unix_socket, check_server_args, listen_tcp, make_bell, remove_endpoints, socket_path,
+)
 from hil.record.runlog import BusLog
 
 LOG = logging.getLogger("hil.runtime.realtime.bus_server")
@@ -60,11 +62,19 @@ class NativeBusServer:
                 self._listener.close()
                 os.unlink(self.path)
                 raise
-        self._core = engine.BusServerCore(
-            self.channel, os.dup(self._listener.fileno()), None if tcp_sock is None else os.dup(tcp_sock.fileno()),
-            self.token, bitrate, policy, depth, extended, int(load_window_s * 1e9), self._pace, int(spin_us * 1000),
-            max_clients, hello_timeout_s, keep_log, fd, data_bitrate, radio)
-        self._listener.close()  # the engine owns its duplicate
+        bell_fd, self._bell_inode = make_bell(self.path)
+        try:
+            self._core = engine.BusServerCore(
+                self.channel, os.dup(self._listener.fileno()), None if tcp_sock is None else os.dup(tcp_sock.fileno()),
+                self.token, bitrate, policy, depth, extended, int(load_window_s * 1e9), self._pace, int(spin_us * 1000),
+                max_clients, hello_timeout_s, keep_log, fd, data_bitrate, radio, bell_fd)  # owns bell_fd from here
+        except BaseException:
+            self._listener.close()
+            if tcp_sock is not None:
+                tcp_sock.close()
+            remove_endpoints(self.path, self._inode, self.token_file, self._bell_inode)
+            raise
+        self._listener.close()  # the engine owns its duplicate, and the bell
         if tcp_sock is not None:
             tcp_sock.close()
         self._tcp = tcp
@@ -132,7 +142,7 @@ class NativeBusServer:
         self._feed_listeners()
         self._collect_log()
         self._closed = True
-        remove_endpoints(self.path, self._inode, self.token_file)
+        remove_endpoints(self.path, self._inode, self.token_file, self._bell_inode)
 
     def __enter__(self) -> "NativeBusServer":
         return self.start()

@@ -35,6 +35,14 @@ time, every frame for it that ended by then and a SYNC of that time, written at 
 ends only for eager nodes (python-can clients, the radio) and the error model; a lazy node blocks on its socket
 until the SYNC of its read time, so it sees exactly the frames that ended by then (``link.rs``).
 
+Quiet readers (HELLO options bit 2, OPTION_QUIET, with OPTION_LAZY; the rig's ECU and plant nodes on a server
+that has a bell): what the node writes does not wake the server, which reads it at its next wake-up (a read time,
+a frame end someone needs) and queues its frames at the instants they carry, as before. The node rings the bell,
+a FIFO beside the socket (``<bus>.bell``, mode 0o600), when the server must see a record now: a READ_EVERY, a
+frame the server hands over at its end. BELL records (kind 12) from the server say which frames those are:
+``flags`` BELL_EVERY (every frame: an eager node, the error model or the guardian is on the bus) and BELL_RESET
+(a new set starts), ``count`` IDs (u32, from byte 4) the radio takes; until the first, every frame rings.
+
 Session: the node sends HELLO (protocol version, options bit 0 = receive own messages, its name); the server
 answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id,
 and on a CAN FD bus its data bitrate: 0 means a classical bus, where FD frames are refused).
@@ -115,6 +123,8 @@ OPTION_RECEIVE_OWN = _int("OPTION_RECEIVE_OWN")
 OPTION_LAZY = _int("OPTION_LAZY")  # a lazy reader: its frames come at its read times (READ_EVERY), then a SYNC
 KIND_READ_EVERY = _int("KIND_READ_EVERY")  # lazy reader -> server: first read time (epoch s), period (s; 0: once)
 KIND_SYNC = _int("KIND_SYNC")  # server -> lazy reader: every frame that ended by this epoch second came before
+OPTION_QUIET = _int("OPTION_QUIET")  # a quiet lazy reader: its records wait for the server's next wake-up
+KIND_BELL = _int("KIND_BELL")  # server -> quiet reader: the frames it rings the bell for
 
 MATCH_ANY = _int("MATCH_ANY")
 MATCH_STANDARD = _int("MATCH_STANDARD")
@@ -216,12 +226,16 @@ def unpack_frame(record: bytes | bytearray | memoryview, offset: int = 0) -> Fra
     return Frame(can_id, data[:min(dlc, MAX_DLC)], flags, timestamp, dlc)
 
 
-def pack_hello(name: str, receive_own: bool = False, version: int = PROTOCOL_VERSION, lazy: bool = False) -> bytes:
-    """HELLO: the node's name and options (``receive_own``; ``lazy``: a lazy reader, see OPTION_LAZY)."""
+def pack_hello(name: str, receive_own: bool = False, version: int = PROTOCOL_VERSION, lazy: bool = False,
+               quiet: bool = False) -> bytes:
+    """HELLO: the node's name and options (``receive_own``; ``lazy``: a lazy reader, see OPTION_LAZY; ``quiet``: a
+    quiet one, see OPTION_QUIET)."""
     raw = name.encode()
     if not raw or len(raw) > NAME_BYTES or b"\0" in raw:
         raise ValueError(f"node name {name!r}: must be 1-{NAME_BYTES} bytes of UTF-8 without NUL")
-    options = (OPTION_RECEIVE_OWN if receive_own else 0) | (OPTION_LAZY if lazy else 0)
+    if quiet and not lazy:
+        raise ValueError("a quiet node must be a lazy reader")
+    options = (OPTION_RECEIVE_OWN if receive_own else 0) | (OPTION_LAZY if lazy else 0) | (OPTION_QUIET if quiet else 0)
     return HELLO.pack(KIND_HELLO, version, options, raw)
 
 

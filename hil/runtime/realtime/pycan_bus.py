@@ -30,8 +30,8 @@ from can import BusABC, CanInitializationError, CanOperationError, Message
 from can.typechecking import AutoDetectedConfig
 
 from hil.runtime.realtime.sockets import (
-    bus_sockets, check_private_dir, check_private_socket, parse_channel, parse_tcp_channel, read_token_file,
-    socket_is_live,
+    InsecureRunDirError, bus_sockets, check_private_dir, check_private_socket, open_bell, parse_channel,
+    parse_tcp_channel, read_token_file, socket_is_live,
 )
 from hil.runtime.realtime.protocol import (
     FLAG_BRS, FLAG_ECHO, FLAG_ERROR, FLAG_EXTENDED, FLAG_FD, FLAG_REMOTE, FRAME, KIND_FILTERS_ACK, KIND_FRAME,
@@ -72,18 +72,26 @@ class TrainhilBus(BusABC):
         except (ValueError, OSError) as exc:
             raise CanInitializationError(f"trainhil: {exc}") from exc
         name = node_name or f"pid{os.getpid()}.{next(_node_seq)}"
-        # lazy_reader: for the rig's own nodes, whose engine FrameLink then reads at the node's read times only
-        hello = pack_hello(name, receive_own_messages, lazy=lazy_reader)  # ValueError names a bad node name
-        if self._tcp is not None:
-            hello = pack_auth(self._tcp[2]) + hello  # the token goes first, or the server hangs up
-        self._sock = self._connect_tcp(connect_timeout) if self._tcp is not None else self._connect(connect_timeout)
+        # lazy_reader: for the rig's own nodes, whose engine FrameLink then reads at the node's read times only;
+        # quiet too where the server has a bell (protocol.OPTION_QUIET)
+        self._bell = self._open_bell() if lazy_reader else None
+        try:
+            hello = pack_hello(name, receive_own_messages, lazy=lazy_reader, quiet=self._bell is not None)
+            if self._tcp is not None:
+                hello = pack_auth(self._tcp[2]) + hello  # the token goes first, or the server hangs up
+            self._sock = self._connect_tcp(connect_timeout) if self._tcp is not None else self._connect(connect_timeout)
+        except BaseException:
+            self._close_bell()
+            raise
         try:
             welcome = self._handshake(hello, connect_timeout)
         except BaseException:
             self._sock.close()
+            self._close_bell()
             raise
         if self.fd and not welcome.fd_data_bitrate:
             self._sock.close()
+            self._close_bell()
             raise CanInitializationError(f"trainhil: fd=True, but the bus {self.channel_name!r} is classical CAN "
                                          "(its scenario sets can.fd = false)")
         self.node_name = name
@@ -212,6 +220,33 @@ class TrainhilBus(BusABC):
                                          f"{welcome.version}, this client {PROTOCOL_VERSION}")
         return welcome
 
+    def _open_bell(self) -> int | None:
+        """The server's bell (``<bus>.bell``) for a quiet lazy reader on a unix socket; None over TCP or where the
+        server has none."""
+        if self._tcp is not None or self.path is None:
+            return None
+        try:
+            return open_bell(self.path)
+        except InsecureRunDirError as exc:
+            raise CanInitializationError(f"trainhil: {exc}") from exc
+
+    def _close_bell(self) -> None:
+        if self._bell is not None:
+            os.close(self._bell)
+            self._bell = None
+
+    def bell_fileno(self) -> int | None:
+        """The write end of the server's bell if this node is a quiet reader (its FrameLink rings it), else None."""
+        return self._bell
+
+    def _ring(self) -> None:
+        """Wake the server for what this quiet node just wrote (a full FIFO already holds unread wake-ups)."""
+        if self._bell is not None:
+            try:
+                os.write(self._bell, b"!")
+            except BlockingIOError:
+                pass
+
     def _where(self) -> str:
         return f"{self._tcp[0]}:{self._tcp[1]}" if self._tcp is not None else str(self.path)
 
@@ -234,6 +269,7 @@ class TrainhilBus(BusABC):
         record = pack_frame(msg.arbitration_id, bytes(msg.data), flags)  # ValueError names a bad id or length
         with self._send_lock:
             self._write(record, timeout)
+            self._ring()
 
     def _write(self, record: bytes, timeout: float | None) -> None:
         """Write whole records; ``timeout`` only bounds the wait before the first byte (a started record is
@@ -324,12 +360,14 @@ class TrainhilBus(BusABC):
         self._filter_gen = (self._filter_gen + 1) & 0xFFFFFFFF
         with self._send_lock:
             self._write(pack_filters(parsed, self._filter_gen), None)
+            self._ring()
 
     def shutdown(self) -> None:
         if self._is_shutdown:
             return
         super().shutdown()
         self._sock.close()
+        self._close_bell()
 
     @staticmethod
     def _detect_available_configs() -> list[AutoDetectedConfig]:

@@ -11,6 +11,9 @@ Loopback TCP (a bus server started with ``tcp=True``): the server writes ``<run 
 host, port and the per-run token), and a client names the bus ``"tcp:<run>/<bus>"``, which finds all three
 there, so only the user who owns the run directory can connect; or ``"tcp://127.0.0.1:<port>"`` with the
 token given explicitly. Servers bind loopback addresses only (``LOOPBACK_HOSTS``).
+
+The bell: a bus server on the frame engine also makes ``<run dir>/<bus>.bell``, a FIFO (mode 0o600) that its quiet
+readers (the rig's own nodes) write a byte to when it must wake for what they sent (``protocol.OPTION_QUIET``).
 """
 from __future__ import annotations
 
@@ -33,6 +36,7 @@ MAX_SOCKET_PATH_BYTES = 107  # sizeof(sockaddr_un.sun_path) - 1 on Linux
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 CHANNEL_SYNTAX = '"<run>/<bus>" (e.g. "seed000/bus1") or an absolute path to a .sock file'
 TOKEN_SUFFIX = ".tcp"
+BELL_SUFFIX = ".bell"
 LOOPBACK_HOSTS = ("127.0.0.1", "::1")
 TCP_CHANNEL_SYNTAX = '"tcp:<run>/<bus>" (host, port and token read from the run directory) or "tcp://127.0.0.1:<port>"'
 
@@ -182,7 +186,7 @@ def remove_stale_run_dirs() -> list[str]:
             if any(f.suffix == SOCKET_SUFFIX and socket_is_live(f, 0.2) for f in files):
                 continue
             for f in files:
-                if f.suffix in (SOCKET_SUFFIX, TOKEN_SUFFIX):
+                if f.suffix in (SOCKET_SUFFIX, TOKEN_SUFFIX, BELL_SUFFIX):
                     f.unlink()
             d.rmdir()  # fails, and keeps the directory, if anything else is in it
             removed.append(d.name)
@@ -231,6 +235,43 @@ def check_loopback(host: str) -> str:
 def token_path(socket_file: Path) -> Path:
     """Where a bus server's TCP endpoint and token are written: beside its socket, ``<bus>.tcp``."""
     return socket_file.with_suffix(TOKEN_SUFFIX)
+
+
+def bell_path(socket_file: Path) -> Path:
+    """Where a bus server's bell is: beside its socket, ``<bus>.bell``."""
+    return socket_file.with_suffix(BELL_SUFFIX)
+
+
+def make_bell(socket_file: Path) -> tuple[int, int]:
+    """The server's end of its bell (see the module docstring): the FIFO made anew (mode 0o600) and opened
+    read-write, non-blocking (so it never reads as closed): (descriptor, inode). Called once the socket is bound,
+    so a bell left by a killed server of this bus is replaced, never a live one's."""
+    path = bell_path(socket_file)
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    os.mkfifo(path, 0o600)
+    os.chmod(path, 0o600)  # the umask may have taken bits, never added any: exactly owner read-write
+    fd = os.open(path, os.O_RDWR | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOFOLLOW)
+    return fd, os.fstat(fd).st_ino
+
+
+def open_bell(socket_file: Path) -> int | None:
+    """A quiet reader's end of the bus's bell (write-only, non-blocking), or None if its server has none (the
+    node then stays an ordinary lazy reader). A bell that is not a FIFO of ours, owner-only, is refused."""
+    path = bell_path(socket_file)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    if not stat.S_ISFIFO(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+        raise InsecureRunDirError(f"{path} must be a FIFO of yours with mode 0o600 (mode {stat.S_IMODE(st.st_mode):#o}, "
+                                  f"uid {st.st_uid}): refusing to use it")
+    try:
+        return os.open(path, os.O_WRONLY | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOFOLLOW)
+    except OSError:  # ENXIO: nobody reads it (its server is gone)
+        return None
 
 
 def write_token_file(path: Path, host: str, port: int, token: bytes) -> None:
@@ -338,8 +379,16 @@ def check_server_args(run: str, bus: str, tcp: bool, tcp_host: str, spin_us: flo
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock, 0.5 = half speed)")
 
 
-def remove_endpoints(path: Path, inode: int, token_file: Path | None) -> None:
-    """Remove a closed server's token file and its socket, if the socket is still the one it made (same inode)."""
+def remove_endpoints(path: Path, inode: int, token_file: Path | None, bell_inode: int | None = None) -> None:
+    """Remove a closed server's token file, and its socket and bell if they are still the ones it made (same
+    inodes)."""
+    if bell_inode is not None:
+        bell = bell_path(path)
+        try:
+            if os.lstat(bell).st_ino == bell_inode:
+                os.unlink(bell)
+        except FileNotFoundError:
+            pass
     if token_file is not None:
         try:
             os.unlink(token_file)
