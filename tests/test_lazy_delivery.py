@@ -116,3 +116,81 @@ def test_a_node_on_several_buses_asks_each_bus_once_for_a_read_several_events_sh
         frames._wait_synced(sim_t, stop=False)
     assert [len(link.asked) for link in frames.links] == [1, 1]
     assert all(link.synced == frames._epoch(sim_t) for link in frames.links)
+
+
+def quiet_link(name: str) -> tuple[TrainhilBus, engine.FrameLink]:
+    bus = TrainhilBus("lz/bus1", node_name=name, lazy_reader=True, quiet=True)
+    assert bus.bell_fileno() is not None  # the engine's server has a bell
+    return bus, engine.FrameLink(bus.fileno(), 0.0, 1.0, keep=True, lazy=True, bell=bus.bell_fileno())
+
+
+def test_a_quiet_nodes_frames_do_not_wake_the_server_and_end_as_if_they_had(server):
+    """The server reads a quiet node's frames at its next wake-up (here a reader's SYNC), queued at the instants
+    they carry, so the reader gets them with the ends they would have had; the sends woke the server at most at
+    its load windows, not once each."""
+    quiet_bus, quiet = quiet_link("Q")
+    reader_bus, reader = lazy_link("R")
+    try:
+        t0 = time.time() + 0.02
+        quiet.read_every(t0, 0.0)
+        assert quiet.sync_to(t0, 1.0)  # the node has read the server's BELL record: nothing to ring for
+        time.sleep(0.01)
+        before = server.stats.wake_ups
+        sent_at = []
+        for k in range(8):
+            sent_at.append(time.time())
+            quiet.send([(0x100 + k, bytes(8))])
+            time.sleep(0.002)
+        woke = server.stats.wake_ups - before
+        assert woke <= 2, f"{woke} wake-ups for 8 quiet sends (load windows only: at most 2 in 16 ms)"
+        t_read = time.time() + 0.01
+        reader.read_every(t_read, 0.0)
+        assert reader.sync_to(t_read, 1.0)
+        got = reader.take()
+        assert [fid for fid, _, _ in got] == [0x100 + k for k in range(8)]
+        one_frame = frame_bits(0x100, bytes(8)) / BITRATE  # about 1 ms: each ends before the next is sent
+        for (_, _, stamp), t_sent in zip(got, sent_at):
+            # from its own instant (the server's epoch clock is the monotonic one: 0.1 ms for the two clocks' drift)
+            assert -1e-4 <= stamp - (t_sent + one_frame) < 3e-4, stamp - t_sent
+    finally:
+        quiet_bus.shutdown()
+        reader_bus.shutdown()
+
+
+def test_an_eager_node_on_the_bus_makes_quiet_nodes_ring_for_every_frame(server):
+    """An eager node takes frames as they end, so quiet nodes are told to ring for every frame: the eager node
+    hears a quiet node's frame at its end, not at the server's next wake-up."""
+    quiet_bus, quiet = quiet_link("Q")
+    eager = TrainhilBus("lz/bus1", node_name="E")
+    try:
+        t0 = time.time() + 0.02
+        quiet.read_every(t0, 0.0)
+        assert quiet.sync_to(t0, 1.0)  # takes in the BELL record sent when the eager node joined
+        quiet.send([(0x123, bytes(8))])
+        msg = eager.recv(1.0)
+        assert msg is not None and msg.arbitration_id == 0x123
+        assert time.time() - msg.timestamp < 0.02  # at its end, not at the server's next load window (0.1 s)
+    finally:
+        quiet_bus.shutdown()
+        eager.shutdown()
+
+
+def test_each_ecu_a_process_hosts_sends_from_its_own_tx_queue(rt):
+    """Frames sent as two senders of one connection wait in two TX queues, as two controllers' frames would: on a
+    FIFO bus the second sender's frame goes before the first sender's queued one."""
+    with NativeBusServer("lzf", "bus1", BITRATE, policy="fifo", log=BusLog("bus1", BITRATE)):
+        host_bus = TrainhilBus("lzf/bus1", node_name="H")
+        host = engine.FrameLink(host_bus.fileno(), 0.0, 1.0)
+        listener = TrainhilBus("lzf/bus1", node_name="L")
+        try:
+            host.send([(0x400, bytes(8))])  # on the wire for about 1 ms
+            time.sleep(0.0003)
+            host.send([(0x300, bytes(8))], sender=0)
+            host.send([(0x100, bytes(8))], sender=1)
+            order = [m.arbitration_id for m in iter(lambda: listener.recv(0.5), None)]
+            assert order == [0x400, 0x100, 0x300]
+            with pytest.raises(ValueError, match="sender 64"):
+                host.send([(0x100, bytes(8))], sender=64)
+        finally:
+            host_bus.shutdown()
+            listener.shutdown()

@@ -273,8 +273,10 @@ class FrameLink:
     def pump(self) -> int: ...
     def take(self) -> list[tuple[int, bytes, float]]: ...
     def send(self, frames: Sequence[tuple[int, bytes]], extended: bool = False, fd: bool = False,
-             brs: bool = True) -> None:
-        """FRAME records of [(frame_id, data)]: 29-bit IDs with ``extended``, CAN FD frames with ``fd`` (and BRS)."""
+             brs: bool = True, sender: int = 0) -> None:
+        """FRAME records of [(frame_id, data)]: 29-bit IDs with ``extended``, CAN FD frames with ``fd`` (and BRS);
+        ``sender``: which of the connection's senders (0..MAX_SENDERS-1) sends them: each has its own TX queue on
+        the bus, as a separate CAN controller (a process hosting several ECUs sends each as its own)."""
     def send_encoded(self, outputs: Sequence[tuple[MessageCodec, Sequence[float], int]], extended: bool = False,
-                     fd: bool = False, brs: bool = True) -> None:
+                     fd: bool = False, brs: bool = True, sender: int = 0) -> None:
         """One ECU cycle's outputs (message, values, alive counter), encoded and sent as ``send`` does, in one call."""

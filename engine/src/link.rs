@@ -11,7 +11,7 @@
 
 use std::os::fd::RawFd;
 
-use crate::protocol::{pack_frame_records, pack_read_every, read_frames, BellSet, RECORD_SIZE};
+use crate::protocol::{pack_frame_records_from, pack_read_every, read_frames, BellSet, MAX_SENDERS, RECORD_SIZE};
 
 /// Why the link cannot go on.
 #[derive(Debug)]
@@ -20,6 +20,8 @@ pub enum LinkError {
     Closed,
     /// A frame's payload is longer than its format carries: (frame ID, length, limit).
     TooLong(u32, usize, usize),
+    /// A sender index at or above MAX_SENDERS.
+    Sender(usize),
     Io(std::io::Error),
 }
 
@@ -28,6 +30,7 @@ impl std::fmt::Display for LinkError {
         match self {
             LinkError::Closed => write!(f, "bus link: the bus server closed the connection"),
             LinkError::TooLong(id, len, limit) => write!(f, "frame {id:#x}: {len} data bytes > {limit}"),
+            LinkError::Sender(k) => write!(f, "sender {k}: a connection has senders 0..{}", MAX_SENDERS - 1),
             LinkError::Io(e) => write!(f, "bus link: {e}"),
         }
     }
@@ -148,7 +151,11 @@ impl Link {
     /// Write `frames` as FRAME records with `flags`, stamped `stamp` (the epoch second they were sent, which a lazy
     /// link's server queues them at; 0: when the server reads them); an FD frame's payload is padded to a CAN FD
     /// length. Waits while the socket is full. A quiet link rings the bell if one of them must be seen now.
-    pub fn send(&self, frames: &[(u32, &[u8])], flags: u8, stamp: f64) -> Result<(), LinkError> {
+    /// `sender`: which of the connection's senders they are from (its own TX queue on the bus; see MAX_SENDERS).
+    pub fn send(&self, frames: &[(u32, &[u8])], flags: u8, stamp: f64, sender: usize) -> Result<(), LinkError> {
+        if sender >= MAX_SENDERS {
+            return Err(LinkError::Sender(sender));
+        }
         let fd = flags & crate::protocol::FLAG_FD != 0;
         let limit = if fd { crate::frame::MAX_DATA } else { crate::protocol::MAX_DLC };
         if let Some((id, data)) = frames.iter().find(|(_, d)| d.len() > limit) {
@@ -159,7 +166,7 @@ impl Link {
             let padded = if fd { crate::frame::fd_padded_len(data.len()).unwrap_or(data.len()) } else { data.len() };
             let mut payload = data.to_vec();
             payload.resize(padded, 0);
-            pack_frame_records(id, &payload, flags, stamp, &mut out);
+            pack_frame_records_from(id, &payload, flags, stamp, sender as u8, &mut out);
         }
         self.write_all(&out)?;
         if frames.iter().any(|&(id, _)| self.rings_for(id)) {
@@ -202,14 +209,14 @@ mod tests {
         a.set_nonblocking(true).unwrap();
         b.set_nonblocking(true).unwrap();
         let (tx, mut rx) = (Link::new(a.as_raw_fd()), Link::new(b.as_raw_fd()));
-        tx.send(&[(0x10, &[1, 2]), (0x11, &[3; 8])], 0, 0.0).unwrap();
-        tx.send(&[(0x12, &[7; 13])], FLAG_FD | FLAG_BRS, 0.0).unwrap(); // padded to 16
+        tx.send(&[(0x10, &[1, 2]), (0x11, &[3; 8])], 0, 0.0, 0).unwrap();
+        tx.send(&[(0x12, &[7; 13])], FLAG_FD | FLAG_BRS, 0.0, 0).unwrap(); // padded to 16
         let mut got = Vec::new();
         rx.pump(|id, flags, _, d| got.push((id, flags, d.to_vec()))).unwrap();
         let mut long = vec![7; 13];
         long.resize(16, 0);
         assert_eq!(got, vec![(0x10, 0, vec![1, 2]), (0x11, 0, vec![3; 8]), (0x12, FLAG_FD | FLAG_BRS, long)]);
-        assert!(matches!(tx.send(&[(0x13, &[0; 9])], 0, 0.0), Err(LinkError::TooLong(0x13, 9, 8))));
+        assert!(matches!(tx.send(&[(0x13, &[0; 9])], 0, 0.0, 0), Err(LinkError::TooLong(0x13, 9, 8))));
         drop(a);
         assert!(matches!(rx.pump(|_, _, _, _| {}), Err(LinkError::Closed)));
     }
@@ -252,15 +259,15 @@ mod tests {
             s.set_nonblocking(true).unwrap();
         }
         let mut link = Link::quiet(node.as_raw_fd(), bell_w.as_raw_fd());
-        link.send(&[(0x10, &[1])], 0, 1.0).unwrap();
+        link.send(&[(0x10, &[1])], 0, 1.0, 0).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 1); // no BELL record yet: every frame rings
         use std::io::Write;
         (&server).write_all(&crate::protocol::pack_bell(false, &[0x20])).unwrap();
         (&server).write_all(&crate::protocol::pack_sync(1.5)).unwrap(); // read in stream order, at a read time
         assert!(link.wait_synced(1.5, 1.0, |_, _, _, _| {}).unwrap());
-        link.send(&[(0x10, &[1]), (0x11, &[2])], 0, 1.0).unwrap();
+        link.send(&[(0x10, &[1]), (0x11, &[2])], 0, 1.0, 0).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 0); // the server does not need these now
-        link.send(&[(0x10, &[1]), (0x20, &[2])], 0, 1.0).unwrap();
+        link.send(&[(0x10, &[1]), (0x20, &[2])], 0, 1.0, 0).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 1);
         link.read_every(2.0, 0.01).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 1);

@@ -62,6 +62,10 @@ pub const KIND_READ_EVERY: u8 = 10;
 pub const KIND_SYNC: u8 = 11;
 /// A SYNC within this of a read time is that read time's: epoch seconds in an f64 resolve about 0.24 µs.
 pub const SYNC_TOLERANCE_S: f64 = 1e-6;
+/// Senders one connection may have (FRAME byte 3): a node process hosting several ECUs sends each one's frames as
+/// its own sender, and the server keeps a bus node, with its own TX queue, per sender, as separate CAN
+/// controllers would have. Sender 0 is the connection's own node.
+pub const MAX_SENDERS: usize = 64;
 /// Read schedules one lazy reader may hold at once.
 pub const MAX_READ_SCHEDULES: usize = 256;
 /// HELLO options: bit 2, a quiet lazy reader (with OPTION_LAZY). Its records do not wake the server, which reads
@@ -103,7 +107,7 @@ pub fn constants() -> Vec<(&'static str, f64)> {
         ("KIND_READ_EVERY", KIND_READ_EVERY as f64), ("KIND_SYNC", KIND_SYNC as f64),
         ("MAX_READ_SCHEDULES", MAX_READ_SCHEDULES as f64), ("OPTION_QUIET", OPTION_QUIET as f64),
         ("KIND_BELL", KIND_BELL as f64), ("BELL_EVERY", BELL_EVERY as f64), ("BELL_RESET", BELL_RESET as f64),
-        ("BELL_IDS_PER_RECORD", BELL_IDS_PER_RECORD as f64),
+        ("BELL_IDS_PER_RECORD", BELL_IDS_PER_RECORD as f64), ("MAX_SENDERS", MAX_SENDERS as f64),
     ]
 }
 
@@ -165,10 +169,16 @@ pub fn frame_error(can_id: u32, dlc: u8, flags: u8, fd_bus: bool) -> Option<Stri
 
 /// A FRAME record as the server sends it: the first 8 data bytes (`dlc` says how many there are in all).
 pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECORD_SIZE] {
+    pack_frame_from(can_id, data, flags, stamp, 0)
+}
+
+/// A FRAME record from one of the connection's senders (see MAX_SENDERS).
+pub fn pack_frame_from(can_id: u32, data: &[u8], flags: u8, stamp: f64, sender: u8) -> [u8; RECORD_SIZE] {
     let mut r = [0u8; RECORD_SIZE];
     r[0] = KIND_FRAME;
     r[1] = flags;
     r[2] = data.len() as u8;
+    r[3] = sender;
     r[4..8].copy_from_slice(&can_id.to_le_bytes());
     r[8..16].copy_from_slice(&stamp.to_le_bytes());
     let head = data.len().min(8);
@@ -178,7 +188,12 @@ pub fn pack_frame(can_id: u32, data: &[u8], flags: u8, stamp: f64) -> [u8; RECOR
 
 /// A frame as records: its FRAME record, then FRAME_DATA records for a payload above 8 bytes.
 pub fn pack_frame_records(can_id: u32, data: &[u8], flags: u8, stamp: f64, out: &mut Vec<u8>) {
-    out.extend_from_slice(&pack_frame(can_id, data, flags, stamp));
+    pack_frame_records_from(can_id, data, flags, stamp, 0, out);
+}
+
+/// `pack_frame_records` from one of the connection's senders (see MAX_SENDERS).
+pub fn pack_frame_records_from(can_id: u32, data: &[u8], flags: u8, stamp: f64, sender: u8, out: &mut Vec<u8>) {
+    out.extend_from_slice(&pack_frame_from(can_id, data, flags, stamp, sender));
     for chunk in data.get(8..).unwrap_or(&[]).chunks(FRAME_DATA_BYTES) {
         let mut r = [0u8; RECORD_SIZE];
         r[0] = KIND_FRAME_DATA;
@@ -359,7 +374,7 @@ mod tests {
         assert_eq!(sorted.len(), kinds.len());
         let flags = [FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_ECHO, FLAG_FD, FLAG_BRS];
         assert_eq!(flags.iter().fold(0u8, |acc, f| { assert_eq!(acc & f, 0); acc | f }), KNOWN_FLAGS);
-        assert_eq!(constants().len(), 42);
+        assert_eq!(constants().len(), 43);
     }
 
     #[test]

@@ -51,6 +51,8 @@ struct LongFrame {
     keep: bool,
     /// When it was queued (bus ns).
     t: u64,
+    /// The bus node it is queued as (the connection's sender).
+    node: usize,
 }
 
 /// Settings of one server.
@@ -154,9 +156,16 @@ struct Client {
     reads: Vec<(u64, u64)>,
     /// A quiet lazy reader (`OPTION_QUIET`): its records do not wake the loop (it rings the bell when they must).
     quiet: bool,
+    /// The bus nodes of its senders 1, 2, ... (FRAME byte 3; sender 0 is `node`), attached at their first frame.
+    senders: Vec<usize>,
 }
 
 impl Client {
+    /// Whether bus node `node` is one of this connection's (its own or a sender's).
+    fn owns(&self, node: usize) -> bool {
+        self.node == Some(node) || self.senders.contains(&node)
+    }
+
     /// Queue bytes the node must get now (handshake answers), with everything before them.
     fn push_now(&mut self, bytes: &[u8]) {
         self.out.extend_from_slice(bytes);
@@ -668,7 +677,7 @@ impl Server {
         for &i in &receivers {
             let c = &mut self.clients[i];
             let mut rec = record;
-            if c.node == Some(tx.node) {
+            if c.owns(tx.node) {
                 if !c.receive_own {
                     continue;
                 }
@@ -797,7 +806,7 @@ impl Server {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
                 authed: !tcp, t_open: Instant::now(), long: None, rx_off: 0, flush_to: 0, lazy: false, reads: Vec::new(),
-                quiet: false,
+                quiet: false, senders: Vec::new(),
             });
         }
     }
@@ -970,8 +979,7 @@ impl Server {
                     if !long.keep {
                         return Ok(());
                     }
-                    let node = self.clients[i].node.unwrap();
-                    shared.bus.enqueue_as(node, long.can_id, &long.data, long.t, Some(long.flags & FLAG_EXTENDED != 0),
+                    shared.bus.enqueue_as(long.node, long.can_id, &long.data, long.t, Some(long.flags & FLAG_EXTENDED != 0),
                                           record_format(long.flags));
                     if shared.bus.current.is_none() {
                         self.arbitrate_at.get_or_insert(long.t); // else it competes at the end of the frame on the wire
@@ -981,12 +989,12 @@ impl Server {
             }
             KIND_FRAME if has_node => {
                 let (flags, dlc, can_id) = (r[1], r[2], u32_at(r, 4));
+                let node = self.sender_node(shared, i, r[3] as usize)?;
                 match frame_error(can_id, dlc, flags, shared.bus.format.is_fd()) {
                     None if dlc > 8 => {
-                        self.clients[i].long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: true, t: now });
+                        self.clients[i].long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: true, t: now, node });
                     }
                     None => {
-                        let node = self.clients[i].node.unwrap();
                         shared.bus.enqueue_as(node, can_id, &r[16..16 + dlc as usize], now, Some(flags & FLAG_EXTENDED != 0),
                                               record_format(flags));
                         if shared.bus.current.is_none() {
@@ -996,7 +1004,7 @@ impl Server {
                     Some(why) => {
                         let c = &mut self.clients[i];
                         if dlc > 8 {
-                            c.long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: false, t: now });
+                            c.long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: false, t: now, node });
                         }
                         c.rejected += 1;
                         shared.rejected += 1;
@@ -1072,6 +1080,23 @@ impl Server {
         Ok(())
     }
 
+    /// The bus node of node `i`'s sender `k` (FRAME byte 3), attached as "<name>.<k>" at its first frame: its own
+    /// TX queue, as a separate controller has.
+    fn sender_node(&mut self, shared: &mut Shared, i: usize, k: usize) -> Result<usize, Fault> {
+        let c = &mut self.clients[i];
+        if k == 0 {
+            return Ok(c.node.expect("a FRAME is taken after HELLO"));
+        }
+        if k >= MAX_SENDERS {
+            return Err(Fault::Protocol(format!("FRAME from sender {k} of node {}: senders are 0..{}", c.name, MAX_SENDERS - 1)));
+        }
+        while c.senders.len() < k {
+            let name = format!("{}.{}", c.name, c.senders.len() + 1);
+            c.senders.push(shared.bus.attach(&name, Sink::None, None, false));
+        }
+        Ok(c.senders[k - 1])
+    }
+
     fn apply_filters(&mut self, i: usize) {
         let c = &mut self.clients[i];
         let set = c.pending.take().unwrap_or_default();
@@ -1092,7 +1117,7 @@ impl Server {
         }
         self.rx_cache.clear();
         if let Some(node) = c.node {
-            let lost = shared.bus.detach(node);
+            let lost = shared.bus.detach(node) + c.senders.iter().map(|&n| shared.bus.detach(n)).sum::<usize>();
             shared.messages.push(("INFO".into(), format!("bus {}: node {} (#{}) left ({why}); {lost} queued frames dropped",
                                                          self.cfg.channel, c.name, c.cid)));
         }
@@ -1115,11 +1140,12 @@ mod tests {
 
     /// A server on a socket in its own temporary directory: (handle, socket path, directory).
     fn serve(tag: &str, bitrate: u64, data_bitrate: u64, format: Format) -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
-        serve_with(tag, bitrate, data_bitrate, format, 100_000_000, None)
+        serve_with(tag, bitrate, data_bitrate, format, Policy::Priority, 100_000_000, None)
     }
 
     /// `serve` with a load window and a bell (the read end of a socket pair standing for the FIFO).
-    fn serve_with(tag: &str, bitrate: u64, data_bitrate: u64, format: Format, load_window_ns: u64, bell: Option<std::fs::File>)
+    fn serve_with(tag: &str, bitrate: u64, data_bitrate: u64, format: Format, policy: Policy, load_window_ns: u64,
+                  bell: Option<std::fs::File>)
                   -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
         let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
@@ -1127,12 +1153,48 @@ mod tests {
         let _ = std::fs::remove_file(&path);
         let listener = UnixListener::bind(&path).unwrap();
         let cfg = ServerConfig {
-            channel: "t/b".into(), bitrate, data_bitrate, format, policy: Policy::Priority, depth: 8, extended: false,
+            channel: "t/b".into(), bitrate, data_bitrate, format, policy, depth: 8, extended: false,
             load_window_ns, pace: 1.0, spin_ns: 0, max_clients: 8, hello_timeout: Duration::from_secs(5),
             keep_log: true, token: None,
         };
         use std::os::fd::IntoRawFd;
         (start(cfg, listener.into_raw_fd(), None, bell, None).unwrap(), path, dir)
+    }
+
+    /// One connection's frames from two senders wait in two TX queues, as two controllers' would: on a FIFO bus
+    /// the second sender's frame competes with the first's head at once (one queue would send it after).
+    #[test]
+    fn each_sender_of_a_connection_has_its_own_tx_queue() {
+        let (mut handle, path, dir) = serve_with("senders", 10_000, 10_000, Format::Classical, Policy::Fifo, 100_000_000, None);
+        let connect = |name: &str| {
+            let mut s = UnixStream::connect(&path).unwrap();
+            s.write_all(&hello(name)).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            s
+        };
+        let (mut host, mut reader) = (connect("H"), connect("R"));
+        host.write_all(&pack_frame(0x400, &[1], 0, 0.0)).unwrap(); // on the wire for about 6 ms at 10 kbit/s
+        std::thread::sleep(Duration::from_millis(2));
+        let mut batch = Vec::new();
+        batch.extend_from_slice(&pack_frame(0x300, &[2], 0, 0.0));
+        batch.extend_from_slice(&pack_frame_from(0x100, &[3], 0, 0.0, 1));
+        host.write_all(&batch).unwrap();
+        let mut order = Vec::new();
+        let mut rec = [0u8; RECORD_SIZE];
+        while order.len() < 3 {
+            reader.read_exact(&mut rec).unwrap();
+            order.push(u32_at(&rec, 4));
+        }
+        assert_eq!(order, vec![0x400, 0x100, 0x300]);
+        let mut bad = pack_frame(0x100, &[3], 0, 0.0);
+        bad[3] = MAX_SENDERS as u8;
+        host.write_all(&bad).unwrap();
+        assert_eq!(host.read(&mut rec).unwrap_or(0), 0, "a sender beyond MAX_SENDERS ends the session");
+        assert_eq!(handle.shared.lock().unwrap().bad.protocol_errors, 1);
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     fn turns(handle: &ServerHandle) -> u64 {
@@ -1146,7 +1208,7 @@ mod tests {
     fn a_quiet_nodes_frame_waits_for_the_next_wake_up_and_keeps_its_instant_and_its_bell_wakes_the_server() {
         let (bell_w, bell_r) = UnixStream::pair().unwrap();
         bell_r.set_nonblocking(true).unwrap();
-        let (mut handle, path, dir) = serve_with("quiet", 500_000, 500_000, Format::Classical, 1_000_000_000,
+        let (mut handle, path, dir) = serve_with("quiet", 500_000, 500_000, Format::Classical, Policy::Priority, 1_000_000_000,
                                                  Some(std::fs::File::from(std::os::fd::OwnedFd::from(bell_r))));
         let connect = |name: &str, options: u8| {
             let mut s = UnixStream::connect(&path).unwrap();

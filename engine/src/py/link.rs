@@ -44,7 +44,7 @@ fn epoch_now() -> f64 {
 fn link_err(e: LinkError) -> PyErr {
     match e {
         LinkError::Closed => pyo3::exceptions::PyConnectionError::new_err(e.to_string()),
-        LinkError::TooLong(..) => PyValueError::new_err(e.to_string()),
+        LinkError::TooLong(..) | LinkError::Sender(_) => PyValueError::new_err(e.to_string()),
         LinkError::Io(_) => pyo3::exceptions::PyOSError::new_err(e.to_string()),
     }
 }
@@ -161,25 +161,26 @@ impl FrameLink {
     }
 
     /// Send frames [(frame_id, data)] as FRAME records: `extended` for 29-bit IDs, `fd` for CAN FD frames (with
-    /// the bit-rate switch unless `brs` is false).
-    #[pyo3(signature = (frames, extended = false, fd = false, brs = true))]
-    fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
+    /// the bit-rate switch unless `brs` is false); `sender`: which of the connection's senders sends them (each
+    /// its own TX queue on the bus, as separate controllers; 0..MAX_SENDERS-1).
+    #[pyo3(signature = (frames, extended = false, fd = false, brs = true, sender = 0))]
+    fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool, sender: usize) -> PyResult<()> {
         let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
-        self.send_batch(&batch, extended, fd, brs)
+        self.send_batch(&batch, extended, fd, brs, sender)
     }
 
     /// Encode one ECU cycle's outputs [(codec, values, counter)] and send them as `send` does, in one call.
-    #[pyo3(signature = (outputs, extended = false, fd = false, brs = true))]
-    fn send_encoded(&self, outputs: Vec<Output<'_>>, extended: bool, fd: bool, brs: bool) -> PyResult<()> {
+    #[pyo3(signature = (outputs, extended = false, fd = false, brs = true, sender = 0))]
+    fn send_encoded(&self, outputs: Vec<Output<'_>>, extended: bool, fd: bool, brs: bool, sender: usize) -> PyResult<()> {
         let frames = encode_outputs(&outputs)?;
         let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_slice())).collect();
-        self.send_batch(&batch, extended, fd, brs)
+        self.send_batch(&batch, extended, fd, brs, sender)
     }
 }
 
 impl FrameLink {
     /// FRAME records of a batch (packed into containers with a packing); a lazy link stamps them now.
-    fn send_batch(&self, batch: &[(u32, &[u8])], extended: bool, fd: bool, brs: bool) -> PyResult<()> {
+    fn send_batch(&self, batch: &[(u32, &[u8])], extended: bool, fd: bool, brs: bool, sender: usize) -> PyResult<()> {
         let flags = if extended { FLAG_EXTENDED } else { 0 } | format_flags(Format::of(fd, brs));
         let limit = if fd { MAX_DATA } else { crate::protocol::MAX_DLC };
         if let Some((id, data)) = batch.iter().find(|(_, d)| d.len() > limit) {
@@ -191,6 +192,6 @@ impl FrameLink {
         };
         let parts: Vec<(u32, &[u8])> = packed.iter().map(|(id, d)| (*id, d.as_slice())).collect();
         let stamp = if self.lazy { epoch_now() } else { 0.0 };
-        self.link.send(&parts, flags, stamp).map_err(link_err)
+        self.link.send(&parts, flags, stamp, sender).map_err(link_err)
     }
 }

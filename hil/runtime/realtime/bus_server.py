@@ -43,6 +43,7 @@ class BusServerStats:
     auth_failures: int = 0  # TCP connections refused for a missing or wrong token
     clients_refused: int = 0  # connections refused: not loopback, or more than max_clients
     tcp_port: int | None = None  # the loopback TCP port, when listening on TCP
+    wake_ups: int = 0  # turns of the serving loop so far (each a wake-up of its thread)
 
     def as_dict(self) -> dict:
         return asdict(self)

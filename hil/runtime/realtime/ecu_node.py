@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
+from typing import Iterable
 
 from ecu_sim.runtime import cycle_and_send
 from hil.faults.schedule import needs_fault_machinery
@@ -119,10 +120,12 @@ def timing_name(layout, u: int) -> str:
 
 class UnitCycles:
     """Each hosted unit's cycle as a kernel event: cycle the firmware, send its frames, book its lateness, and
-    schedule the next deadline (a unit more than one cycle late skips to its next future deadline)."""
+    schedule the next deadline (a unit more than one cycle late skips to its next future deadline). Each unit
+    sends as its own sender on its bus (its own TX queue there, as its own CAN controller would have)."""
 
     def __init__(self, kernel: PacedKernel, sc, layout, ecus: dict, io, bus_of: dict, out: Path | None) -> None:
         self.kernel, self.ecus, self.io, self.bus_of = kernel, ecus, io, bus_of
+        self.sender = senders(ecus, bus_of)
         self.cycle_s = sc.ecu.cycle_s
         self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace, None if out is None else out / timing_name(layout, u))
                       for u in ecus}
@@ -135,12 +138,29 @@ class UnitCycles:
         u, deadline = item
         now = self.kernel.clock.now()
         ecu = self.ecus[u]
-        cycle_and_send(ecu, now, self.bus_of[u], self.io.send_outputs, self.io.send)
+        cycle_and_send(ecu, now, u, self._send_outputs, self._send)
         if self.watchdog is not None:
             _watch(self.watchdog, self.ecus, u, now)
         overrun = self.stats[u].add(now - deadline, deadline)
         self.stats[u].skipped += overrun
         self.schedule(u, deadline + (1 + overrun) * self.cycle_s)
+
+
+    def _send_outputs(self, u: int, outputs: list) -> None:
+        self.io.send_outputs(self.bus_of[u], outputs, self.sender[u])
+
+    def _send(self, u: int, frames: list[tuple[int, bytes]]) -> None:
+        self.io.send(self.bus_of[u], frames, self.sender[u])
+
+
+def senders(units: Iterable[int], bus_of: dict[int, int]) -> dict[int, int]:
+    """Each hosted unit's sender on its bus: its rank among the units this process hosts on that bus."""
+    count: dict[int, int] = {}
+    sender = {}
+    for u in sorted(units):
+        sender[u] = count.get(bus_of[u], 0)
+        count[bus_of[u]] = sender[u] + 1
+    return sender
 
 
 def _watch(watchdog: Watchdog, ecus: dict, u: int, now: float) -> None:

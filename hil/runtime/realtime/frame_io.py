@@ -5,8 +5,10 @@ SocketCAN. Both have one interface, so the node loops do not care which:
   wall seconds polled), handing every frame to ``on_frame(bus, frame_id, data, t_sim)`` or, for ECU mailboxes
   routed with ``route``, straight into the mailbox;
 * ``drain(on_frame)``: whatever waits now; ``wait_any(wall_s, on_frame)``: the first frames within ``wall_s``;
-* ``send(bus, frames)``: queue ``[(frame_id, data)]`` on bus ``bus``; ``send_outputs(bus, outputs)``: an ECU
-  cycle's unencoded outputs ``[(codec, values, counter)]``, encoded and sent by the engine in one call;
+* ``send(bus, frames, sender=0)``: queue ``[(frame_id, data)]`` on bus ``bus``; ``send_outputs(bus, outputs,
+  sender=0)``: an ECU cycle's unencoded outputs ``[(codec, values, counter)]``, encoded and sent by the engine in
+  one call. ``sender``: which of the node's ECUs sends them; on the emulated bus each has its own TX queue, as
+  separate CAN controllers (protocol.MAX_SENDERS); on SocketCAN the kernel queues a socket's frames in one;
 * ``read_every(first, period, buses)``: the node's read times (simulated s) on some buses, for a lazy reader.
 
 A lazy reader (``lazy=True``, the ECU and plant nodes on the emulated buses) tells its bus servers when it reads
@@ -150,11 +152,11 @@ class EngineFrames:
                 return
             engine.wait_readable([link.fd for link in waiting], min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S))
 
-    def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
-        self.links[bus].send(frames, self.extended, self.fd, self.brs)
+    def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0) -> None:
+        self.links[bus].send(frames, self.extended, self.fd, self.brs, sender)
 
-    def send_outputs(self, bus: int, outputs: list[Output]) -> None:
-        self.links[bus].send_encoded(outputs, self.extended, self.fd, self.brs)
+    def send_outputs(self, bus: int, outputs: list[Output], sender: int = 0) -> None:
+        self.links[bus].send_encoded(outputs, self.extended, self.fd, self.brs, sender)
 
 
 class PythonCanFrames:
@@ -199,10 +201,11 @@ class PythonCanFrames:
         self._handler = on_frame
         wait_until(self.clock, sim_t, self.buses, self._on_msg, spin_s)
 
-    def send_outputs(self, bus: int, outputs: list[Output]) -> None:
+    def send_outputs(self, bus: int, outputs: list[Output], sender: int = 0) -> None:
         self.send(bus, encode_outputs(outputs))
 
-    def send(self, bus: int, frames: list[tuple[int, bytes]]) -> None:
+    def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0) -> None:
+        """``sender`` is not told apart: the kernel queues one socket's frames together."""
         for frame_id, data in self.packing.pack(frames) if self.packing is not None else frames:
             self.buses[bus].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended,
                                              is_fd=self.fd, bitrate_switch=self.fd and self.brs))

@@ -40,7 +40,8 @@ def open_bus(run: str, train: int, ids: Iterable[int], can_cfg: CanConfig, name:
     ``receive_own``: the node hears its own frames back (stamped with their end of transmission), which a process
     hosting several ECUs of one bus needs so they hear each other as separate ECUs would. ``packing``: the node
     also accepts the CAN FD containers that carry any of ``ids`` (its frame I/O unpacks them). ``lazy``: on the
-    emulated bus, a lazy reader: its frames come at its read times (``frame_io.EngineFrames(lazy=True)``)."""
+    emulated bus, a lazy reader: its frames come at its read times (``frame_io.EngineFrames(lazy=True)``), and a
+    quiet one where its server has a bell (its sends wake the server only when needed: its FrameLink rings)."""
     extended = can_cfg.extended_ids
     mask = 0x1FFFFFFF if extended else 0x7FF
     ids = sorted(set(ids))
@@ -53,4 +54,4 @@ def open_bus(run: str, train: int, ids: Iterable[int], can_cfg: CanConfig, name:
         return can.Bus(interface="socketcan", channel=can_cfg.socketcan_channels[train], can_filters=filters,
                        receive_own_messages=receive_own, fd=can_cfg.fd)
     return can.Bus(interface="trainhil", channel=f"{run}/bus{train + 1}", can_filters=filters, node_name=name,
-                   receive_own_messages=receive_own, fd=can_cfg.fd, lazy_reader=lazy)
+                   receive_own_messages=receive_own, fd=can_cfg.fd, lazy_reader=lazy, quiet=lazy)

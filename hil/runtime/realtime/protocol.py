@@ -22,6 +22,9 @@ asked for its own messages; python-can ``is_rx=False``), FD (a CAN FD frame) and
 data bitrate; only with FD). ``data`` is always 8 bytes, the first ``min(dlc, 8)`` count. A CAN FD frame with
 more than 8 data bytes (``dlc`` = 12, 16, 20, 24, 32, 48 or 64, its payload length) is followed at once by
 FRAME_DATA records (kind 9, ``B 23s``: kind, the next 23 payload bytes, zero-padded): 64 bytes take 4 records.
+FRAME byte 3 (``x`` in ``FRAME``): from a node, which of its senders sends the frame (0..MAX_SENDERS-1; 0, the
+node itself, is all python-can sends): the server keeps a bus node with its own TX queue per sender, so a process
+hosting several ECUs queues each one's frames as its own controller would; from the server, 0.
 From a node, ``timestamp`` is ignored (the frame is queued when the server reads it) unless the node is a lazy
 reader, whose frames are queued at the epoch second they carry (kept between what the bus has run to and now);
 from the server it is
@@ -125,6 +128,7 @@ KIND_READ_EVERY = _int("KIND_READ_EVERY")  # lazy reader -> server: first read t
 KIND_SYNC = _int("KIND_SYNC")  # server -> lazy reader: every frame that ended by this epoch second came before
 OPTION_QUIET = _int("OPTION_QUIET")  # a quiet lazy reader: its records wait for the server's next wake-up
 KIND_BELL = _int("KIND_BELL")  # server -> quiet reader: the frames it rings the bell for
+MAX_SENDERS = _int("MAX_SENDERS")  # senders per connection (FRAME byte 3), each its own TX queue on the bus
 
 MATCH_ANY = _int("MATCH_ANY")
 MATCH_STANDARD = _int("MATCH_STANDARD")

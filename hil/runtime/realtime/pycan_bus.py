@@ -58,7 +58,7 @@ class TrainhilBus(BusABC):
 
     def __init__(self, channel: Any, can_filters=None, receive_own_messages: bool = False,
                  node_name: str | None = None, connect_timeout: float = 2.0, token: str | bytes | None = None,
-                 lazy_reader: bool = False, **kwargs: Any) -> None:
+                 lazy_reader: bool = False, quiet: bool = False, **kwargs: Any) -> None:
         self.fd = bool(kwargs.get("fd", False))
         self._tcp: tuple[str, int, bytes] | None = None
         try:
@@ -73,8 +73,10 @@ class TrainhilBus(BusABC):
             raise CanInitializationError(f"trainhil: {exc}") from exc
         name = node_name or f"pid{os.getpid()}.{next(_node_seq)}"
         # lazy_reader: for the rig's own nodes, whose engine FrameLink then reads at the node's read times only;
-        # quiet too where the server has a bell (protocol.OPTION_QUIET)
-        self._bell = self._open_bell() if lazy_reader else None
+        # quiet: a lazy reader that rings the server's bell (FrameLink(bell=bell_fileno())), where it has one
+        if quiet and not lazy_reader:
+            raise CanInitializationError("trainhil: quiet=True is for a lazy reader (lazy_reader=True)")
+        self._bell = self._open_bell() if quiet else None
         try:
             hello = pack_hello(name, receive_own_messages, lazy=lazy_reader, quiet=self._bell is not None)
             if self._tcp is not None:
