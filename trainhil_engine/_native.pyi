@@ -180,7 +180,8 @@ class Network:
     def gateway_ids(self, bus: int) -> list[int]: ...
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
-           "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "RadioHub",
+           "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
+           "RadioHub",
            "FrameLink", "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
@@ -193,6 +194,14 @@ def frame_error(can_id: int, dlc: int, flags: int, fd_bus: bool = False) -> str 
 def filters_accept(filters: Sequence[tuple[int, int, int]] | None, can_id: int, extended: bool) -> bool:
     """python-can's acceptance: no filters (None or empty) accept every frame, else any (can_id, can_mask, match)
     that matches the id and format does."""
+
+class ServingThread:
+    """A native thread serving several buses on one poll: an instant several buses need is one wake-up. Give it to
+    each ``BusServerCore`` of a rig; it ends once dropped and its servers have shut down."""
+
+    alive: bool
+
+    def __init__(self) -> None: ...
 
 class BusServerCore:
     """One emulated CAN bus served in wall-clock time by a native thread (engine/src/server.rs).
@@ -207,11 +216,12 @@ class BusServerCore:
                  policy_name: str, depth: int, extended: bool, load_window_ns: int, pace: float, spin_ns: int,
                  max_clients: int, hello_timeout_s: float, keep_log: bool, fd: bool = False,
                  data_bitrate: int | None = None, radio: tuple[RadioHub, int] | None = None,
-                 bell_fd: int | None = None) -> None:
+                 bell_fd: int | None = None, thread: ServingThread | None = None) -> None:
         """``fd``: a CAN FD bus (nodes send either format, each FRAME record says which), its data phase at
         ``data_bitrate`` (default: ``bitrate``); ``radio``: the rig's radio hub and this bus's index in it (the
         server joins the bus as node "RadioGW" and hands the hub every routed frame at its end); ``bell_fd``: the
-        bus's bell FIFO opened read-write and non-blocking, which quiet readers ring (taken over, closed on error)."""
+        bus's bell FIFO opened read-write and non-blocking, which quiet readers ring (taken over, closed on error);
+        ``thread``: the serving thread it shares with the rig's other buses (None: a thread of its own)."""
     def now_ns(self) -> int: ...
     def stats(self) -> dict[str, float | int | None]: ...
     def take_log(self) -> tuple[bytes, bytes, int, int]: ...

@@ -34,6 +34,7 @@ pub mod radio;
 pub mod radio_hub;
 pub mod rng;
 pub mod server;
+pub mod serving_thread;
 pub mod wire;
 
 #[cfg(feature = "python")]

@@ -1,8 +1,9 @@
-//! The real-time bus server: one emulated CAN bus in wall-clock time, served in its own OS thread (no Python
-//! interpreter lock), with the unix-socket protocol of `hil/runtime/realtime/protocol.py` (24-byte records).
+//! The real-time bus server: one emulated CAN bus in wall-clock time, served by a native thread (no Python
+//! interpreter lock), its own or one it shares with the rig's other buses (`serving_thread.rs`), with the
+//! unix-socket protocol of `hil/runtime/realtime/protocol.py` (24-byte records).
 //!
-//! Each loop turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends or a node
-//! writes; complete every transmission that ended, hand it to every node whose acceptance filters take it
+//! Each turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends, a read time
+//! comes, or a node writes (a quiet reader's records wait for the next turn); complete every transmission that ended, hand it to every node whose acceptance filters take it
 //! (python-can semantics, applied here), read the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP),
 //! arbitrate when the bus is idle, write the output. The last `spin_ns` before an end are polled, not slept.
 //! Bad input never stops the server: frames the bus cannot carry are counted and dropped, a record that breaks
@@ -23,6 +24,7 @@ use crate::frame::BitTiming;
 use crate::histogram::Histogram;
 use crate::protocol::*;
 use crate::radio_hub::{Delivery, RadioHub};
+use crate::serving_thread::ServingThread;
 
 const READ_RECORDS: usize = 32; // per node and turn: a babbling node cannot stall the loop
 const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames beyond this (overruns)
@@ -200,7 +202,6 @@ pub struct Server {
     next_window: u64,
     ended: Vec<u64>,
     rx_cache: std::collections::HashMap<(u32, bool), Vec<usize>>,
-    pollfds: Vec<libc::pollfd>,
     /// Bus time up to which the bus has been run: arrivals are queued at or after it.
     floor: u64,
     /// A frame was queued on an idle bus at this time: arbitrate there.
@@ -215,6 +216,8 @@ pub struct Server {
     bell_every: bool,
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
+    /// Set once the server has finished (its nodes disconnected, its log closed): its handle's `shutdown` waits.
+    done: Arc<AtomicBool>,
 }
 
 /// A server's end of the rig's radio (engine/src/radio_hub.rs).
@@ -237,7 +240,11 @@ pub struct ServerHandle {
     pub shared: Arc<Mutex<Shared>>,
     pub stop: Arc<AtomicBool>,
     wake: UnixStream,
-    thread: Option<std::thread::JoinHandle<()>>,
+    /// The thread that serves it (with other buses' servers, or alone).
+    thread: Arc<ServingThread>,
+    /// Whether that thread is this server's alone (closed with it).
+    own_thread: bool,
+    done: Arc<AtomicBool>,
     pub epoch0_ns: u64,
     pub mono0: Instant,
     pub pace: f64,
@@ -249,9 +256,9 @@ impl ServerHandle {
         (self.mono0.elapsed().as_nanos() as f64 * self.pace) as u64
     }
 
-    /// Whether the serving thread is alive.
+    /// Whether it is served (not finished, its thread alive).
     pub fn running(&self) -> bool {
-        self.thread.as_ref().is_some_and(|t| !t.is_finished())
+        !self.done.load(Ordering::SeqCst) && self.thread.alive()
     }
 
     /// Wake the serving loop (something changed under the lock that it must act on now).
@@ -259,17 +266,20 @@ impl ServerHandle {
         let _ = (&self.wake).write(b"x");
     }
 
-    /// Stop the loop and wait for its thread.
+    /// Stop serving it and wait until it has finished (its nodes disconnected); a thread of its own ends too.
     pub fn shutdown(&mut self) {
         self.stop.store(true, Ordering::SeqCst);
         let _ = (&self.wake).write(b"x");
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+        while !self.done.load(Ordering::SeqCst) && self.thread.alive() {
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        if self.own_thread {
+            self.thread.close();
         }
     }
 }
 
-fn set_timer_slack() {
+pub(crate) fn set_timer_slack() {
     // SAFETY: prctl(PR_SET_TIMERSLACK) only changes this thread's timer slack.
     unsafe {
         libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0);
@@ -284,9 +294,10 @@ fn shortest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
 }
 
 /// `bell`: the bus's bell FIFO (quiet readers ring it), opened read-write and non-blocking; `radio`: the rig's
-/// radio hub and this bus's index in it (the server joins it as node "RadioGW").
+/// radio hub and this bus's index in it (the server joins it as node "RadioGW"); `thread`: the serving thread it
+/// shares with other buses' servers (None: a thread of its own).
 pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell: Option<std::fs::File>,
-             radio: Option<(Arc<RadioHub>, usize)>) -> std::io::Result<ServerHandle> {
+             radio: Option<(Arc<RadioHub>, usize)>, thread: Option<Arc<ServingThread>>) -> std::io::Result<ServerHandle> {
     let timing = BitTiming::new(cfg.bitrate, cfg.data_bitrate).ok_or_else(|| {
         std::io::Error::new(ErrorKind::InvalidInput, format!("bitrate {} (data {}) has no whole-ns bit time", cfg.bitrate, cfg.data_bitrate))
     })?;
@@ -325,15 +336,19 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     }));
     let stop = Arc::new(AtomicBool::new(false));
     let pace = cfg.pace;
-    let mut server = Server {
+    let done = Arc::new(AtomicBool::new(false));
+    let (thread, own_thread) = match thread {
+        Some(t) => (t, false),
+        None => (ServingThread::start(&format!("bus-server {}", cfg.channel))?, true),
+    };
+    let server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        pollfds: Vec::new(), floor: 0, arbitrate_at: None, shortest_frame_ns, radio, bell, bell_every: true,
-        more_waiting: false,
+        floor: 0, arbitrate_at: None, shortest_frame_ns, radio, bell, bell_every: true, more_waiting: false,
+        done: done.clone(),
     };
-    let name = format!("bus-server {}", server.cfg.channel);
-    let thread = std::thread::Builder::new().name(name).spawn(move || server.serve())?;
-    Ok(ServerHandle { shared, stop, wake: wake_w, thread: Some(thread), epoch0_ns, mono0, pace })
+    thread.add(server);
+    Ok(ServerHandle { shared, stop, wake: wake_w, thread, own_thread, done, epoch0_ns, mono0, pace })
 }
 
 impl Server {
@@ -342,11 +357,13 @@ impl Server {
         if self.cfg.pace == 1.0 { wall } else { (wall as f64 * self.cfg.pace) as u64 }
     }
 
-    fn serve(&mut self) {
-        set_timer_slack();
-        while !self.stop.load(Ordering::SeqCst) {
-            self.turn();
-        }
+    /// Whether its handle asked it to stop.
+    pub(crate) fn stopping(&self) -> bool {
+        self.stop.load(Ordering::SeqCst)
+    }
+
+    /// The last turn: every node gets what is still for it and is disconnected, the load windows are closed.
+    pub(crate) fn finish(&mut self) {
         let shared_arc = self.shared.clone();
         let mut shared = shared_arc.lock().unwrap();
         for c in self.clients.iter_mut() {
@@ -358,6 +375,7 @@ impl Server {
         }
         let now = self.now();
         Self::close_windows(&mut shared, now, self.cfg.keep_log);
+        self.done.store(true, Ordering::SeqCst);
     }
 
     /// How long to sleep: to the end of the frame on the wire when someone must have it then (an eager node,
@@ -464,14 +482,14 @@ impl Server {
         }
     }
 
-    fn turn(&mut self) {
+    /// Before a turn: its descriptors onto the serving thread's poll set (FIRST_CLIENT_FD of its own, then one per
+    /// client), and how long it may sleep (wall ns).
+    pub(crate) fn poll_set(&mut self, fds: &mut Vec<libc::pollfd>) -> i64 {
         let timeout = {
             let shared_arc = self.shared.clone();
             let shared = shared_arc.lock().unwrap();
             self.timeout_ns(&shared)
         };
-        let mut fds = std::mem::take(&mut self.pollfds);
-        fds.clear();
         fds.push(libc::pollfd { fd: self.wake.as_raw_fd(), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.listener.as_raw_fd(), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.tcp.as_ref().map_or(-1, |l| l.as_raw_fd()), events: libc::POLLIN, revents: 0 });
@@ -481,11 +499,12 @@ impl Server {
             let events = if c.quiet { 0 } else { libc::POLLIN } | if c.flush_to == 0 { 0 } else { libc::POLLOUT };
             fds.push(libc::pollfd { fd: c.stream.fd(), events, revents: 0 });
         }
-        let ts = libc::timespec { tv_sec: (timeout / 1_000_000_000) as libc::time_t, tv_nsec: (timeout % 1_000_000_000) as libc::c_long };
-        // SAFETY: fds is a valid array of pollfd for the duration of the call.
-        unsafe {
-            libc::ppoll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, &ts, std::ptr::null());
-        }
+        timeout
+    }
+
+    /// A turn after the poll (`fds`: its own part of the poll set, as `poll_set` made it): read what came, run
+    /// the bus to now, write what is due.
+    pub(crate) fn turn(&mut self, fds: &[libc::pollfd]) {
         let now = self.now();
         let shared_arc = self.shared.clone();
         let mut shared = shared_arc.lock().unwrap();
@@ -538,7 +557,6 @@ impl Server {
             self.bell_every = every_end;
             self.tell_bell();
         }
-        self.pollfds = fds;
     }
 
     /// Whether someone takes every frame at its end: an eager node, the error model or the guardian (they act at
@@ -1140,12 +1158,13 @@ mod tests {
 
     /// A server on a socket in its own temporary directory: (handle, socket path, directory).
     fn serve(tag: &str, bitrate: u64, data_bitrate: u64, format: Format) -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
-        serve_with(tag, bitrate, data_bitrate, format, Policy::Priority, 100_000_000, None)
+        serve_with(tag, bitrate, data_bitrate, format, Policy::Priority, 100_000_000, None, None)
     }
 
     /// `serve` with a load window and a bell (the read end of a socket pair standing for the FIFO).
+    #[allow(clippy::too_many_arguments)]
     fn serve_with(tag: &str, bitrate: u64, data_bitrate: u64, format: Format, policy: Policy, load_window_ns: u64,
-                  bell: Option<std::fs::File>)
+                  bell: Option<std::fs::File>, thread: Option<Arc<ServingThread>>)
                   -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
         let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
@@ -1158,14 +1177,14 @@ mod tests {
             keep_log: true, token: None,
         };
         use std::os::fd::IntoRawFd;
-        (start(cfg, listener.into_raw_fd(), None, bell, None).unwrap(), path, dir)
+        (start(cfg, listener.into_raw_fd(), None, bell, None, thread).unwrap(), path, dir)
     }
 
     /// One connection's frames from two senders wait in two TX queues, as two controllers' would: on a FIFO bus
     /// the second sender's frame competes with the first's head at once (one queue would send it after).
     #[test]
     fn each_sender_of_a_connection_has_its_own_tx_queue() {
-        let (mut handle, path, dir) = serve_with("senders", 10_000, 10_000, Format::Classical, Policy::Fifo, 100_000_000, None);
+        let (mut handle, path, dir) = serve_with("senders", 10_000, 10_000, Format::Classical, Policy::Fifo, 100_000_000, None, None);
         let connect = |name: &str| {
             let mut s = UnixStream::connect(&path).unwrap();
             s.write_all(&hello(name)).unwrap();
@@ -1197,6 +1216,50 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// Two buses on one serving thread: each carries its own nodes' frames; one shut down, the other goes on; the
+    /// thread ends once closed and both have finished.
+    #[test]
+    fn two_buses_share_a_serving_thread_and_each_stops_on_its_own() {
+        let thread = ServingThread::start("bus-servers test").unwrap();
+        let mut buses: Vec<_> = ["share1", "share2"].iter()
+            .map(|tag| serve_with(tag, 500_000, 500_000, Format::Classical, Policy::Priority, 100_000_000, None, Some(thread.clone())))
+            .collect();
+        let connect = |path: &std::path::Path, name: &str| {
+            let mut s = UnixStream::connect(path).unwrap();
+            s.write_all(&hello(name)).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_WELCOME);
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            s
+        };
+        let exchange = |path: &std::path::Path, id: u32| {
+            let (mut a, mut b) = (connect(path, "A"), connect(path, "B"));
+            a.write_all(&pack_frame(id, &[1; 8], 0, 0.0)).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            b.read_exact(&mut rec).unwrap();
+            assert_eq!((rec[0], u32_at(&rec, 4)), (KIND_FRAME, id));
+        };
+        exchange(&buses[0].1, 0x101);
+        exchange(&buses[1].1, 0x202);
+        buses[0].0.shutdown();
+        assert!(!buses[0].0.running() && buses[1].0.running());
+        exchange(&buses[1].1, 0x203);
+        thread.close();
+        assert!(buses[1].0.running(), "closing the thread does not stop the servers it has");
+        buses[1].0.shutdown();
+        for _ in 0..100 {
+            if !thread.alive() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert!(!thread.alive());
+        for (_, _, dir) in buses {
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
     fn turns(handle: &ServerHandle) -> u64 {
         handle.shared.lock().unwrap().turns
     }
@@ -1209,7 +1272,7 @@ mod tests {
         let (bell_w, bell_r) = UnixStream::pair().unwrap();
         bell_r.set_nonblocking(true).unwrap();
         let (mut handle, path, dir) = serve_with("quiet", 500_000, 500_000, Format::Classical, Policy::Priority, 1_000_000_000,
-                                                 Some(std::fs::File::from(std::os::fd::OwnedFd::from(bell_r))));
+                                                 Some(std::fs::File::from(std::os::fd::OwnedFd::from(bell_r))), None);
         let connect = |name: &str, options: u8| {
             let mut s = UnixStream::connect(&path).unwrap();
             let mut r = hello(name);

@@ -52,7 +52,7 @@ use self::link::{wait_readable, FrameLink};
 use self::mailbox::Mailbox;
 use self::network::{add_bus_fault, check_window, policy, Network};
 use self::radio_hub::RadioHub;
-use self::server::BusServerCore;
+use self::server::{BusServerCore, ServingThread};
 
 fn timing(nominal: u64, data: u64) -> PyResult<BitTiming> {
     BitTiming::new(nominal, data).ok_or_else(|| {
@@ -88,10 +88,11 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Network>()?;
     m.add_class::<Packing>()?;
     m.add_class::<BusServerCore>()?;
+    m.add_class::<ServingThread>()?;
     m.add_class::<RadioHub>()?;
     m.add_class::<FrameLink>()?;
     m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing",
-                          "BusServerCore", "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"])?;
+                          "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"])?;
     Ok(())
 }
 

@@ -9,6 +9,35 @@ pub struct BusServerCore {
     bitrate: u64,
 }
 
+/// A native thread that serves several buses on one poll (engine/src/serving_thread.rs): give it to each
+/// `BusServerCore` of a rig. It ends once it is dropped and its servers have shut down.
+#[pyclass(module = "trainhil_engine._native")]
+pub struct ServingThread {
+    inner: std::sync::Arc<crate::serving_thread::ServingThread>,
+}
+
+#[pymethods]
+impl ServingThread {
+    #[new]
+    fn new() -> PyResult<Self> {
+        let inner = crate::serving_thread::ServingThread::start("bus-servers")
+            .map_err(|e| PyValueError::new_err(format!("serving thread cannot start: {e}")))?;
+        Ok(ServingThread { inner })
+    }
+
+    /// Whether the thread runs.
+    #[getter]
+    fn alive(&self) -> bool {
+        self.inner.alive()
+    }
+}
+
+impl Drop for ServingThread {
+    fn drop(&mut self) {
+        self.inner.close();
+    }
+}
+
 pub(super) fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns: u64) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
     d.set_item("now_ns", now_ns)?;
@@ -37,16 +66,18 @@ pub(super) fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns
 impl BusServerCore {
     /// Serve on listening sockets the caller made (their fds are taken over: pass duplicates); `radio`: the rig's
     /// radio hub and this bus's index in it; `bell_fd`: the bus's bell FIFO opened read-write and non-blocking
-    /// (taken over too), which quiet readers ring.
+    /// (taken over too), which quiet readers ring; `thread`: the serving thread it shares with the rig's other buses
+    /// (None: a thread of its own).
     #[new]
     #[pyo3(signature = (channel, listener_fd, tcp_fd, token, bitrate, policy_name, depth, extended, load_window_ns, pace,
                         spin_ns, max_clients, hello_timeout_s, keep_log, fd = false, data_bitrate = None, radio = None,
-                        bell_fd = None))]
+                        bell_fd = None, thread = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(channel: String, listener_fd: i32, tcp_fd: Option<i32>, token: Option<Vec<u8>>, bitrate: u64, policy_name: &str,
            depth: usize, extended: bool, load_window_ns: u64, pace: f64, spin_ns: u64, max_clients: usize,
            hello_timeout_s: f64, keep_log: bool, fd: bool, data_bitrate: Option<u64>,
-           radio: Option<(PyRef<'_, RadioHub>, usize)>, bell_fd: Option<i32>) -> PyResult<Self> {
+           radio: Option<(PyRef<'_, RadioHub>, usize)>, bell_fd: Option<i32>, thread: Option<PyRef<'_, ServingThread>>)
+           -> PyResult<Self> {
         // SAFETY: the caller hands the bell's descriptor over; owned (and closed on any error) from here on.
         let bell = bell_fd.map(|fd| std::fs::File::from(unsafe { <std::os::fd::OwnedFd as std::os::fd::FromRawFd>::from_raw_fd(fd) }));
         let data_bitrate = data_bitrate.unwrap_or(bitrate);
@@ -66,7 +97,8 @@ impl BusServerCore {
             hello_timeout: std::time::Duration::from_secs_f64(hello_timeout_s.max(0.0)), keep_log, token,
         };
         let radio = radio.map(|(hub, bus)| (hub.hub.clone(), bus));
-        let handle = crate::server::start(cfg, listener_fd, tcp_fd, bell, radio)
+        let thread = thread.map(|t| t.inner.clone());
+        let handle = crate::server::start(cfg, listener_fd, tcp_fd, bell, radio, thread)
             .map_err(|e| PyValueError::new_err(format!("bus server cannot start: {e}")))?;
         Ok(BusServerCore { handle: Some(handle), bitrate })
     }

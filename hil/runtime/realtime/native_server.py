@@ -38,9 +38,12 @@ class NativeBusServer:
                  spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
                  pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
                  max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S, fd: bool = False,
-                 data_bitrate: int | None = None, radio: tuple[engine.RadioHub, int] | None = None) -> None:
+                 data_bitrate: int | None = None, radio: tuple[engine.RadioHub, int] | None = None,
+                 serving_thread: engine.ServingThread | None = None) -> None:
         """``fd``: a CAN FD bus (its nodes may send both formats), FD frames with BRS at ``data_bitrate``;
-        ``radio``: the rig's radio and this bus's index in it (``EngineRadio.port``)."""
+        ``radio``: the rig's radio and this bus's index in it (``EngineRadio.port``); ``serving_thread``: the engine
+        thread it shares with the rig's other buses (one wake-up serves every bus that needs that instant; None: a
+        thread of its own)."""
         check_server_args(run, bus, tcp, tcp_host, spin_us, pace)
         if policy not in ("priority", "fifo"):
             raise ValueError(f"queue policy must be 'priority' or 'fifo', got {policy!r}")
@@ -67,7 +70,8 @@ class NativeBusServer:
             self._core = engine.BusServerCore(
                 self.channel, os.dup(self._listener.fileno()), None if tcp_sock is None else os.dup(tcp_sock.fileno()),
                 self.token, bitrate, policy, depth, extended, int(load_window_s * 1e9), self._pace, int(spin_us * 1000),
-                max_clients, hello_timeout_s, keep_log, fd, data_bitrate, radio, bell_fd)  # owns bell_fd from here
+                max_clients, hello_timeout_s, keep_log, fd, data_bitrate, radio, bell_fd,
+                serving_thread)  # owns bell_fd from here
         except BaseException:
             self._listener.close()
             if tcp_sock is not None:

@@ -46,6 +46,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+import trainhil_engine as engine
+
 from ecu_sim.codec import TrainDb
 from ecu_sim.references import USER_PATH_ENV
 from hil.scenario.layout import TrainLayout
@@ -263,11 +265,12 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         with _StopRequest() as stop:
             if not socketcan and layout.n_trains > 1 and radio_in_servers:
                 radio = EngineRadio(scenario, db, seed, pace, bus_packing(scenario, db), save_to=nodes_dir)
+            serving = None if socketcan else engine.ServingThread()  # every bus on one thread: shared wake-ups
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
                                     fd=sc_.fd, data_bitrate=sc_.data_rate if sc_.fd else None,
-                                    radio=radio.port(i) if radio is not None else None)
+                                    radio=radio.port(i) if radio is not None else None, serving_thread=serving)
                 if fmt is not None:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
                 servers.append(server.start())

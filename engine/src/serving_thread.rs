@@ -1,0 +1,112 @@
+//! A serving thread: the loop that runs one or several bus servers (`server.rs`) on one poll. A rig's buses share
+//! one, so an instant that several buses need at once (the units of every train read at the same offsets in their
+//! cycle, the plant reads every bus at each publication) costs one wake-up of one thread, not one per bus.
+//!
+//! Each turn: take the servers added since the last, finish the ones asked to stop, let each put its descriptors on
+//! one poll set and say how long it may sleep, sleep for the shortest, then let each server whose time came or
+//! whose descriptors woke the thread take its turn (a server's turn is most of its cost: the others skip theirs).
+
+use std::io::Write;
+use std::os::fd::AsRawFd;
+use std::os::unix::net::UnixStream;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crate::server::{set_timer_slack, Server};
+
+/// How long an empty thread sleeps between looks (it is woken when a server comes or it is closed).
+const IDLE_NS: i64 = 100_000_000;
+
+/// A thread serving bus servers; it ends once closed and its servers have finished.
+pub struct ServingThread {
+    incoming: Mutex<Vec<Server>>,
+    closed: AtomicBool,
+    wake_r: UnixStream,
+    wake_w: UnixStream,
+    thread: Mutex<Option<JoinHandle<()>>>,
+}
+
+impl ServingThread {
+    /// A thread named `name`, serving nothing yet.
+    pub fn start(name: &str) -> std::io::Result<Arc<ServingThread>> {
+        let (wake_r, wake_w) = UnixStream::pair()?;
+        wake_r.set_nonblocking(true)?;
+        wake_w.set_nonblocking(true)?;
+        let me = Arc::new(ServingThread {
+            incoming: Mutex::new(Vec::new()), closed: AtomicBool::new(false), wake_r, wake_w, thread: Mutex::new(None),
+        });
+        let served = me.clone();
+        let handle = std::thread::Builder::new().name(name.to_string()).spawn(move || served.serve())?;
+        *me.thread.lock().unwrap() = Some(handle);
+        Ok(me)
+    }
+
+    /// Serve `server` from the next turn on.
+    pub(crate) fn add(&self, server: Server) {
+        self.incoming.lock().unwrap().push(server);
+        self.wake();
+    }
+
+    /// No more servers come: the thread ends once those it has are finished.
+    pub fn close(&self) {
+        self.closed.store(true, Ordering::SeqCst);
+        self.wake();
+    }
+
+    /// Whether the thread still runs.
+    pub fn alive(&self) -> bool {
+        self.thread.lock().unwrap().as_ref().is_some_and(|t| !t.is_finished())
+    }
+
+    fn wake(&self) {
+        let _ = (&self.wake_w).write(b"x");
+    }
+
+    fn serve(&self) {
+        set_timer_slack();
+        let mut servers: Vec<Server> = Vec::new();
+        let mut fds: Vec<libc::pollfd> = Vec::new();
+        let mut parts: Vec<(std::ops::Range<usize>, Instant)> = Vec::new();
+        loop {
+            servers.append(&mut self.incoming.lock().unwrap());
+            servers.retain_mut(|s| {
+                if s.stopping() {
+                    s.finish();
+                }
+                !s.stopping()
+            });
+            if servers.is_empty() && self.closed.load(Ordering::SeqCst) && self.incoming.lock().unwrap().is_empty() {
+                return;
+            }
+            fds.clear();
+            parts.clear();
+            fds.push(libc::pollfd { fd: self.wake_r.as_raw_fd(), events: libc::POLLIN, revents: 0 });
+            let mut timeout = IDLE_NS;
+            for s in servers.iter_mut() {
+                let (first, asked) = (fds.len(), Instant::now());
+                let own = s.poll_set(&mut fds).max(0);
+                timeout = timeout.min(own);
+                parts.push((first..fds.len(), asked + Duration::from_nanos(own as u64)));
+            }
+            let timeout = timeout.max(0);
+            let ts = libc::timespec { tv_sec: (timeout / 1_000_000_000) as libc::time_t, tv_nsec: (timeout % 1_000_000_000) as libc::c_long };
+            // SAFETY: fds is a valid array of pollfd for the duration of the call.
+            unsafe {
+                libc::ppoll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, &ts, std::ptr::null());
+            }
+            if fds[0].revents != 0 {
+                let mut buf = [0u8; 64];
+                while matches!(std::io::Read::read(&mut &self.wake_r, &mut buf), Ok(n) if n > 0) {}
+            }
+            let now = Instant::now();
+            for (s, (part, due)) in servers.iter_mut().zip(parts.iter()) {
+                let fds = &fds[part.clone()];
+                if now >= *due || fds.iter().any(|p| p.revents != 0) {
+                    s.turn(fds);
+                }
+            }
+        }
+    }
+}
