@@ -181,8 +181,7 @@ class Network:
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
            "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
-           "RadioHub",
-           "FrameLink", "wait_readable", "frame_error", "filters_accept"]
+           "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
     """Sleep until one of ``fds`` is readable or ``timeout_s`` (wall) passed, the GIL released (no fds: a sleep)."""
