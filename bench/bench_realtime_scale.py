@@ -11,11 +11,15 @@ p99 lateness is below a tenth of the 10 ms cycle and fewer than 0.1 % of cycles 
                                          [--plant-spin-us 0 200]
 
 Each configuration also prints the CPU per simulated second by role (ECU, plant and radio processes, the bus
-servers' threads, the orchestrator), the profile the real-time cost is read from.
+servers' threads, the orchestrator), the profile the real-time cost is read from, and the host's steal time during
+the run (a virtual machine's CPUs taken by its host: every node stalls at once). ``--keep DIR`` keeps each run's
+files (the nodes' timing series) under DIR instead of deleting them.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 import tempfile
 import threading
@@ -51,6 +55,15 @@ def scaled_scenario(n_ecus: int):
         "trains.speeds_kmh": [316.0] * trains, "reference.x0_m": 200_000.0, "can.bitrate": 1_000_000,
         "ecu.phase_s": 0.005,
     })
+
+
+def steal_seconds() -> float:
+    """CPU time the host took from this virtual machine since boot (/proc/stat's steal; 0 where there is none)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 def cpu_seconds() -> float:
@@ -157,7 +170,8 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
-        radio: str = "servers") -> dict:
+        radio: str = "servers", keep: Path | None = None) -> dict:
+    """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0 = [0.0]
     by_role = CpuByRole()
@@ -166,11 +180,15 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
         cpu0[0] = cpu_seconds()
         by_role.start()
 
-    with tempfile.TemporaryDirectory() as d:
-        res = run_realtime(sc, Path(d), pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
+    steal0 = steal_seconds()
+    with contextlib.ExitStack() as stack:
+        out = keep if keep is not None else Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        out.mkdir(parents=True, exist_ok=True)
+        res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
                            plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
                            on_start=started)
     roles = by_role.stop()
+    steal = steal_seconds() - steal0
     m = res.metrics
     ecus = m["realtime"]["ecus"].values()
     cycles = sum(e["cycles"] for e in ecus) or 1
@@ -183,7 +201,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
             "lost": m["frames_lost"], "lost_on_buses": [b.frames_dropped for b in res.log.buses],
             "cpu_per_sim_s": (cpu_seconds() - cpu0[0]) / duration, "keeps_up": keeps_up,
-            "interrupted": m["interrupted"],
+            "interrupted": m["interrupted"], "steal_s": steal,
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())}}
 
 
@@ -199,6 +217,7 @@ def main() -> None:
     ap.add_argument("--radio", nargs="+", choices=("servers", "process"), default=["servers"],
                     help="the radio inside the bus servers (the rig's) or as a node process (before); several: side by side")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
+    ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
     if args.scenario:
         sc = load_scenario(args.scenario)
@@ -215,7 +234,8 @@ def main() -> None:
                                for radio in args.radio]:
             t = time.monotonic()
             sc = scenario_for(n, args.scenario)
-            r = one(sc, k or None, args.duration, args.pace, spin, radio)
+            keep = args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}" if args.keep is not None else None
+            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
@@ -230,6 +250,8 @@ def main() -> None:
                 on_buses = sum(r["lost_on_buses"])
                 print(f"      lost: {on_buses} dropped from TX queues (by bus {r['lost_on_buses']}), "
                       f"{r['lost'] - on_buses} offered to the radio and not delivered")
+            print(f"      host steal time during the run: {r['steal_s']:.2f} s"
+                  f"{f'; files in {keep}' if keep is not None else ''}")
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
             if r["keeps_up"]:
