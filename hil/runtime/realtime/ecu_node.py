@@ -145,7 +145,6 @@ class UnitCycles:
         self.stats[u].skipped += overrun
         self.schedule(u, deadline + (1 + overrun) * self.cycle_s)
 
-
     def _send_outputs(self, u: int, outputs: list) -> None:
         self.io.send_outputs(self.bus_of[u], outputs, self.sender[u])
 

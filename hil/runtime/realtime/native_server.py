@@ -2,11 +2,11 @@
 native thread outside the interpreter lock (``trainhil_engine.BusServerCore``, engine/src/server.rs).
 
 This side makes the sockets exactly as ``BusServer`` does (owner-only run directory, the socket bound under a
-temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file), and the bell
-its quiet readers ring (``<bus>.bell``, ``sockets.make_bell``), and hands their file descriptors to the engine. A small Python thread wakes a few times a second to report the engine's log
-lines through ``logging`` and to feed ``frame_listeners`` (CAN logs). CAN error confinement, the bus fault
-injectors and the guardian run in the engine's bus (``enable_bus_errors`` ..., driven by
-``hil.faults.bus.EngineBusFaults``).
+temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file) and the bell
+its quiet readers ring (``<bus>.bell``, ``sockets.make_bell``), and hands their file descriptors to the engine. A
+small Python thread wakes a few times a second to report the engine's log lines through ``logging`` and to feed
+``frame_listeners`` (CAN logs). CAN error confinement, the bus fault injectors and the guardian run in the engine's
+bus (``enable_bus_errors`` ..., driven by ``hil.faults.bus.EngineBusFaults``).
 """
 from __future__ import annotations
 
@@ -65,8 +65,9 @@ class NativeBusServer:
                 self._listener.close()
                 os.unlink(self.path)
                 raise
-        bell_fd, self._bell_inode = make_bell(self.path)
+        self._bell_inode: int | None = None
         try:
+            bell_fd, self._bell_inode = make_bell(self.path)
             self._core = engine.BusServerCore(
                 self.channel, os.dup(self._listener.fileno()), None if tcp_sock is None else os.dup(tcp_sock.fileno()),
                 self.token, bitrate, policy, depth, extended, int(load_window_s * 1e9), self._pace, int(spin_us * 1000),

@@ -266,8 +266,8 @@ def open_bell(socket_file: Path) -> int | None:
     except FileNotFoundError:
         return None
     if not stat.S_ISFIFO(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
-        raise InsecureRunDirError(f"{path} must be a FIFO of yours with mode 0o600 (mode {stat.S_IMODE(st.st_mode):#o}, "
-                                  f"uid {st.st_uid}): refusing to use it")
+        raise InsecureRunDirError(f"{path} must be a FIFO of yours with mode 0o600 (mode "
+                                  f"{stat.S_IMODE(st.st_mode):#o}, uid {st.st_uid}): refusing to use it")
     try:
         return os.open(path, os.O_WRONLY | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOFOLLOW)
     except OSError:  # ENXIO: nobody reads it (its server is gone)
