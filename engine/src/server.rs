@@ -33,7 +33,7 @@ const LOG_FIRST: u64 = 10;
 const FIRST_CLIENT_FD: usize = 4;
 
 /// Read and forget the bytes that woke the loop (its own wake-up pipe, the bell).
-fn drain_wake_ups(source: &mut impl Read) {
+pub(crate) fn drain_wake_ups(source: &mut impl Read) {
     let mut buf = [0u8; 64];
     while let Ok(n) = source.read(&mut buf) {
         if n == 0 {
@@ -418,7 +418,7 @@ impl Server {
             return Some(tx.t_end);
         }
         let routes = self.radio.as_ref().is_some_and(|r| !r.routed.is_empty());
-        if !routes && !self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed) {
+        if !routes && !self.has_eager_node() {
             return None;
         }
         shared.bus.earliest_end(|id, ext| self.needs_end((id, ext)))
@@ -562,8 +562,12 @@ impl Server {
     /// Whether someone takes every frame at its end: an eager node, the error model or the guardian (they act at
     /// every frame). Then the radio wakes this server for its deliveries and quiet readers ring for every frame.
     fn every_end_needed(&self, shared: &Shared) -> bool {
-        shared.bus.errors.is_some() || shared.bus.guardian.is_some()
-            || self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed)
+        shared.bus.errors.is_some() || shared.bus.guardian.is_some() || self.has_eager_node()
+    }
+
+    /// Whether a node that takes its frames as they end (not a lazy reader) is on the bus.
+    fn has_eager_node(&self) -> bool {
+        self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed)
     }
 
     /// The BELL records of what quiet readers must ring for now: every frame, or those the radio takes.

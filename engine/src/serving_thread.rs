@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::server::{set_timer_slack, Server};
+use crate::server::{drain_wake_ups, set_timer_slack, Server};
 
 /// How long an empty thread sleeps between looks (it is woken when a server comes or it is closed).
 const IDLE_NS: i64 = 100_000_000;
@@ -97,8 +97,7 @@ impl ServingThread {
                 libc::ppoll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, &ts, std::ptr::null());
             }
             if fds[0].revents != 0 {
-                let mut buf = [0u8; 64];
-                while matches!(std::io::Read::read(&mut &self.wake_r, &mut buf), Ok(n) if n > 0) {}
+                drain_wake_ups(&mut &self.wake_r);
             }
             let now = Instant::now();
             for (s, (part, due)) in servers.iter_mut().zip(parts.iter()) {

@@ -27,6 +27,7 @@ import stat
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 from hil.runtime.realtime.protocol import TOKEN_BYTES
 
@@ -237,6 +238,14 @@ def token_path(socket_file: Path) -> Path:
     return socket_file.with_suffix(TOKEN_SUFFIX)
 
 
+def check_private_file(path: Path, st: os.stat_result, is_kind: Callable[[int], bool], what: str, kind: str) -> None:
+    """Raise InsecureRunDirError unless ``st`` (``path``'s lstat) is of the kind ``is_kind`` tests, ours, and
+    owner-only: a file planted or opened up by someone else is refused (a token file, a bus's bell)."""
+    if not is_kind(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+        raise InsecureRunDirError(f"{path}: {what} must be {kind} of yours with mode 0o600 "
+                                  f"(is mode {stat.S_IMODE(st.st_mode):#o}, uid {st.st_uid}): refusing it")
+
+
 def bell_path(socket_file: Path) -> Path:
     """Where a bus server's bell is: beside its socket, ``<bus>.bell``."""
     return socket_file.with_suffix(BELL_SUFFIX)
@@ -265,9 +274,7 @@ def open_bell(socket_file: Path) -> int | None:
         st = os.lstat(path)
     except FileNotFoundError:
         return None
-    if not stat.S_ISFIFO(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
-        raise InsecureRunDirError(f"{path} must be a FIFO of yours with mode 0o600 (mode "
-                                  f"{stat.S_IMODE(st.st_mode):#o}, uid {st.st_uid}): refusing to use it")
+    check_private_file(path, st, stat.S_ISFIFO, "a bell", "a FIFO")
     try:
         return os.open(path, os.O_WRONLY | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOFOLLOW)
     except OSError:  # ENXIO: nobody reads it (its server is gone)
@@ -285,10 +292,7 @@ def write_token_file(path: Path, host: str, port: int, token: bytes) -> None:
 
 def read_token_file(path: Path) -> tuple[str, int, bytes]:
     """(host, port, token) from a token file; InsecureRunDirError if it is not ours or others can read it."""
-    st = os.lstat(path)
-    if not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
-        raise InsecureRunDirError(f"{path}: a token file must be a regular file of yours with mode 0o600 "
-                                  f"(is mode {stat.S_IMODE(st.st_mode):#o}, uid {st.st_uid}): refusing it")
+    check_private_file(path, os.lstat(path), stat.S_ISREG, "a token file", "a regular file")
     try:
         data = json.loads(path.read_text())
         return check_loopback(str(data["host"])), int(data["port"]), bytes.fromhex(data["token"])
