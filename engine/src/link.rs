@@ -274,4 +274,26 @@ mod tests {
         assert_eq!(waiting(server.as_raw_fd()), 6 * RECORD_SIZE); // every record was written all the same
         assert!(!Link::lazy(node.as_raw_fd()).rings_for(0x20)); // no bell: nothing to ring
     }
+
+    #[test]
+    fn a_quiet_link_that_never_reads_takes_in_its_bell_records_but_holds_back_frames_and_syncs() {
+        let (node, server) = UnixStream::pair().unwrap();
+        let (bell_w, bell_r) = UnixStream::pair().unwrap();
+        for s in [&node, &server, &bell_w, &bell_r] {
+            s.set_nonblocking(true).unwrap();
+        }
+        let mut link = Link::quiet(node.as_raw_fd(), bell_w.as_raw_fd()); // e.g. the plant's Wayside connection
+        use std::io::Write;
+        (&server).write_all(&crate::protocol::pack_bell(false, &[0x20])).unwrap();
+        let mut frame = Vec::new();
+        crate::protocol::pack_frame_records(0x30, &[7], 0, 0.5, &mut frame);
+        (&server).write_all(&frame).unwrap();
+        (&server).write_all(&crate::protocol::pack_sync(1.5)).unwrap();
+        let mut seen = 0;
+        link.pump(|_, _, _, _| seen += 1).unwrap(); // never synced: its horizon is before everything
+        assert_eq!((seen, link.synced()), (0, f64::NEG_INFINITY)); // the frame and the SYNC wait for a read time
+        link.send(&[(0x10, &[1])], 0, 1.0, 0).unwrap();
+        assert_eq!(waiting(bell_r.as_raw_fd()), 0); // the BELL record was taken in: 0x10 need not ring
+        assert!(link.wait_synced(1.5, 1.0, |id, _, _, _| assert_eq!(id, 0x30)).unwrap()); // handed over in order
+    }
 }

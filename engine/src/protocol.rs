@@ -316,15 +316,20 @@ pub fn stamp_of(r: &[u8]) -> f64 {
 
 /// Reads the whole frames at the start of `buf`, a stream of records from a bus server, and calls
 /// `each(can_id, flags, stamp, data)` for each; returns the bytes used. A SYNC record sets `synced` to its time;
-/// reading stops once `synced` reaches `horizon` (a lazy reader's read time; an eager reader passes infinity).
-/// A BELL record goes into `bell`; other records are skipped; a CAN FD frame whose FRAME_DATA records are not all
+/// once `synced` reaches `horizon` (a lazy reader's read time; an eager reader passes infinity), reading stops at
+/// the next FRAME or SYNC. A BELL record goes into `bell` even then (a lazy connection that never reads still
+/// learns which frames must ring); other records are skipped; a CAN FD frame whose FRAME_DATA records are not all
 /// in `buf` yet waits.
 pub fn read_frames(buf: &[u8], horizon: f64, synced: &mut f64, bell: &mut BellSet,
                    mut each: impl FnMut(u32, u8, f64, &[u8])) -> usize {
     let mut off = 0;
     let mut data = [0u8; MAX_FD_DLC];
-    while off + RECORD_SIZE <= buf.len() && *synced < horizon - SYNC_TOLERANCE_S {
+    while off + RECORD_SIZE <= buf.len() {
         let r = &buf[off..off + RECORD_SIZE];
+        let past_horizon = *synced >= horizon - SYNC_TOLERANCE_S;
+        if past_horizon && (r[0] == KIND_FRAME || r[0] == KIND_SYNC) {
+            break; // held back for a later read time; a BELL record is taken in at once
+        }
         if r[0] != KIND_FRAME {
             if r[0] == KIND_SYNC {
                 *synced = synced.max(stamp_of(r));
