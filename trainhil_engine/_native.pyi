@@ -273,6 +273,9 @@ class FrameLink:
         when the server must see a record now (a read request, a frame its BELL records name)."""
     def read_every(self, first: float, period: float) -> None:
         """A lazy link's read times: ``first`` (epoch s), then every ``period`` s (0: once)."""
+    def act_at(self, t: float) -> None:
+        """The node acts at read time ``t`` (epoch s), perhaps synced to it before it comes: frames sent from now
+        on carry ``t`` while it is still ahead (the server queues them then), else the instant they are sent."""
     def sync_to(self, t: float, timeout_s: float) -> bool:
         """Hand over every frame that ended by read time ``t`` (epoch s), waiting up to ``timeout_s`` (wall) for the
         server's SYNC of it; whether it came."""

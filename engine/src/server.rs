@@ -208,6 +208,8 @@ pub struct Server {
     arbitrate_at: Option<u64>,
     /// The shortest frame this bus can carry (see `anticipate`).
     shortest_frame_ns: u64,
+    /// About the longest (see `max_ahead_ns`).
+    longest_frame_ns: u64,
     /// The rig's radio, when this bus is one of its trains' buses.
     radio: Option<RadioPort>,
     /// The bell quiet readers ring (the read end of `<bus>.bell`, a FIFO): without one, no reader is quiet.
@@ -286,13 +288,20 @@ pub(crate) fn set_timer_slack() {
     }
 }
 
-/// Start serving on already-listening sockets (raw fds the server takes ownership of).
 /// The shortest frame a bus can carry (an empty one; on a CAN FD bus the shorter of classical and FD).
 fn shortest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
     let classical = timing.frame_ns(0, &[], false, false, false).unwrap_or(0);
     if format.is_fd() { classical.min(timing.frame_ns(0, &[], false, true, true).unwrap_or(0)) } else { classical }
 }
 
+/// About the longest frame a bus can carry: a full extended one of zero bits (stuffed the most), on a CAN FD bus
+/// 64 bytes without the faster data phase.
+fn longest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
+    let classical = timing.frame_ns(0, &[0; 8], true, false, false).unwrap_or(0);
+    if format.is_fd() { classical.max(timing.frame_ns(0, &[0; 64], true, true, false).unwrap_or(0)) } else { classical }
+}
+
+/// Start serving on already-listening sockets (raw fds the server takes ownership of).
 /// `bell`: the bus's bell FIFO (quiet readers ring it), opened read-write and non-blocking; `radio`: the rig's
 /// radio hub and this bus's index in it (the server joins it as node "RadioGW"); `thread`: the serving thread it
 /// shares with other buses' servers (None: a thread of its own).
@@ -317,6 +326,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     wake_r.set_nonblocking(true)?;
     wake_w.set_nonblocking(true)?;
     let shortest_frame_ns = shortest_frame_ns(&timing, cfg.format);
+    let longest_frame_ns = longest_frame_ns(&timing, cfg.format);
     let mut bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
     let mono0 = Instant::now(); // and the same instant on the epoch clock: records carry epoch times
     let epoch0_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
@@ -344,7 +354,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        floor: 0, arbitrate_at: None, shortest_frame_ns, radio, bell, bell_every: true, more_waiting: false,
+        floor: 0, arbitrate_at: None, shortest_frame_ns, longest_frame_ns, radio, bell, bell_every: true, more_waiting: false,
         done: done.clone(),
     };
     thread.add(server);
@@ -395,7 +405,21 @@ impl Server {
         if let Some(d) = self.radio.as_ref().and_then(|r| r.pending.front()) {
             wake = wake.min(d.t_ns);
         }
+        if let Some(t) = self.next_pending_record(now) {
+            wake = wake.min(t);
+        }
         (wake.saturating_sub(now) as f64 / self.cfg.pace) as i64
+    }
+
+    /// How far ahead of now a lazy reader's FRAME may be stamped: its SYNC comes up to one frame before its read
+    /// time (`anticipate`), and it sends at that read time; a millisecond more for the clocks' rounding.
+    fn max_ahead_ns(&self) -> u64 {
+        self.shortest_frame_ns.max(self.longest_frame_ns) + 1_000_000
+    }
+
+    /// The earliest time a record already read waits for (a FRAME sent ahead of its time), if any.
+    fn next_pending_record(&self, now: u64) -> Option<u64> {
+        (0..self.clients.len()).filter_map(|i| self.next_record_time(i, now)).filter(|&t| t > now).min()
     }
 
     /// When the loop can give the SYNC of read time `r` (see `anticipate`): one shortest frame before it, or when
@@ -619,15 +643,20 @@ impl Server {
         self.floor = self.floor.max(until);
     }
 
-    /// SYNC read times that are less than one shortest frame away, when the bus's state settles them: a frame
-    /// not yet on the wire cannot end by then, so if the frame on the wire (if any) ends after it, every frame
-    /// that ends by it has been handed over. The lazy reader has its SYNC before its read time (and waits for
-    /// that time itself), so it does not wait for this loop's wake-up after it.
+    /// SYNC the read times that the bus's state settles now, so that every frame that ends by them has been
+    /// handed over: while a frame is on the wire, every read time before its end (no other frame can end before
+    /// it); on an idle bus, those less than one shortest frame away (a frame not yet on the wire cannot end by
+    /// then). A read time after the end of the frame on the wire waits for it. The lazy reader has its SYNC
+    /// before its read time and acts at once, so it does not wait for this loop's wake-up at that time.
     fn anticipate(&mut self, shared: &mut Shared, now: u64) {
         let horizon = now + self.shortest_frame_ns;
-        while let Some(r) = self.next_read().filter(|&r| r < horizon) {
-            if shared.bus.current.is_some_and(|tx| tx.t_end <= r) {
-                return; // that frame ends first: the SYNC comes after it, at its time
+        while let Some(r) = self.next_read() {
+            let settled = match shared.bus.current {
+                Some(tx) => tx.t_end > r,
+                None => r < horizon,
+            };
+            if !settled {
+                return;
             }
             self.sync_readers(r);
         }
@@ -889,12 +918,14 @@ impl Server {
     }
 
     /// The nodes' whole records, in time order across the nodes: a lazy reader's FRAME at the time it carries
-    /// (not before the bus's floor, not after now), anyone else's when read; the bus is run up to each.
+    /// (not before the bus's floor; one it sent ahead of its time waits for it), anyone else's when read; the bus
+    /// is run up to each.
     fn process_records(&mut self, shared: &mut Shared, now: u64) {
         loop {
             let mut best: Option<(u64, usize)> = None;
             for i in 0..self.clients.len() {
-                if let Some(t) = self.next_record_time(i, now).filter(|&t| best.is_none_or(|(bt, _)| t < bt)) {
+                let head = self.next_record_time(i, now).filter(|&t| t <= now);
+                if let Some(t) = head.filter(|&t| best.is_none_or(|(bt, _)| t < bt)) {
                     best = Some((t, i));
                 }
             }
@@ -918,7 +949,7 @@ impl Server {
     /// Every whole record of one node, at once (a node that is leaving).
     fn process_client(&mut self, shared: &mut Shared, i: usize) {
         let now = self.now();
-        while let Some(t) = self.next_record_time(i, now) {
+        while let Some(t) = self.next_record_time(i, now).map(|t| t.min(now)) {
             self.advance(shared, t, false);
             self.process_one(shared, i, t);
         }
@@ -954,12 +985,16 @@ impl Server {
         Some(self.record_time(c, &c.rx[c.rx_off..c.rx_off + RECORD_SIZE], now))
     }
 
-    /// When a record takes effect: a lazy reader's FRAME at its stamp (kept within [floor, now]), a FRAME_DATA
-    /// with its FRAME, anything else now or, for a lazy reader, as soon as possible.
+    /// When a record takes effect: a lazy reader's FRAME at its stamp (not before the floor; up to `max_ahead_ns`
+    /// after now, as a reader synced early sends at its read time), a FRAME_DATA with its FRAME, anything else
+    /// now or, for a lazy reader, as soon as possible.
     fn record_time(&self, c: &Client, r: &[u8], now: u64) -> u64 {
         let floor = self.floor.min(now);
         match r[0] {
-            KIND_FRAME if c.lazy => self.bus_ns(stamp_of(r)).map_or(now, |t| t.clamp(floor, now)),
+            KIND_FRAME if c.lazy => match self.bus_ns(stamp_of(r)) {
+                Some(t) if t <= now + self.max_ahead_ns() => t.max(floor),
+                _ => now, // further ahead than a node synced early can be: not believed, taken as read
+            },
             KIND_FRAME_DATA if c.long.is_some() => c.long.as_ref().unwrap().t,
             _ if c.lazy => floor,
             _ => now,
@@ -1316,6 +1351,87 @@ mod tests {
         (&bell_w).write_all(b"!").unwrap();
         std::thread::sleep(Duration::from_millis(5));
         assert!(turns(&handle) > before, "the bell did not wake the server");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A lazy reader synced early acts at its read time: a frame it stamps a little ahead of now waits for its
+    /// stamp (an eager node hears it end one frame after it); one stamped further ahead is taken when read.
+    #[test]
+    fn a_lazy_nodes_frame_stamped_ahead_of_now_goes_on_the_bus_at_its_stamp() {
+        let (mut handle, path, dir) = serve("ahead", 10_000, 10_000, Format::Classical); // frames of about 5-11 ms
+        let connect = |name: &str, options: u8| {
+            let mut s = UnixStream::connect(&path).unwrap();
+            let mut r = hello(name);
+            r[2] = options;
+            s.write_all(&r).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_WELCOME);
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            s
+        };
+        let mut sender = connect("S", OPTION_LAZY);
+        let mut eager = connect("E", 0);
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
+        let timing = BitTiming::new(10_000, 10_000).unwrap();
+        let one_frame = timing.frame_ns(0x100, &[1], false, false, false).unwrap() as f64 * 1e-9;
+        let shortest = timing.frame_ns(0, &[], false, false, false).unwrap() as f64 * 1e-9;
+        std::thread::sleep(Duration::from_millis(5));
+        let t_send = now() + shortest; // as a node synced one shortest frame early would stamp it
+        sender.write_all(&pack_frame(0x100, &[1], 0, t_send)).unwrap();
+        let frame_of = |s: &mut UnixStream| loop {
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            if rec[0] == KIND_FRAME {
+                return stamp_of(&rec);
+            }
+        };
+        let end = frame_of(&mut eager);
+        assert!((end - (t_send + one_frame)).abs() < 2e-6, "ended {:.6} s after its stamp", end - t_send);
+        let written = now();
+        sender.write_all(&pack_frame(0x101, &[1], 0, written + 60.0)).unwrap(); // a minute ahead: not believed
+        let end = frame_of(&mut eager);
+        assert!(end < written + one_frame + 0.01, "held {:.3} s", end - written); // taken when read
+        let _ = sender.flush();
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// While a frame is on the wire no other can end, so a read time before its end is settled at once: the
+    /// reader has its SYNC as soon as the frame is queued, not one shortest frame before its read time.
+    #[test]
+    fn a_read_time_before_the_end_of_the_frame_on_the_wire_is_synced_at_once() {
+        let (mut handle, path, dir) = serve("settled", 10_000, 10_000, Format::Classical); // frames of about 5-13 ms
+        let connect = |name: &str| {
+            let mut s = UnixStream::connect(&path).unwrap();
+            let mut r = hello(name);
+            r[2] = OPTION_LAZY;
+            s.write_all(&r).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            s.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_WELCOME);
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            s
+        };
+        let (mut sender, mut reader) = (connect("S"), connect("R"));
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
+        let timing = BitTiming::new(10_000, 10_000).unwrap();
+        let one_frame = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        let shortest = timing.frame_ns(0, &[], false, false, false).unwrap() as f64 * 1e-9;
+        let t_send = now() + 0.01;
+        let t_read = t_send + one_frame - 0.0005; // while the frame is on the wire, more than a shortest frame on
+        reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        sender.write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        let mut rec = [0u8; RECORD_SIZE];
+        reader.read_exact(&mut rec).unwrap();
+        let got = now();
+        assert_eq!(rec[0], KIND_SYNC); // no frame: the one on the wire ends after it
+        assert!((stamp_of(&rec) - t_read).abs() < 2e-6);
+        assert!(got < t_read - shortest - 0.002, "synced {:.4} s before its read time", t_read - got);
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -34,6 +34,8 @@ pub struct FrameLink {
     packing: Option<Arc<CorePacking>>,
     /// A lazy reader's link: frames come in at `sync_to`, sent frames carry the epoch second they were sent.
     lazy: bool,
+    /// The read time the node acts at (epoch s, `act_at`): its frames carry no earlier instant.
+    acts_at: f64,
 }
 
 /// Seconds since the Unix epoch now (the stamp of a lazy link's frames; the server's time base is the epoch).
@@ -93,7 +95,7 @@ impl FrameLink {
             (false, Some(_)) => return Err(PyValueError::new_err("a bell is for a lazy link")),
         };
         Ok(FrameLink { link, t0, pace, routes: Default::default(), received: 0, keep, kept: Vec::new(), packing: None,
-                       lazy })
+                       lazy, acts_at: f64::NEG_INFINITY })
     }
 
     /// A lazy link's read times: `first` (epoch s), then every `period` s (0: once).
@@ -102,6 +104,12 @@ impl FrameLink {
             return Err(PyValueError::new_err("read_every is for a lazy link"));
         }
         self.link.read_every(first, period).map_err(link_err)
+    }
+
+    /// The node acts at read time `t` (epoch s), synced to it perhaps before it comes: the frames it sends from
+    /// now on carry `t` while that is still ahead (the server queues them then), else the instant they are sent.
+    fn act_at(&mut self, t: f64) {
+        self.acts_at = t;
     }
 
     /// Hand over every frame that ended by read time `t` (epoch s): wait up to `timeout_s` (wall, the interpreter
@@ -179,7 +187,8 @@ impl FrameLink {
 }
 
 impl FrameLink {
-    /// FRAME records of a batch (packed into containers with a packing); a lazy link stamps them now.
+    /// FRAME records of a batch (packed into containers with a packing); a lazy link stamps them now, or at the
+    /// read time it acts at if that is later.
     fn send_batch(&self, batch: &[(u32, &[u8])], extended: bool, fd: bool, brs: bool, sender: usize) -> PyResult<()> {
         let flags = if extended { FLAG_EXTENDED } else { 0 } | format_flags(Format::of(fd, brs));
         let limit = if fd { MAX_DATA } else { crate::protocol::MAX_DLC };
@@ -191,7 +200,7 @@ impl FrameLink {
             None => batch.iter().map(|&(id, d)| (id, Payload::new(d))).collect(),
         };
         let parts: Vec<(u32, &[u8])> = packed.iter().map(|(id, d)| (*id, d.as_slice())).collect();
-        let stamp = if self.lazy { epoch_now() } else { 0.0 };
+        let stamp = if self.lazy { epoch_now().max(self.acts_at) } else { 0.0 };
         self.link.send(&parts, flags, stamp, sender).map_err(link_err)
     }
 }

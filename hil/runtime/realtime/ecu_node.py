@@ -136,7 +136,7 @@ class UnitCycles:
 
     def run_cycle(self, item: tuple[int, float]) -> None:
         u, deadline = item
-        now = self.kernel.clock.now()
+        now = max(self.kernel.clock.now(), deadline)  # synced early, the cycle runs as at its deadline
         ecu = self.ecus[u]
         cycle_and_send(ecu, now, u, self._send_outputs, self._send)
         if self.watchdog is not None:

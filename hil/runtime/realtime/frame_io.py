@@ -117,10 +117,17 @@ class EngineFrames:
 
         No wake-up per frame: mailboxes keep the latest frame of each stream, and a handler gets the frames in
         time order with their bus timestamps, so taking them at once is the same as taking them one by one.
-        A lazy reader then waits for each server's SYNC of ``sim_t`` (no spin)."""
+
+        A lazy reader sleeps on its sockets instead, until each server's SYNC of ``sim_t``, which may come up to
+        one shortest frame before ``sim_t`` (the server's ``anticipate``): it then has every frame that will have
+        ended by ``sim_t``, so it acts at once, as at ``sim_t``. Its frames sent from then on carry ``sim_t``
+        while that is still ahead (``FrameLink.act_at``), and the server queues them at that instant. One wake-up
+        per read, on the SYNC, rather than a timer's and then the SYNC's."""
         if self.lazy:
-            self._sleep_until(sim_t, stop)
             self._wait_synced(sim_t, stop)
+            t = self._epoch(sim_t)
+            for link in self.links:
+                link.act_at(t)
         else:
             self._sleep_until(sim_t, stop, spin_s)
         self.drain(on_frame)
@@ -134,10 +141,8 @@ class EngineFrames:
 
     def _wait_synced(self, sim_t: float, stop) -> None:
         """Until every bus server has synced us to ``sim_t`` (asking once if it is not a foreseen read time), or
-        SYNC_GRACE_S past it (a server that does not answer: go on with what came). Called at ``sim_t``: a server
-        that can settle it sends the SYNC a little before (its ``anticipate``), so the node wakes once, on its own
-        timer, rather than after the server's wake-up. The buses are waited for together (one sleep for whichever
-        SYNC comes next), so a node on several buses does not wake once per bus."""
+        SYNC_GRACE_S past it (a server that does not answer: go on with what came). The buses are waited for
+        together (one sleep for whichever SYNC comes next), so a node on several buses does not wake once per bus."""
         t = self._epoch(sim_t)
         buses = self._foreseen(sim_t)
         if not buses:  # asked once, on the buses not yet synced to it (another event at this time was)

@@ -196,7 +196,7 @@ class PlantNode:
         assert stats is not None  # set by _schedule
         t = target * step
         self.advance_to(target)
-        stats.add(self.clock.now() - t, t)
+        stats.add(max(self.clock.now() - t, 0.0), t)  # synced early, it publishes as at t
         if self.faults is not None:
             self.faults.poll(t, self.plant.x)
         if target % self.every["sensor"] == 0:
