@@ -78,6 +78,8 @@ READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a 
 GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the message before sim time 0
 STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
 KILL_GRACE_S = 3.0
+SUPERVISE_S = 0.05  # wall seconds between the supervising loop's turns (exits, stop requests, spool, live view)
+FAULT_TICK_S = 0.01  # ... while faults are injected (their schedule is polled at each turn)
 
 
 SIGNAL_NAMES = ("SIGINT", "SIGTERM", "SIGHUP")  # stop reasons that are a user's request, not a failure
@@ -309,7 +311,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None,
                                      spool.tick) if f]
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
-                                         _all_of(ticks) if ticks else None, join)
+                                         _all_of(ticks) if ticks else None, join,
+                                         FAULT_TICK_S if faults is not None else SUPERVISE_S)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
             else:
                 stop_reason = stop.requested
@@ -537,10 +540,11 @@ def _indent(text: str) -> str:
 
 def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop: _StopRequest,
                events: list[Event], progress: bool, on_tick: Callable[[float], None] | None = None,
-               join: JoinWait | None = None) -> str | None:
+               join: JoinWait | None = None, every_s: float = SUPERVISE_S) -> str | None:
     """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed).
-    ``on_tick(sim_now)`` runs every loop turn (fault injection: every 10 ms instead of 50); ``join`` stops the run
-    when an external unit has not joined in time."""
+    The loop turns every ``every_s`` wall seconds (FAULT_TICK_S with fault injection, else SUPERVISE_S: the rig's
+    processes share two cores with it); ``on_tick(sim_now)`` runs every turn; ``join`` stops the run when an
+    external unit has not joined in time."""
     end_wall = t0 + duration / pace
     bar = _progress_bar(duration) if progress else None
     try:
@@ -572,7 +576,7 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
             if now > end_wall + STOP_GRACE_S:
                 late = ", ".join(f"{n.kind} {n.name}" for n in nodes if n.proc.poll() is None)
                 return f"nodes did not finish: {late}"
-            time.sleep(0.05 if on_tick is None else 0.01)
+            time.sleep(every_s)
     finally:
         if bar is not None:
             bar.close()
