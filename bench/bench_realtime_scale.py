@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
+import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
+from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
 
 CYCLE_S = 0.01
 
@@ -57,13 +59,23 @@ def scaled_scenario(n_ecus: int):
     })
 
 
-def steal_seconds() -> float:
-    """CPU time the host took from this virtual machine since boot (/proc/stat's steal; 0 where there is none)."""
-    try:
-        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
-        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
+def start_stall_watch(path: Path) -> subprocess.Popen:
+    """bench/stall_watch.py in a process of its own, writing the machine's stalls to ``path``."""
+    return subprocess.Popen([sys.executable, str(ROOT / "bench" / "stall_watch.py"), str(path)])
+
+
+def misses_in_stalls(nodes_dir: Path, t0: float, pace: float, stalls: np.ndarray) -> tuple[int, int]:
+    """(ECU deadline misses, how many of them overlap a stall of the watcher): each miss is the wall interval from
+    its deadline to its cycle's start (the nodes' timing series), each stall the watcher's late sleep."""
+    stall_spans = [(w - late - SLEEP_S, w) for w, late, _ in stalls]
+    n = overlapped = 0
+    for f in nodes_dir.glob("timing_ecu_*.bin"):
+        rows = np.fromfile(f).reshape(-1, 2)
+        for deadline, lateness in rows[rows[:, 1] > CYCLE_S / pace]:
+            start = t0 + deadline / pace
+            n += 1
+            overlapped += any(a < start + lateness and start < b for a, b in stall_spans)
+    return n, overlapped
 
 
 def cpu_seconds() -> float:
@@ -84,11 +96,13 @@ ROLES = ("ecu_node", "plant_node", "radio_node")
 
 
 def role_of(proc: psutil.Process) -> str:
-    """A rig process's role from its command line (the node module it runs)."""
+    """A rig process's role from its command line (the node module it runs); the bench's stall watch is none."""
     try:
         cmd = " ".join(proc.cmdline())
     except psutil.Error:
         return "other"
+    if "stall_watch" in cmd:
+        return "sampler"
     return next((r.removesuffix("_node") for r in ROLES if r in cmd), "other")
 
 
@@ -173,22 +187,34 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
         radio: str = "servers", keep: Path | None = None) -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
-    cpu0 = [0.0]
+    cpu0, t0 = [0.0], [0.0]
     by_role = CpuByRole()
+    watcher: list[subprocess.Popen] = []
 
-    def started(_t0: float) -> None:  # every node is ready: CPU spent on start-up (imports) is not counted
-        cpu0[0] = cpu_seconds()
+    def started(go: float) -> None:  # every node is ready: CPU spent on start-up (imports) is not counted
+        cpu0[0], t0[0] = cpu_seconds(), go
         by_role.start()
+        watcher.append(start_stall_watch(out / "stalls.bin"))
 
-    steal0 = steal_seconds()
+    steal0 = steal_s()
     with contextlib.ExitStack() as stack:
         out = keep if keep is not None else Path(stack.enter_context(tempfile.TemporaryDirectory()))
         out.mkdir(parents=True, exist_ok=True)
-        res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
-                           plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
-                           on_start=started)
+        try:
+            res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
+                               plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
+                               on_start=started)
+        finally:
+            for w in watcher:
+                with contextlib.suppress(psutil.Error):
+                    t = psutil.Process(w.pid).cpu_times()
+                    cpu0[0] += t.user + t.system  # the watch is not the rig
+                w.terminate()
+                w.wait()
+        stalls = read_stalls(out / "stalls.bin")
+        misses_seen, in_stalls = misses_in_stalls(out / "nodes", t0[0], pace, stalls)
     roles = by_role.stop()
-    steal = steal_seconds() - steal0
+    steal = steal_s() - steal0
     m = res.metrics
     ecus = m["realtime"]["ecus"].values()
     cycles = sum(e["cycles"] for e in ecus) or 1
@@ -201,8 +227,19 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
             "lost": m["frames_lost"], "lost_on_buses": [b.frames_dropped for b in res.log.buses],
             "cpu_per_sim_s": (cpu_seconds() - cpu0[0]) / duration, "keeps_up": keeps_up,
-            "interrupted": m["interrupted"], "steal_s": steal,
+            "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,
+            "misses_in_stalls": (misses_seen, in_stalls),
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())}}
+
+
+def stall_line(stalls: np.ndarray, misses: int, in_stalls: int) -> str:
+    """What the stall watcher saw, and how many ECU misses fell in its stalls."""
+    if not len(stalls):
+        return f"machine stalls (a sleeping process woke over 3 ms late): none; ECU misses: {misses}"
+    with_steal = int((stalls[:, 2] > 0).sum())
+    return (f"machine stalls (a sleeping process woke over 3 ms late): {len(stalls)}, longest "
+            f"{1e3 * stalls[:, 1].max():.1f} ms, {with_steal} with host steal; ECU misses during one: "
+            f"{in_stalls} of {misses}")
 
 
 def main() -> None:
@@ -252,6 +289,7 @@ def main() -> None:
                       f"{r['lost'] - on_buses} offered to the radio and not delivered")
             print(f"      host steal time during the run: {r['steal_s']:.2f} s"
                   f"{f'; files in {keep}' if keep is not None else ''}")
+            print("      " + stall_line(r["stalls"], *r["misses_in_stalls"]))
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
             if r["keeps_up"]:

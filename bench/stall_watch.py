@@ -1,0 +1,61 @@
+"""A process that only sleeps, to tell a stall of the whole machine from a stall of the rig.
+
+    python bench/stall_watch.py OUT          (until SIGTERM; bench/bench_realtime_scale.py starts and stops it)
+
+It sleeps ``SLEEP_S`` over and over and writes each wake-up later than ``LATE_S`` to OUT as a row of float64
+``(wall epoch at the wake-up, lateness s, host steal s since the last reading before it)``. It shares no lock, socket or
+thread with the rig, so where it is late at the instant the rig's nodes all are, the machine stalled (the host took
+the CPUs: steal time; or every core was busy), not the rig's serving thread.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SLEEP_S = 0.002
+LATE_S = 0.003  # a wake-up this much past its sleep counts (the rig's misses are stalls of 10 ms and more)
+READ_STEAL_EVERY = 5  # sleeps between readings of the steal counter (10 ms: its resolution)
+
+
+def steal_s() -> float:
+    """CPU time the host took from this virtual machine since boot (/proc/stat; 0 where there is none)."""
+    try:
+        with open("/proc/stat", "rb") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def watch(out: Path) -> None:
+    """Sleep and record late wake-ups until SIGTERM; the steal counter is read every READ_STEAL_EVERY sleeps (its
+    unit is a clock tick, 10 ms) and at each late wake-up."""
+    stop: list[bool] = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
+    with open(out, "wb", buffering=0) as f:
+        steal, k = steal_s(), 0
+        while not stop:
+            before = time.monotonic()
+            time.sleep(SLEEP_S)
+            late = time.monotonic() - before - SLEEP_S
+            k += 1
+            if late > LATE_S:
+                now_steal = steal_s()
+                f.write(np.array([time.time(), late, now_steal - steal]).tobytes())
+                steal = now_steal
+            elif k % READ_STEAL_EVERY == 0:
+                steal = steal_s()
+
+
+def read_stalls(path: Path) -> np.ndarray:
+    """The rows OUT holds: (n, 3)."""
+    return np.fromfile(path).reshape(-1, 3) if path.exists() else np.zeros((0, 3))
+
+
+if __name__ == "__main__":
+    watch(Path(sys.argv[1]))
