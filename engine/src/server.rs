@@ -1224,14 +1224,7 @@ mod tests {
     #[test]
     fn each_sender_of_a_connection_has_its_own_tx_queue() {
         let (mut handle, path, dir) = serve_with("senders", 10_000, 10_000, Format::Classical, Policy::Fifo, 100_000_000, None, None);
-        let connect = |name: &str| {
-            let mut s = UnixStream::connect(&path).unwrap();
-            s.write_all(&hello(name)).unwrap();
-            let mut rec = [0u8; RECORD_SIZE];
-            s.read_exact(&mut rec).unwrap();
-            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-            s
-        };
+        let connect = |name: &str| connect_node(&path, name, 0);
         let (mut host, mut reader) = (connect("H"), connect("R"));
         host.write_all(&pack_frame(0x400, &[1], 0, 0.0)).unwrap(); // on the wire for about 6 ms at 10 kbit/s
         std::thread::sleep(Duration::from_millis(2));
@@ -1263,15 +1256,7 @@ mod tests {
         let mut buses: Vec<_> = ["share1", "share2"].iter()
             .map(|tag| serve_with(tag, 500_000, 500_000, Format::Classical, Policy::Priority, 100_000_000, None, Some(thread.clone())))
             .collect();
-        let connect = |path: &std::path::Path, name: &str| {
-            let mut s = UnixStream::connect(path).unwrap();
-            s.write_all(&hello(name)).unwrap();
-            let mut rec = [0u8; RECORD_SIZE];
-            s.read_exact(&mut rec).unwrap();
-            assert_eq!(rec[0], KIND_WELCOME);
-            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-            s
-        };
+        let connect = |path: &std::path::Path, name: &str| connect_node(path, name, 0);
         let exchange = |path: &std::path::Path, id: u32| {
             let (mut a, mut b) = (connect(path, "A"), connect(path, "B"));
             a.write_all(&pack_frame(id, &[1; 8], 0, 0.0)).unwrap();
@@ -1312,17 +1297,7 @@ mod tests {
         bell_r.set_nonblocking(true).unwrap();
         let (mut handle, path, dir) = serve_with("quiet", 500_000, 500_000, Format::Classical, Policy::Priority, 1_000_000_000,
                                                  Some(std::fs::File::from(std::os::fd::OwnedFd::from(bell_r))), None);
-        let connect = |name: &str, options: u8| {
-            let mut s = UnixStream::connect(&path).unwrap();
-            let mut r = hello(name);
-            r[2] = options;
-            s.write_all(&r).unwrap();
-            let mut rec = [0u8; RECORD_SIZE];
-            s.read_exact(&mut rec).unwrap();
-            assert_eq!(rec[0], KIND_WELCOME);
-            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-            s
-        };
+        let connect = |name: &str, options: u8| connect_node(&path, name, options);
         let mut quiet = connect("Q", OPTION_LAZY | OPTION_QUIET);
         let mut rec = [0u8; RECORD_SIZE];
         quiet.read_exact(&mut rec).unwrap();
@@ -1360,17 +1335,7 @@ mod tests {
     #[test]
     fn a_lazy_nodes_frame_stamped_ahead_of_now_goes_on_the_bus_at_its_stamp() {
         let (mut handle, path, dir) = serve("ahead", 10_000, 10_000, Format::Classical); // frames of about 5-11 ms
-        let connect = |name: &str, options: u8| {
-            let mut s = UnixStream::connect(&path).unwrap();
-            let mut r = hello(name);
-            r[2] = options;
-            s.write_all(&r).unwrap();
-            let mut rec = [0u8; RECORD_SIZE];
-            s.read_exact(&mut rec).unwrap();
-            assert_eq!(rec[0], KIND_WELCOME);
-            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-            s
-        };
+        let connect = |name: &str, options: u8| connect_node(&path, name, options);
         let mut sender = connect("S", OPTION_LAZY);
         let mut eager = connect("E", 0);
         let epoch0 = handle.epoch0_ns as f64 * 1e-9;
@@ -1404,17 +1369,7 @@ mod tests {
     #[test]
     fn a_read_time_before_the_end_of_the_frame_on_the_wire_is_synced_at_once() {
         let (mut handle, path, dir) = serve("settled", 10_000, 10_000, Format::Classical); // frames of about 5-13 ms
-        let connect = |name: &str| {
-            let mut s = UnixStream::connect(&path).unwrap();
-            let mut r = hello(name);
-            r[2] = OPTION_LAZY;
-            s.write_all(&r).unwrap();
-            let mut rec = [0u8; RECORD_SIZE];
-            s.read_exact(&mut rec).unwrap();
-            assert_eq!(rec[0], KIND_WELCOME);
-            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-            s
-        };
+        let connect = |name: &str| connect_node(&path, name, OPTION_LAZY);
         let (mut sender, mut reader) = (connect("S"), connect("R"));
         let epoch0 = handle.epoch0_ns as f64 * 1e-9;
         let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
@@ -1434,6 +1389,20 @@ mod tests {
         assert!(got < t_read - shortest - 0.002, "synced {:.4} s before its read time", t_read - got);
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A node's connection to the server at `path`: its HELLO with `options` said, the WELCOME read, reads that
+    /// time out after 2 s.
+    fn connect_node(path: &std::path::Path, name: &str, options: u8) -> UnixStream {
+        let mut s = UnixStream::connect(path).unwrap();
+        let mut r = hello(name);
+        r[2] = options;
+        s.write_all(&r).unwrap();
+        let mut rec = [0u8; RECORD_SIZE];
+        s.read_exact(&mut rec).unwrap();
+        assert_eq!(rec[0], KIND_WELCOME);
+        s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+        s
     }
 
     fn hello(name: &str) -> [u8; RECORD_SIZE] {
