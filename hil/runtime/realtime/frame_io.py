@@ -119,8 +119,9 @@ class EngineFrames:
         time order with their bus timestamps, so taking them at once is the same as taking them one by one.
 
         A lazy reader sleeps on its sockets instead, until each server's SYNC of ``sim_t``, which may come up to
-        one shortest frame before ``sim_t`` (the server's ``anticipate``): it then has every frame that will have
-        ended by ``sim_t``, so it acts at once, as at ``sim_t``. Its frames sent from then on carry ``sim_t``
+        one frame before ``sim_t`` (the server's ``anticipate``: while a frame on the wire ends after it, or within
+        one shortest frame of it): it then has every frame that will have ended by ``sim_t``, so it acts at once,
+        as at ``sim_t``. Its frames sent from then on carry ``sim_t``
         while that is still ahead (``FrameLink.act_at``), and the server queues them at that instant. One wake-up
         per read, on the SYNC, rather than a timer's and then the SYNC's."""
         if self.lazy:

@@ -3,7 +3,7 @@
 ``PacedKernel`` is :class:`hil.runtime.kernel.Kernel` with only ``step()`` overridden, on the pattern of SimPy's
 ``RealtimeEnvironment``: before an event runs, it waits until the node's ``SimClock`` reaches the event's time,
 receiving the node's frames meanwhile. A lazy reader on the emulated buses waits instead until its bus servers
-have synced it to that time, which they may do up to one shortest frame before it (``frame_io.EngineFrames.wait``):
+have synced it to that time, which they may do up to one frame before it (``frame_io.EngineFrames.wait``):
 the event then runs at once, as at its time (its handler takes ``max(clock.now(), t)``), and the frames it sends
 carry that time. Nodes schedule their work with ``at``/``every`` in integer nanoseconds of
 simulated time, as in the virtual rig.
