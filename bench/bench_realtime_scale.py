@@ -12,7 +12,9 @@ p99 lateness is below a tenth of the 10 ms cycle and fewer than 0.1 % of cycles 
 
 Each configuration also prints the CPU per simulated second by role (ECU, plant and radio processes, the bus
 servers' threads, the orchestrator), the profile the real-time cost is read from, and the host's steal time during
-the run (a virtual machine's CPUs taken by its host: every node stalls at once). ``--keep DIR`` keeps each run's
+the run (a virtual machine's CPUs taken by its host: every node stalls at once). A stall watch
+(``bench/stall_watch.py``, a process that only sleeps) runs beside the rig: the bench prints its stalls and how
+many ECU misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR`` keeps each run's
 files (the nodes' timing series) under DIR instead of deleting them.
 """
 from __future__ import annotations
