@@ -3,9 +3,10 @@
 //! unix-socket protocol of `hil/runtime/realtime/protocol.py` (24-byte records).
 //!
 //! Each turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends, a read time
-//! comes, or a node writes (a quiet reader's records wait for the next turn); complete every transmission that ended, hand it to every node whose acceptance filters take it
-//! (python-can semantics, applied here), read the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP),
-//! arbitrate when the bus is idle, write the output. The last `spin_ns` before an end are polled, not slept.
+//! comes, or a node writes (a quiet reader's records wait for the next turn); complete every transmission that
+//! ended, hand it to every node whose acceptance filters take it (python-can semantics, applied here), read the
+//! nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP), arbitrate when the bus is idle, write the output.
+//! The last `spin_ns` before an end are polled, not slept.
 //! Bad input never stops the server: frames the bus cannot carry are counted and dropped, a record that breaks
 //! the protocol disconnects that node, and both are counted and reported (the first few of each kind).
 //! The listening sockets are made (owner-only paths, loopback TCP, token file) by the Python side.
@@ -414,7 +415,7 @@ impl Server {
     /// How far ahead of now a lazy reader's FRAME may be stamped: its SYNC comes up to one frame before its read
     /// time (`anticipate`), and it sends at that read time; a millisecond more for the clocks' rounding.
     fn max_ahead_ns(&self) -> u64 {
-        self.shortest_frame_ns.max(self.longest_frame_ns) + 1_000_000
+        self.longest_frame_ns + 1_000_000
     }
 
     /// The earliest time a record already read waits for (a FRAME sent ahead of its time), if any.
