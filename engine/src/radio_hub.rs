@@ -29,13 +29,14 @@ pub struct Delivery {
     pub data: Payload,
 }
 
-/// One bus server as the hub sees it: how far its zero lies after the hub's, its wake-up socket, and whether it must
+/// One bus server as the hub sees it: how far its zero lies after the hub's, its wake-up socket, whether it must
 /// be woken for a delivery (it has an eager node or a per-frame error model; else it takes the delivery at its next
-/// wake-up, which comes before any reader can see past the delivery time).
+/// wake-up, which comes before any reader can see past the delivery time), and the serving thread it is on.
 struct Port {
     origin_ns: i64,
     wake: UnixStream,
     eager: Arc<AtomicBool>,
+    thread: usize,
 }
 
 /// Everything under the hub's lock.
@@ -114,6 +115,20 @@ impl HubCore {
         made
     }
 
+    /// Whether a frame the radio takes must be handed over at its end: some bus must be woken for its deliveries
+    /// (see `Port`), or the buses are not all served by one thread. Otherwise that thread runs them together, in
+    /// time order, at each of its wake-ups (`server::settle`), and a delivery is made before anyone can see it.
+    pub fn needs_ends(&self) -> bool {
+        let mut threads = self.ports.values().map(|p| p.thread);
+        let first = threads.next();
+        threads.any(|t| Some(t) != first) || self.ports.values().any(|p| p.eager.load(Ordering::Relaxed))
+    }
+
+    /// How far bus `bus`'s zero lies after the hub's (model ns): bus times plus it are the hub's time.
+    pub fn origin_of(&self, bus: usize) -> i64 {
+        self.origin_ns(bus)
+    }
+
     /// The deliveries waiting for `bus`, oldest first.
     pub fn take(&mut self, bus: usize) -> Vec<Delivery> {
         let mut out = self.inboxes.remove(&bus).unwrap_or_default();
@@ -163,11 +178,12 @@ impl RadioHub {
         (core.reserve.iter().map(VecDeque::len).collect(), core.fault_reserve.len())
     }
 
-    /// Bus `bus`'s server: its zero, a socket that wakes it, and the flag it keeps saying whether it must be woken.
-    pub fn register(&self, bus: usize, mono0: Instant, wake: UnixStream, eager: Arc<AtomicBool>) {
+    /// Bus `bus`'s server: its zero, a socket that wakes it, the flag it keeps saying whether it must be woken, and
+    /// the serving thread it is on (any number that tells the threads apart).
+    pub fn register(&self, bus: usize, mono0: Instant, wake: UnixStream, eager: Arc<AtomicBool>, thread: usize) {
         let mut core = self.core.lock().unwrap();
         let origin_ns = (mono0.saturating_duration_since(core.zero).as_nanos() as f64 * core.pace) as i64;
-        core.ports.insert(bus, Port { origin_ns, wake, eager });
+        core.ports.insert(bus, Port { origin_ns, wake, eager, thread });
     }
 }
 
@@ -194,9 +210,9 @@ mod tests {
         let (r, w) = UnixStream::pair().unwrap();
         r.set_nonblocking(true).unwrap();
         let t0 = Instant::now();
-        hub.register(0, t0, UnixStream::pair().unwrap().1, Arc::new(AtomicBool::new(true)));
+        hub.register(0, t0, UnixStream::pair().unwrap().1, Arc::new(AtomicBool::new(true)), 1);
         let eager = Arc::new(AtomicBool::new(true));
-        hub.register(1, t0, w, eager.clone());
+        hub.register(1, t0, w, eager.clone(), 1);
         let mut core = hub.core.lock().unwrap();
         assert_eq!(core.offer(0, 0x100, &[1, 2, 3], 10_000), 1);
         assert_eq!(core.offer(0, 0x101, &[9], 10_000), 0); // not routed
@@ -218,11 +234,26 @@ mod tests {
         hub.push_draws(0, block(4, 0));
         let t0 = Instant::now();
         let flag = || Arc::new(AtomicBool::new(true));
-        hub.register(0, t0, UnixStream::pair().unwrap().1, flag());
-        hub.register(1, t0 + std::time::Duration::from_micros(300), UnixStream::pair().unwrap().1, flag());
+        hub.register(0, t0, UnixStream::pair().unwrap().1, flag(), 1);
+        hub.register(1, t0 + std::time::Duration::from_micros(300), UnixStream::pair().unwrap().1, flag(), 1);
         let mut core = hub.core.lock().unwrap();
         core.offer(0, 0x100, &[1], 1_000_000);
         assert_eq!(core.take(1)[0].t_ns, 700_000); // bus 2 started 300 µs later: its clock reads 300 µs less
+    }
+
+    #[test]
+    fn routed_frames_need_their_ends_unless_every_bus_is_lazy_and_on_one_thread() {
+        let hub = hub_1_to_2(0);
+        let t0 = Instant::now();
+        let (e1, e2) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
+        hub.register(0, t0, UnixStream::pair().unwrap().1, e1.clone(), 7);
+        hub.register(1, t0, UnixStream::pair().unwrap().1, e2.clone(), 7);
+        assert!(!hub.core.lock().unwrap().needs_ends());
+        e2.store(true, Ordering::Relaxed); // an eager node on bus 2: woken for each delivery, which must come at once
+        assert!(hub.core.lock().unwrap().needs_ends());
+        e2.store(false, Ordering::Relaxed);
+        hub.register(1, t0, UnixStream::pair().unwrap().1, e2, 8); // another thread: no common time order
+        assert!(hub.core.lock().unwrap().needs_ends());
     }
 
     #[test]

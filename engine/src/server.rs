@@ -215,8 +215,10 @@ pub struct Server {
     radio: Option<RadioPort>,
     /// The bell quiet readers ring (the read end of `<bus>.bell`, a FIFO): without one, no reader is quiet.
     bell: Option<std::fs::File>,
-    /// What the quiet readers were last told to ring for: every frame (true), or the radio's routes only.
+    /// What the quiet readers were last told to ring for: every frame (true), or the radio's routes (if
+    /// `bell_routes`: they must reach the hub at their ends), or nothing.
     bell_every: bool,
+    bell_routes: bool,
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
     /// Set once the server has finished (its nodes disconnected, its log closed): its handle's `shutdown` waits.
@@ -228,6 +230,8 @@ pub struct RadioPort {
     hub: Arc<RadioHub>,
     /// This bus's index among the hub's buses.
     bus: usize,
+    /// How far this bus's zero lies after the hub's (model ns): the servers of one radio order their events by it.
+    origin_ns: i64,
     /// The radio's node on this bus ("RadioGW"), which sends the frames it delivers.
     node: usize,
     /// IDs whose ends the hub must see (the gateway's routes from this bus).
@@ -236,6 +240,8 @@ pub struct RadioPort {
     pending: std::collections::VecDeque<Delivery>,
     /// Whether the hub must wake this server for a delivery (kept up to date each turn; see `radio_hub::Port`).
     eager: Arc<AtomicBool>,
+    /// Whether the routed frames must be handed to the hub at their ends (`HubCore::needs_ends`; each turn).
+    needs_ends: bool,
 }
 
 /// A handle to a running server: stop it, read its state.
@@ -331,15 +337,23 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let mut bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
     let mono0 = Instant::now(); // and the same instant on the epoch clock: records carry epoch times
     let epoch0_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
-    let radio = match radio {
-        Some((hub, index)) => {
+    let radio_wake = if radio.is_some() { Some(wake_w.try_clone()?) } else { None };
+    let (thread, own_thread) = match thread {
+        Some(t) => (t, false),
+        None => (ServingThread::start(&format!("bus-server {}", cfg.channel))?, true),
+    };
+    let radio = match (radio, radio_wake) {
+        (Some((hub, index)), Some(wake)) => {
             let eager = Arc::new(AtomicBool::new(true));
-            hub.register(index, mono0, wake_w.try_clone()?, eager.clone());
-            let routed = hub.core.lock().unwrap().routed_ids(index);
+            hub.register(index, mono0, wake, eager.clone(), Arc::as_ptr(&thread) as usize);
+            let (routed, origin_ns) = {
+                let core = hub.core.lock().unwrap();
+                (core.routed_ids(index), core.origin_of(index))
+            };
             let node = bus.attach("RadioGW", Sink::None, None, false);
-            Some(RadioPort { hub, bus: index, node, routed, pending: Default::default(), eager })
+            Some(RadioPort { hub, bus: index, origin_ns, node, routed, pending: Default::default(), eager, needs_ends: true })
         }
-        None => None,
+        _ => None,
     };
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
@@ -348,14 +362,11 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let stop = Arc::new(AtomicBool::new(false));
     let pace = cfg.pace;
     let done = Arc::new(AtomicBool::new(false));
-    let (thread, own_thread) = match thread {
-        Some(t) => (t, false),
-        None => (ServingThread::start(&format!("bus-server {}", cfg.channel))?, true),
-    };
     let server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        floor: 0, arbitrate_at: None, shortest_frame_ns, longest_frame_ns, radio, bell, bell_every: true, more_waiting: false,
+        floor: 0, arbitrate_at: None, shortest_frame_ns, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
+        more_waiting: false,
         done: done.clone(),
     };
     thread.add(server);
@@ -391,6 +402,8 @@ impl Server {
 
     /// How long to sleep: to the end of the frame on the wire when someone must have it then (an eager node,
     /// or the error model, which acts at every frame), to the next read time of a lazy reader, else a load window.
+    /// A radio delivery or a frame sent ahead of its time wakes the loop only when someone takes frames as they
+    /// end (`prompt`); else the next wake-up queues it at its time, before anyone can see past it.
     fn timeout_ns(&mut self, shared: &Shared) -> i64 {
         if std::mem::take(&mut self.more_waiting) {
             return 0;
@@ -403,13 +416,26 @@ impl Server {
         if let Some(r) = self.next_read() {
             wake = wake.min(self.sync_wake(shared, r));
         }
-        if let Some(d) = self.radio.as_ref().and_then(|r| r.pending.front()) {
-            wake = wake.min(d.t_ns);
-        }
-        if let Some(t) = self.next_pending_record(now) {
-            wake = wake.min(t);
+        if self.prompt(shared) {
+            if let Some(d) = self.radio.as_ref().and_then(|r| r.pending.front()) {
+                wake = wake.min(d.t_ns);
+            }
+            if let Some(t) = self.next_pending_record(now) {
+                wake = wake.min(t);
+            }
         }
         (wake.saturating_sub(now) as f64 / self.cfg.pace) as i64
+    }
+
+    /// Whether someone must have frames as they end: `every_end_needed`, or the radio's routed frames must reach
+    /// the hub at their ends (`routes_need_ends`).
+    fn prompt(&self, shared: &Shared) -> bool {
+        self.every_end_needed(shared) || self.routes_need_ends()
+    }
+
+    /// Whether this bus's routed frames must reach the radio hub at their ends (`HubCore::needs_ends`).
+    fn routes_need_ends(&self) -> bool {
+        self.radio.as_ref().is_some_and(|r| r.needs_ends && !r.routed.is_empty())
     }
 
     /// How far ahead of now a lazy reader's FRAME may be stamped: its SYNC comes up to one frame before its read
@@ -442,17 +468,17 @@ impl Server {
         if shared.bus.errors.is_some() || shared.bus.guardian.is_some() || !self.clients.iter().any(|c| c.lazy) {
             return Some(tx.t_end);
         }
-        let routes = self.radio.as_ref().is_some_and(|r| !r.routed.is_empty());
-        if !routes && !self.has_eager_node() {
+        if !self.routes_need_ends() && !self.has_eager_node() {
             return None;
         }
         shared.bus.earliest_end(|id, ext| self.needs_end((id, ext)))
     }
 
-    /// Whether a frame of `key` must be handed over at its end: an eager node takes it, or the radio routes it.
+    /// Whether a frame of `key` must be handed over at its end: an eager node takes it, or the radio routes it
+    /// and needs it then.
     fn needs_end(&mut self, key: (u32, bool)) -> bool {
         self.receivers(key);
-        self.rx_cache[&key].iter().any(|&i| !self.clients[i].lazy) || self.routed(key.0)
+        self.rx_cache[&key].iter().any(|&i| !self.clients[i].lazy) || (self.routed(key.0) && self.routes_need_ends())
     }
 
     /// Cache the clients whose filters take frames of `key` (in `rx_cache`, until the clients or their filters
@@ -527,12 +553,10 @@ impl Server {
         timeout
     }
 
-    /// A turn after the poll (`fds`: its own part of the poll set, as `poll_set` made it): read what came, run
-    /// the bus to now, write what is due.
-    pub(crate) fn turn(&mut self, fds: &[libc::pollfd]) {
+    /// The first part of a turn: read what came (`fds`: its own part of the poll set, as `poll_set` made it) and
+    /// take the radio's deliveries. Returns now (bus ns).
+    fn take_input(&mut self, shared: &mut Shared, fds: &[libc::pollfd]) -> u64 {
         let now = self.now();
-        let shared_arc = self.shared.clone();
-        let mut shared = shared_arc.lock().unwrap();
         shared.now_ns = now;
         shared.turns += 1;
         if fds[0].revents != 0 {
@@ -549,37 +573,43 @@ impl Server {
             // a lazy reader's frames carry their time: read what came since the poll too, so fewer are late
             let readable = pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 || self.clients[i].lazy;
             if readable && !self.clients[i].closed {
-                self.receive(&mut shared, i);
+                self.receive(shared, i);
             }
         }
         if fds[1].revents != 0 {
-            self.accept(&mut shared, false);
+            self.accept(shared, false);
         }
         if fds[2].revents != 0 {
-            self.accept(&mut shared, true);
+            self.accept(shared, true);
         }
         self.take_radio();
-        self.process_records(&mut shared, now);
-        self.advance(&mut shared, now, true);
-        self.anticipate(&mut shared, now);
+        now
+    }
+
+    /// The last part of a turn, after the bus has run to `now`: the SYNCs it settles, write what is due, close
+    /// the load windows, and tell the hub and the quiet readers what this bus needs now.
+    fn end_turn(&mut self, shared: &mut Shared, now: u64) {
+        self.anticipate(shared, now);
         if shared.bus.current.is_none() {
             let _ = shared.bus.arbitrate(now);
         }
-        self.flush(&mut shared);
+        self.flush(shared);
         self.remove_closed();
         if now >= self.next_window {
-            Self::close_windows(&mut shared, now, self.cfg.keep_log);
+            Self::close_windows(shared, now, self.cfg.keep_log);
             self.next_window = (now / self.cfg.load_window_ns + 1) * self.cfg.load_window_ns;
-            self.expire_handshakes(&mut shared);
+            self.expire_handshakes(shared);
             self.remove_closed();
         }
         shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
-        let every_end = self.every_end_needed(&shared);
-        if let Some(r) = &self.radio {
+        let every_end = self.every_end_needed(shared);
+        if let Some(r) = self.radio.as_mut() {
             r.eager.store(every_end, Ordering::Relaxed);
+            r.needs_ends = r.hub.core.lock().unwrap().needs_ends();
         }
-        if every_end != self.bell_every {
-            self.bell_every = every_end;
+        let routes = self.routes_need_ends();
+        if (every_end, routes) != (self.bell_every, self.bell_routes) {
+            (self.bell_every, self.bell_routes) = (every_end, routes);
             self.tell_bell();
         }
     }
@@ -595,9 +625,13 @@ impl Server {
         self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed)
     }
 
-    /// The BELL records of what quiet readers must ring for now: every frame, or those the radio takes.
+    /// The BELL records of what quiet readers must ring for now: every frame, or those the radio takes at their
+    /// ends, or none.
     fn bell_records(&self) -> Vec<u8> {
-        let mut routed: Vec<u32> = self.radio.as_ref().map(|r| r.routed.iter().copied().collect()).unwrap_or_default();
+        let mut routed: Vec<u32> = match self.radio.as_ref().filter(|_| self.bell_routes) {
+            Some(r) => r.routed.iter().copied().collect(),
+            None => Vec::new(),
+        };
         routed.sort_unstable();
         pack_bell(self.bell_every, &routed)
     }
@@ -610,38 +644,104 @@ impl Server {
         }
     }
 
-    /// Run the bus to `until` (`inclusive`: events at `until` too): complete every transmission that ended and
-    /// hand it over, arbitrate at each end and where a frame was queued on an idle bus, and give each lazy reader
-    /// its SYNC at its read times, all in time order.
+    /// Run the bus alone to `until` (`inclusive`: events at `until` too): its own events only (`next_step`),
+    /// not the nodes' records or the radio's deliveries.
     fn advance(&mut self, shared: &mut Shared, until: u64, inclusive: bool) {
-        let due = |t: u64| if inclusive { t <= until } else { t < until };
-        loop {
-            if shared.bus.current.is_none() {
-                if let Some(ta) = self.arbitrate_at.filter(|&ta| due(ta)) {
-                    self.arbitrate_at = None;
-                    let _ = shared.bus.arbitrate(ta.max(shared.bus.busy_until));
-                    continue;
-                }
-            }
-            let end = shared.bus.current.map(|tx| tx.t_end).filter(|&e| due(e));
-            let read = self.next_read().filter(|&r| due(r));
-            match (end, read) {
-                (Some(e), r) if r.is_none_or(|r| e <= r) => {
-                    let done = shared.bus.complete();
-                    if done.error.is_none() {
-                        self.deliver(shared, &done); // a frame destroyed by an error frame (errors.rs) is not delivered
-                    }
-                    self.arbitrate_at = None; // whatever is queued competes at this end
-                    let _ = shared.bus.arbitrate(e);
-                }
-                (_, Some(r)) => self.sync_readers(r),
-                _ => break,
-            }
-        }
-        if shared.bus.current.is_none() && shared.bus.pending() && self.arbitrate_at.is_none() {
-            self.arbitrate_at = Some(until.max(shared.bus.busy_until)); // e.g. the end of an error frame
+        while let Some((t, kind)) = self.next_step(shared, until, false).filter(|&(t, _)| inclusive || t < until) {
+            self.step(shared, until, t, kind);
         }
         self.floor = self.floor.max(until);
+        self.rearm(shared, until);
+    }
+
+    /// This server's next event by `now` (bus ns) and its kind: the end of the frame on the wire, an
+    /// arbitration, a read time, and with `inputs` a node's record or a radio delivery.
+    fn next_step(&self, shared: &Shared, now: u64, inputs: bool) -> Option<(u64, Step)> {
+        let bus = match shared.bus.current {
+            Some(tx) => Some((tx.t_end, Step::End)),
+            None => self.arbitrate_at.map(|ta| (ta.max(shared.bus.busy_until), Step::Arbitrate)),
+        };
+        let input = if inputs { self.next_input_time(now).map(|t| (t, Step::Input)) } else { None };
+        let read = self.next_read().map(|r| (r, Step::Read));
+        [bus, input, read].into_iter().flatten().filter(|&(t, _)| t <= now).min()
+    }
+
+    /// Take the event `(t, kind)` that `next_step` gave: complete the frame that ended and hand it over
+    /// (whatever is queued then competes at its end, after the other events of that instant), take one record
+    /// or delivery, arbitrate, or SYNC the lazy readers of read time `t`.
+    fn step(&mut self, shared: &mut Shared, now: u64, t: u64, kind: Step) {
+        self.floor = self.floor.max(t);
+        match kind {
+            Step::End => {
+                let done = shared.bus.complete();
+                if done.error.is_none() {
+                    self.deliver(shared, &done); // a frame destroyed by an error frame (errors.rs) is not delivered
+                }
+                self.arbitrate_at = shared.bus.pending().then_some(t);
+            }
+            Step::Input => self.take_one_input(shared, now, t),
+            Step::Arbitrate => {
+                self.arbitrate_at = None;
+                let _ = shared.bus.arbitrate(t);
+            }
+            Step::Read => self.sync_readers(t),
+        }
+    }
+
+    /// An idle bus with frames queued and no arbitration to come (e.g. after an error frame): arbitrate at
+    /// `until` or when the bus is free.
+    fn rearm(&mut self, shared: &Shared, until: u64) {
+        if shared.bus.current.is_none() && shared.bus.pending() && self.arbitrate_at.is_none() {
+            self.arbitrate_at = Some(until.max(shared.bus.busy_until));
+        }
+    }
+
+    /// The time of the earliest record or radio delivery due by `now`: a lazy reader's FRAME at the time it
+    /// carries (not before the bus's floor; one sent ahead of its time waits for it), anyone else's when read.
+    fn next_input_time(&self, now: u64) -> Option<u64> {
+        let record = (0..self.clients.len()).filter_map(|i| self.next_record_time(i, now)).min();
+        self.next_delivery_time(now).into_iter().chain(record).filter(|&t| t <= now).min()
+    }
+
+    /// When the radio's next delivery is queued: at its time, not before the bus's floor.
+    fn next_delivery_time(&self, now: u64) -> Option<u64> {
+        self.radio.as_ref().and_then(|r| r.pending.front()).map(|d| d.t_ns.max(self.floor.min(now)))
+    }
+
+    /// Take the earliest input due by `now` (at `t`): the radio's delivery before a record of the same time,
+    /// among the records the first node's.
+    fn take_one_input(&mut self, shared: &mut Shared, now: u64, t: u64) {
+        let mut record: Option<(u64, usize)> = None;
+        for i in 0..self.clients.len() {
+            if let Some(ti) = self.next_record_time(i, now).filter(|&ti| ti <= now && record.is_none_or(|(b, _)| ti < b)) {
+                record = Some((ti, i));
+            }
+        }
+        match (self.next_delivery_time(now), record) {
+            (Some(d), r) if r.is_none_or(|(tr, _)| d <= tr) => self.radio_send(shared, t),
+            (_, Some((_, i))) => self.process_one(shared, i, t),
+            _ => {}
+        }
+    }
+
+    /// After the servers of a turn have run to their nows: forget the records taken, keep the bus armed.
+    fn settled(&mut self, shared: &Shared, now: u64) {
+        for c in self.clients.iter_mut() {
+            c.rx.drain(..c.rx_off.min(c.rx.len()));
+            c.rx_off = 0;
+        }
+        self.floor = self.floor.max(now);
+        self.rearm(shared, now);
+    }
+
+    /// Which radio hub this server is on (None: none): the servers of one hub on one thread turn together.
+    pub(crate) fn radio_key(&self) -> Option<usize> {
+        self.radio.as_ref().map(|r| Arc::as_ptr(&r.hub) as usize)
+    }
+
+    /// How far this bus's zero lies after its radio hub's (0 without a radio): its time plus this is the hub's.
+    fn origin_ns(&self) -> i64 {
+        self.radio.as_ref().map_or(0, |r| r.origin_ns)
     }
 
     /// SYNC the read times that the bus's state settles now, so that every frame that ends by them has been
@@ -918,35 +1018,6 @@ impl Server {
         }
     }
 
-    /// The nodes' whole records, in time order across the nodes: a lazy reader's FRAME at the time it carries
-    /// (not before the bus's floor; one it sent ahead of its time waits for it), anyone else's when read; the bus
-    /// is run up to each.
-    fn process_records(&mut self, shared: &mut Shared, now: u64) {
-        loop {
-            let mut best: Option<(u64, usize)> = None;
-            for i in 0..self.clients.len() {
-                let head = self.next_record_time(i, now).filter(|&t| t <= now);
-                if let Some(t) = head.filter(|&t| best.is_none_or(|(bt, _)| t < bt)) {
-                    best = Some((t, i));
-                }
-            }
-            let radio = self.radio.as_ref().and_then(|r| r.pending.front()).map(|d| d.t_ns.max(self.floor.min(now)))
-                .filter(|&t| t <= now && best.is_none_or(|(bt, _)| t <= bt));
-            if let Some(t) = radio {
-                self.advance(shared, t, false);
-                self.radio_send(shared, t);
-                continue;
-            }
-            let Some((t, i)) = best else { break };
-            self.advance(shared, t, false);
-            self.process_one(shared, i, t);
-        }
-        for c in self.clients.iter_mut() {
-            c.rx.drain(..c.rx_off.min(c.rx.len()));
-            c.rx_off = 0;
-        }
-    }
-
     /// Every whole record of one node, at once (a node that is leaving).
     fn process_client(&mut self, shared: &mut Shared, i: usize) {
         let now = self.now();
@@ -1182,6 +1253,58 @@ impl Server {
     }
 }
 
+/// The kinds of a server's events, in the order those of one instant are taken, across the servers of one radio
+/// too: frame ends (and the radio deliveries they make), the nodes' records and the deliveries, arbitrations,
+/// read times.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Step {
+    End,
+    Input,
+    Arbitrate,
+    Read,
+}
+
+/// One turn of servers that run together (the buses of one radio on one serving thread, or a server alone), each
+/// with its part of the poll set: each reads what came, then their events up to now run in time order across them
+/// (`settle`), so a frame the radio takes reaches the next bus before anyone there can see past its delivery time
+/// and no wake-up is needed at its end; then each writes what is due.
+pub(crate) fn turn_together(turns: &mut [(&mut Server, &[libc::pollfd])]) {
+    let arcs: Vec<Arc<Mutex<Shared>>> = turns.iter().map(|(s, _)| s.shared.clone()).collect();
+    let mut shared: Vec<_> = arcs.iter().map(|a| a.lock().unwrap()).collect();
+    let nows: Vec<u64> = turns.iter_mut().zip(shared.iter_mut()).map(|((s, fds), sh)| s.take_input(sh, fds)).collect();
+    settle(turns, &mut shared, &nows);
+    for (((s, _), sh), &now) in turns.iter_mut().zip(shared.iter_mut()).zip(&nows) {
+        s.end_turn(sh, now);
+    }
+}
+
+/// Run the servers' events up to their nows, the earliest first across them (in the radio hub's time; see
+/// `Step` for one instant's order). A routed frame's end hands it to the hub, and the other servers take its
+/// deliveries before their next event.
+fn settle(turns: &mut [(&mut Server, &[libc::pollfd])], shared: &mut [std::sync::MutexGuard<'_, Shared>], nows: &[u64]) {
+    loop {
+        let mut best: Option<((i64, Step), usize, u64)> = None;
+        for (k, (s, _)) in turns.iter().enumerate() {
+            if let Some((t, kind)) = s.next_step(&shared[k], nows[k], true) {
+                let key = (t as i64 + s.origin_ns(), kind);
+                if best.is_none_or(|(b, _, _)| key < b) {
+                    best = Some((key, k, t));
+                }
+            }
+        }
+        let Some(((_, kind), k, t)) = best else { break };
+        turns[k].0.step(&mut shared[k], nows[k], t, kind);
+        if kind == Step::End && turns.len() > 1 && turns[k].0.radio.is_some() {
+            for (s, _) in turns.iter_mut() {
+                s.take_radio();
+            }
+        }
+    }
+    for (k, (s, _)) in turns.iter_mut().enumerate() {
+        s.settled(&shared[k], nows[k]);
+    }
+}
+
 /// A node name as it goes into logs: control characters (newlines, escapes) become '?', so no node can forge a
 /// log line (the Python server's ``loggable`` does the same).
 fn loggable(name: &str) -> String {
@@ -1218,6 +1341,63 @@ mod tests {
         };
         use std::os::fd::IntoRawFd;
         (start(cfg, listener.into_raw_fd(), None, bell, None, thread).unwrap(), path, dir)
+    }
+
+    /// A server on bus `index` of `hub` (the radio), served by `thread`, at 10 kbit/s with 1 s load windows.
+    fn serve_radio(tag: &str, hub: &Arc<RadioHub>, index: usize, thread: &Arc<ServingThread>)
+                   -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
+        let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("b.sock");
+        let _ = std::fs::remove_file(&path);
+        let listener = UnixListener::bind(&path).unwrap();
+        let cfg = ServerConfig {
+            channel: format!("t/{tag}"), bitrate: 10_000, data_bitrate: 10_000, format: Format::Classical,
+            policy: Policy::Priority, depth: 8, extended: false, load_window_ns: 1_000_000_000, pace: 1.0, spin_ns: 0,
+            max_clients: 8, hello_timeout: Duration::from_secs(5), keep_log: true, token: None,
+        };
+        use std::os::fd::IntoRawFd;
+        let radio = Some((hub.clone(), index));
+        (start(cfg, listener.into_raw_fd(), None, None, radio, Some(thread.clone())).unwrap(), path, dir)
+    }
+
+    /// The buses of one radio on one serving thread run together in time order: a lazy node's routed frame is on
+    /// the next bus from the instant it ends (radio latency 0), with no wake-up at that end; the next bus's reader
+    /// has it, stamped with its end there, before its SYNC.
+    #[test]
+    fn a_routed_frame_crosses_to_the_next_bus_at_its_end_without_a_wake_up_there() {
+        use crate::radio::{Draws, Hop, Link, Loss};
+        let hub = Arc::new(RadioHub::new(None, 1.0));
+        let link = hub.add_link(Link::new("1>2", 1e9, vec![], 0, None, Loss::None, false));
+        hub.core.lock().unwrap().gateway.add_route(0, 0x100, Hop { dst_bus: 1, dst_id: 0x300, link, reverse: None });
+        hub.push_draws(link, Draws { u_step: vec![0.5; 4], u_loss: vec![0.5; 4], jitter_ns: vec![0; 4], next: 0 });
+        let thread = ServingThread::start("radio test").unwrap();
+        let (mut a, path_a, dir_a) = serve_radio("radio1", &hub, 0, &thread);
+        let (mut b, path_b, dir_b) = serve_radio("radio2", &hub, 1, &thread);
+        let (mut sender, mut reader) = (connect_node(&path_a, "S", OPTION_LAZY), connect_node(&path_b, "R", OPTION_LAZY));
+        let epoch0 = a.epoch0_ns as f64 * 1e-9;
+        let now = || epoch0 + a.now_ns() as f64 * 1e-9;
+        let timing = BitTiming::new(10_000, 10_000).unwrap();
+        let on_a = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        let on_b = timing.frame_ns(0x300, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        let t_read = now() + 0.01 + on_a + on_b + 0.01;
+        reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
+        std::thread::sleep(Duration::from_millis(10));
+        let turns_before = turns(&a);
+        let t_send = now();
+        sender.write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        let mut rec = [0u8; RECORD_SIZE];
+        reader.read_exact(&mut rec).unwrap();
+        assert_eq!((rec[0], u32_at(&rec, 4)), (KIND_FRAME, 0x300));
+        assert!((stamp_of(&rec) - (t_send + on_a + on_b)).abs() < 2e-6, "ended {:.6} s after the send", stamp_of(&rec) - t_send);
+        reader.read_exact(&mut rec).unwrap();
+        assert_eq!(rec[0], KIND_SYNC);
+        // one turn for the sender's write, one for the reader's SYNC: none at the frame's end on either bus
+        assert_eq!(turns(&a) - turns_before, 2);
+        a.shutdown();
+        b.shutdown();
+        thread.close();
+        let _ = (std::fs::remove_dir_all(&dir_a), std::fs::remove_dir_all(&dir_b));
     }
 
     /// One connection's frames from two senders wait in two TX queues, as two controllers' would: on a FIFO bus
@@ -1377,11 +1557,10 @@ mod tests {
         let timing = BitTiming::new(10_000, 10_000).unwrap();
         let one_frame = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
         let shortest = timing.frame_ns(0, &[], false, false, false).unwrap() as f64 * 1e-9;
-        let t_send = now() + 0.01;
-        let t_read = t_send + one_frame - 0.0005; // while the frame is on the wire, more than a shortest frame on
+        let t_read = now() + 0.005 + one_frame - 0.0005; // while the frame sent in 5 ms is on the wire
         reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
         std::thread::sleep(Duration::from_millis(5));
-        sender.write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        sender.write_all(&pack_frame(0x100, &[1; 8], 0, now())).unwrap(); // queued when the server reads it
         let mut rec = [0u8; RECORD_SIZE];
         reader.read_exact(&mut rec).unwrap();
         let got = now();

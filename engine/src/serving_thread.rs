@@ -5,6 +5,7 @@
 //! Each turn: take the servers added since the last, finish the ones asked to stop, let each put its descriptors on
 //! one poll set and say how long it may sleep, sleep for the shortest, then let each server whose time came or
 //! whose descriptors woke the thread take its turn (a server's turn is most of its cost: the others skip theirs).
+//! The servers of one radio hub turn together, their events in one time order (`server::turn_together`).
 
 use std::io::Write;
 use std::os::fd::AsRawFd;
@@ -14,10 +15,23 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::server::{drain_wake_ups, set_timer_slack, Server};
+use crate::server::{drain_wake_ups, set_timer_slack, turn_together, Server};
 
 /// How long an empty thread sleeps between looks (it is woken when a server comes or it is closed).
 const IDLE_NS: i64 = 100_000_000;
+
+/// The servers that turn together (by index): those of one radio hub, and each other one alone. A routed frame
+/// then reaches the next bus in time order without a wake-up at its end (`server::turn_together`).
+fn radio_groups(servers: &[Server]) -> Vec<Vec<usize>> {
+    let mut groups: Vec<(Option<usize>, Vec<usize>)> = Vec::new();
+    for (k, s) in servers.iter().enumerate() {
+        match s.radio_key().and_then(|key| groups.iter_mut().find(|(g, _)| *g == Some(key))) {
+            Some((_, members)) => members.push(k),
+            None => groups.push((s.radio_key(), vec![k])),
+        }
+    }
+    groups.into_iter().map(|(_, members)| members).collect()
+}
 
 /// A thread serving bus servers; it ends once closed and its servers have finished.
 pub struct ServingThread {
@@ -100,10 +114,12 @@ impl ServingThread {
                 drain_wake_ups(&mut &self.wake_r);
             }
             let now = Instant::now();
-            for (s, (part, due)) in servers.iter_mut().zip(parts.iter()) {
-                let fds = &fds[part.clone()];
-                if now >= *due || fds.iter().any(|p| p.revents != 0) {
-                    s.turn(fds);
+            let due: Vec<bool> = parts.iter().map(|(part, due)| now >= *due || fds[part.clone()].iter().any(|p| p.revents != 0)).collect();
+            for group in radio_groups(&servers) {
+                if group.iter().any(|&k| due[k]) {
+                    let mut turns: Vec<(&mut Server, &[libc::pollfd])> = servers.iter_mut().zip(parts.iter()).enumerate()
+                        .filter(|(k, _)| group.contains(k)).map(|(_, (s, (part, _)))| (s, &fds[part.clone()])).collect();
+                    turn_together(&mut turns);
                 }
             }
         }
