@@ -2,10 +2,12 @@
 //! interpreter lock), its own or one it shares with the rig's other buses (`serving_thread.rs`), with the
 //! unix-socket protocol of `hil/runtime/realtime/protocol.py` (24-byte records).
 //!
-//! Each turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends, a read time
-//! comes, or a node writes (a quiet reader's records wait for the next turn); complete every transmission that
-//! ended, hand it to every node whose acceptance filters take it (python-can semantics, applied here), read the
-//! nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP), arbitrate when the bus is idle, write the output.
+//! Each turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends (when someone
+//! must have it then), a read time comes, or a node writes (a quiet reader's records wait for the next turn); read
+//! the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP), then run the bus's events to now in time order
+//! (`settle`; with the other buses of its radio on the same thread, `turn_together`): complete every transmission
+//! that ended, hand it to every node whose acceptance filters take it (python-can semantics, applied here), queue
+//! the records and the radio's deliveries at their times, arbitrate, SYNC lazy readers; write the output.
 //! The last `spin_ns` before an end are polled, not slept.
 //! Bad input never stops the server: frames the bus cannot carry are counted and dropped, a record that breaks
 //! the protocol disconnects that node, and both are counted and reported (the first few of each kind).
@@ -460,9 +462,10 @@ impl Server {
     }
 
     /// When the loop must wake for a frame's end (None: no frame needs it). A frame needs its end when a node
-    /// takes it as it ends (an eager node, the radio's routes) or the bus has an error model or guardian (they act
-    /// at every frame): at the earliest such a frame can end (`Bus::earliest_end`), not at every end of the frames
-    /// before it; whatever the loop did not wake for, `advance` runs in time order at the next wake-up.
+    /// takes it as it ends (an eager node; the radio's routes when `routes_need_ends`) or the bus has an error model
+    /// or guardian (they act at every frame): at the earliest such a frame can end (`Bus::earliest_end`), not at
+    /// every end of the frames before it; whatever the loop did not wake for, `settle` runs in time order at the
+    /// next wake-up.
     fn frame_end_wake(&mut self, shared: &Shared) -> Option<u64> {
         let tx = shared.bus.current?;
         if shared.bus.errors.is_some() || shared.bus.guardian.is_some() || !self.clients.iter().any(|c| c.lazy) {
@@ -668,14 +671,16 @@ impl Server {
 
     /// Take the event `(t, kind)` that `next_step` gave: complete the frame that ended and hand it over
     /// (whatever is queued then competes at its end, after the other events of that instant), take one record
-    /// or delivery, arbitrate, or SYNC the lazy readers of read time `t`.
-    fn step(&mut self, shared: &mut Shared, now: u64, t: u64, kind: Step) {
+    /// or delivery, arbitrate, or SYNC the lazy readers of read time `t`. Returns whether the radio hub got a
+    /// frame (the other buses then have deliveries to take).
+    fn step(&mut self, shared: &mut Shared, now: u64, t: u64, kind: Step) -> bool {
         self.floor = self.floor.max(t);
+        let mut offered = false;
         match kind {
             Step::End => {
                 let done = shared.bus.complete();
                 if done.error.is_none() {
-                    self.deliver(shared, &done); // a frame destroyed by an error frame (errors.rs) is not delivered
+                    offered = self.deliver(shared, &done); // a frame destroyed by an error frame is not delivered
                 }
                 self.arbitrate_at = shared.bus.pending().then_some(t);
             }
@@ -686,6 +691,7 @@ impl Server {
             }
             Step::Read => self.sync_readers(t),
         }
+        offered
     }
 
     /// An idle bus with frames queued and no arbitration to come (e.g. after an error frame): arbitrate at
@@ -814,7 +820,9 @@ impl Server {
         (ns.is_finite() && ns >= 0.0).then_some(ns as u64)
     }
 
-    fn deliver(&mut self, shared: &mut Shared, tx: &Transmission) {
+    /// Hand a frame that ended to its receivers (a lazy reader's wait for its next SYNC) and, if routed, to the
+    /// radio hub; returns whether the hub got it.
+    fn deliver(&mut self, shared: &mut Shared, tx: &Transmission) -> bool {
         let flags = if tx.extended { FLAG_EXTENDED } else { 0 } | format_flags(tx.format);
         let stamp = self.epoch_s(tx.t_end);
         let mut packed = Vec::with_capacity(MAX_FRAME_RECORDS * RECORD_SIZE);
@@ -846,7 +854,8 @@ impl Server {
             }
         }
         self.rx_cache.insert(key, receivers);
-        if let Some(r) = self.radio.as_ref().filter(|r| r.routed.contains(&tx.frame_id)) {
+        let routed = self.radio.as_ref().filter(|r| r.routed.contains(&tx.frame_id));
+        if let Some(r) = routed {
             r.hub.core.lock().unwrap().offer(r.bus, tx.frame_id, tx.data.as_slice(), tx.t_end);
         }
         shared.frames += 1;
@@ -855,6 +864,7 @@ impl Server {
         if eager {
             self.ended.push(tx.t_end); // delivery lateness: of the frames handed over at their end
         }
+        routed.is_some()
     }
 
     fn flush(&mut self, shared: &mut Shared) {
@@ -1293,8 +1303,7 @@ fn settle(turns: &mut [(&mut Server, &[libc::pollfd])], shared: &mut [std::sync:
             }
         }
         let Some(((_, kind), k, t)) = best else { break };
-        turns[k].0.step(&mut shared[k], nows[k], t, kind);
-        if kind == Step::End && turns.len() > 1 && turns[k].0.radio.is_some() {
+        if turns[k].0.step(&mut shared[k], nows[k], t, kind) && turns.len() > 1 {
             for (s, _) in turns.iter_mut() {
                 s.take_radio();
             }
