@@ -1338,36 +1338,35 @@ mod tests {
     fn serve_with(tag: &str, bitrate: u64, data_bitrate: u64, format: Format, policy: Policy, load_window_ns: u64,
                   bell: Option<std::fs::File>, thread: Option<Arc<ServingThread>>)
                   -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
-        let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("b.sock");
-        let _ = std::fs::remove_file(&path);
-        let listener = UnixListener::bind(&path).unwrap();
+        let (fd, path, dir) = listen(tag);
         let cfg = ServerConfig {
             channel: "t/b".into(), bitrate, data_bitrate, format, policy, depth: 8, extended: false,
             load_window_ns, pace: 1.0, spin_ns: 0, max_clients: 8, hello_timeout: Duration::from_secs(5),
             keep_log: true, token: None,
         };
+        (start(cfg, fd, None, bell, None, thread).unwrap(), path, dir)
+    }
+
+    /// A listening unix socket in its own temporary directory: (its fd, to hand over; its path; the directory).
+    fn listen(tag: &str) -> (RawFd, std::path::PathBuf, std::path::PathBuf) {
         use std::os::fd::IntoRawFd;
-        (start(cfg, listener.into_raw_fd(), None, bell, None, thread).unwrap(), path, dir)
+        let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("b.sock");
+        let _ = std::fs::remove_file(&path);
+        (UnixListener::bind(&path).unwrap().into_raw_fd(), path, dir)
     }
 
     /// A server on bus `index` of `hub` (the radio), served by `thread`, at 10 kbit/s with 1 s load windows.
     fn serve_radio(tag: &str, hub: &Arc<RadioHub>, index: usize, thread: &Arc<ServingThread>)
                    -> (ServerHandle, std::path::PathBuf, std::path::PathBuf) {
-        let dir = std::env::temp_dir().join(format!("th-srv-{tag}-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("b.sock");
-        let _ = std::fs::remove_file(&path);
-        let listener = UnixListener::bind(&path).unwrap();
+        let (fd, path, dir) = listen(tag);
         let cfg = ServerConfig {
             channel: format!("t/{tag}"), bitrate: 10_000, data_bitrate: 10_000, format: Format::Classical,
             policy: Policy::Priority, depth: 8, extended: false, load_window_ns: 1_000_000_000, pace: 1.0, spin_ns: 0,
             max_clients: 8, hello_timeout: Duration::from_secs(5), keep_log: true, token: None,
         };
-        use std::os::fd::IntoRawFd;
-        let radio = Some((hub.clone(), index));
-        (start(cfg, listener.into_raw_fd(), None, None, radio, Some(thread.clone())).unwrap(), path, dir)
+        (start(cfg, fd, None, None, Some((hub.clone(), index)), Some(thread.clone())).unwrap(), path, dir)
     }
 
     /// The buses of one radio on one serving thread run together in time order: a lazy node's routed frame is on
