@@ -1369,29 +1369,41 @@ mod tests {
         (start(cfg, fd, None, None, Some((hub.clone(), index)), Some(thread.clone())).unwrap(), path, dir)
     }
 
-    /// The buses of one radio on one serving thread run together in time order: a lazy node's routed frame is on
-    /// the next bus from the instant it ends (radio latency 0), with no wake-up at that end; the next bus's reader
-    /// has it, stamped with its end there, before its SYNC.
-    #[test]
-    fn a_routed_frame_crosses_to_the_next_bus_at_its_end_without_a_wake_up_there() {
+    /// Two buses of one radio hub on one serving thread, at 10 kbit/s: frames 0x100 on the first go to the second
+    /// as 0x300, latency 0. Returns the thread and the two servers (handle, socket path, directory).
+    fn radio_pair(tag: &str) -> (Arc<ServingThread>, Vec<(ServerHandle, std::path::PathBuf, std::path::PathBuf)>) {
         use crate::radio::{Draws, Hop, Link, Loss};
         let hub = Arc::new(RadioHub::new(None, 1.0));
         let link = hub.add_link(Link::new("1>2", 1e9, vec![], 0, None, Loss::None, false));
         hub.core.lock().unwrap().gateway.add_route(0, 0x100, Hop { dst_bus: 1, dst_id: 0x300, link, reverse: None });
         hub.push_draws(link, Draws { u_step: vec![0.5; 4], u_loss: vec![0.5; 4], jitter_ns: vec![0; 4], next: 0 });
         let thread = ServingThread::start("radio test").unwrap();
-        let (mut a, path_a, dir_a) = serve_radio("radio1", &hub, 0, &thread);
-        let (mut b, path_b, dir_b) = serve_radio("radio2", &hub, 1, &thread);
-        let (mut sender, mut reader) = (connect_node(&path_a, "S", OPTION_LAZY), connect_node(&path_b, "R", OPTION_LAZY));
+        let servers = (0..2).map(|i| serve_radio(&format!("{tag}{i}"), &hub, i, &thread)).collect();
+        (thread, servers)
+    }
+
+    /// The times on the wire of the routed frame of `radio_pair`, on the first bus and on the second (s).
+    fn routed_frame_times() -> (f64, f64) {
+        let timing = BitTiming::new(10_000, 10_000).unwrap();
+        let on = |id| timing.frame_ns(id, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        (on(0x100), on(0x300))
+    }
+
+    /// The buses of one radio on one serving thread run together in time order: a lazy node's routed frame is on
+    /// the next bus from the instant it ends (radio latency 0), with no wake-up at that end; the next bus's reader
+    /// has it, stamped with its end there, before its SYNC.
+    #[test]
+    fn a_routed_frame_crosses_to_the_next_bus_at_its_end_without_a_wake_up_there() {
+        let (thread, mut servers) = radio_pair("radio");
+        let (mut sender, mut reader) = (connect_node(&servers[0].1, "S", OPTION_LAZY), connect_node(&servers[1].1, "R", OPTION_LAZY));
+        let a = &servers[0].0;
         let epoch0 = a.epoch0_ns as f64 * 1e-9;
         let now = || epoch0 + a.now_ns() as f64 * 1e-9;
-        let timing = BitTiming::new(10_000, 10_000).unwrap();
-        let on_a = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
-        let on_b = timing.frame_ns(0x300, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        let (on_a, on_b) = routed_frame_times();
         let t_read = now() + 0.01 + on_a + on_b + 0.01;
         reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
         std::thread::sleep(Duration::from_millis(10));
-        let turns_before = turns(&a);
+        let turns_before = turns(a);
         let t_send = now();
         sender.write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
         let mut rec = [0u8; RECORD_SIZE];
@@ -1401,11 +1413,38 @@ mod tests {
         reader.read_exact(&mut rec).unwrap();
         assert_eq!(rec[0], KIND_SYNC);
         // one turn for the sender's write, one for the reader's SYNC: none at the frame's end on either bus
-        assert_eq!(turns(&a) - turns_before, 2);
-        a.shutdown();
-        b.shutdown();
+        assert_eq!(turns(a) - turns_before, 2);
+        for (handle, _, dir) in servers.iter_mut() {
+            handle.shutdown();
+            let _ = std::fs::remove_dir_all(dir);
+        }
         thread.close();
-        let _ = (std::fs::remove_dir_all(&dir_a), std::fs::remove_dir_all(&dir_b));
+    }
+
+    /// With an eager node on the next bus, the routed frame is handed over at its ends again (`needs_ends`): the
+    /// node has it at once, not at the loop's next wake-up (a load window, 1 s away).
+    #[test]
+    fn an_eager_node_on_the_next_bus_has_the_routed_frame_as_it_ends() {
+        let (thread, mut servers) = radio_pair("radioeager");
+        let (mut sender, mut eager) = (connect_node(&servers[0].1, "S", OPTION_LAZY), connect_node(&servers[1].1, "E", 0));
+        let a = &servers[0].0;
+        let epoch0 = a.epoch0_ns as f64 * 1e-9;
+        let now = || epoch0 + a.now_ns() as f64 * 1e-9;
+        let (on_a, on_b) = routed_frame_times();
+        std::thread::sleep(Duration::from_millis(10)); // the eager node's first turn: the hub now needs ends
+        let t_send = now();
+        sender.write_all(&pack_frame(0x100, &[1; 8], 0, t_send)).unwrap();
+        let mut rec = [0u8; RECORD_SIZE];
+        eager.read_exact(&mut rec).unwrap();
+        let got = now();
+        assert_eq!((rec[0], u32_at(&rec, 4)), (KIND_FRAME, 0x300));
+        assert!((stamp_of(&rec) - (t_send + on_a + on_b)).abs() < 2e-6, "ended {:.6} s after the send", stamp_of(&rec) - t_send);
+        assert!(got - stamp_of(&rec) < 0.1, "handed over {:.3} s after its end", got - stamp_of(&rec));
+        for (handle, _, dir) in servers.iter_mut() {
+            handle.shutdown();
+            let _ = std::fs::remove_dir_all(dir);
+        }
+        thread.close();
     }
 
     /// One connection's frames from two senders wait in two TX queues, as two controllers' would: on a FIFO bus
