@@ -403,7 +403,8 @@ impl Server {
     }
 
     /// How long to sleep: to the end of the frame on the wire when someone must have it then (an eager node,
-    /// or the error model, which acts at every frame), to the next read time of a lazy reader, else a load window.
+    /// or the error model, which acts at every frame), to the next read time of a lazy reader, else the end of the
+    /// load window.
     /// A radio delivery or a frame sent ahead of its time wakes the loop only when someone takes frames as they
     /// end (`prompt`); else the next wake-up queues it at its time, before anyone can see past it.
     fn timeout_ns(&mut self, shared: &Shared) -> i64 {
@@ -411,7 +412,7 @@ impl Server {
             return 0;
         }
         let now = self.now();
-        let mut wake = now + self.cfg.load_window_ns;
+        let mut wake = self.next_window.max(now); // not now + a window: each earlier wake-up would push it on
         if let Some(end) = self.frame_end_wake(shared) {
             wake = wake.min(end.saturating_sub(self.cfg.spin_ns));
         }
@@ -1510,6 +1511,21 @@ mod tests {
         for (_, _, dir) in buses {
             let _ = std::fs::remove_dir_all(&dir);
         }
+    }
+
+    /// A server with nothing to do still turns at the end of each load window (it closes the window's statistics
+    /// and takes what quiet readers sent). It never did with windows longer than the serving thread's idle sleep
+    /// (100 ms): the wake-up was reckoned from each look, so it moved on at every one.
+    #[test]
+    fn an_idle_server_turns_at_the_end_of_each_load_window() {
+        let (mut handle, _path, dir) = serve_with("windows", 500_000, 500_000, Format::Classical, Policy::Priority,
+                                                   200_000_000, None, None);
+        std::thread::sleep(Duration::from_millis(50));
+        let before = turns(&handle);
+        std::thread::sleep(Duration::from_millis(700));
+        assert!(turns(&handle) - before >= 3, "{} turns in 700 ms", turns(&handle) - before);
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     fn turns(handle: &ServerHandle) -> u64 {
