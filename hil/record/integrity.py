@@ -23,6 +23,7 @@ import signal
 import threading
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from hil.record.diskspace import disk_full
@@ -61,6 +62,15 @@ def mark_failed(path: Path, scenario: str, runtime: str, error: str) -> None:
                              "note": "the rig did not start, nothing ran: there is nothing to recover"})
 
 
+def _in_finalizer(frame: FrameType | None) -> bool:
+    """Whether ``frame`` runs inside an object's ``__del__`` (an exception raised there is printed and dropped)."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
 class StopSignals:
     """Stop signals around a run: remembered while it is set up (``install``), raised as KeyboardInterrupt while
     the run loop runs (``arm``: SIGTERM and SIGHUP like Ctrl-C; one remembered during set-up raises at once),
@@ -68,8 +78,9 @@ class StopSignals:
     re-sends a signal remembered meanwhile, so a Ctrl-C or SIGTERM during the final writing still takes effect.
 
     Python runs a signal handler between any two bytecodes; one that runs inside a finalizer (``__del__``, a
-    generator being collected) has its KeyboardInterrupt printed and dropped. The run loop therefore also calls
-    ``check`` at every chunk, which raises a stop that arrived while armed, so a stop is never lost.
+    generator being collected) has its KeyboardInterrupt printed (a traceback on stderr) and dropped. Inside a
+    ``__del__`` the handler therefore only remembers the stop, and the run loop calls ``check`` at every chunk,
+    which raises a stop that arrived while armed, so a stop is never lost.
 
     Active only in the main thread of a process that is not a multiprocessing child (a sweep's pool owns its
     workers' signals); elsewhere every method does nothing. Signals that were ignored stay ignored."""
@@ -94,9 +105,10 @@ class StopSignals:
             if previous is not signal.SIG_IGN:
                 signal.signal(s, handler)
 
-    def _interrupt(self, signum: int, _frame) -> None:
+    def _interrupt(self, signum: int, frame: FrameType | None) -> None:
         self.received = signal.Signals(signum).name
-        raise KeyboardInterrupt(self.received)
+        if not _in_finalizer(frame):  # there it would be printed and dropped: ``check`` raises it
+            raise KeyboardInterrupt(self.received)
 
     def _remember(self, signum: int, _frame) -> None:
         self.received = signal.Signals(signum).name
