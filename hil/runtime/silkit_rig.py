@@ -35,6 +35,9 @@ from hil.silkit.registry import Registry
 from hil.silkit.runtime import find_runtime
 
 PARTICIPANT = "trainhil"
+# How long a lost participant may go unnamed after SIL Kit's system state turned Error: the disconnect comes on
+# SIL Kit's own thread and may come after the state change; without it a lost ECU is recorded as an unnamed loss.
+NAME_LOST_WAIT_S = 1.0
 
 
 def _forwarder(network: CanNetworkSimulator) -> Callable[[Transmission], None]:
@@ -97,6 +100,7 @@ class SilKitRig(VirtualRig):
         self._gone: list[tuple[str, int]] = []  # participants that disconnected mid-run, and when
         self._lost: list[tuple[str, int]] = []  # those of them lost (SIL Kit's system state Error), and when
         self._leaving = False
+        self._error_seen: float | None = None  # when SIL Kit's system state was first seen in Error (monotonic s)
         self._reached_end = False
         self._step_offsets_s: list[float] = []  # paced: each step's wall-clock start minus its scheduled one
         self.participant.on_disconnected(self._on_disconnected)
@@ -190,6 +194,9 @@ class SilKitRig(VirtualRig):
         if self._leaving or not self._started.is_set() or self._reached_end:
             return
         if self.participant.system_state() == capi.STATE_ERROR:
+            self._error_seen = self._error_seen or time.monotonic()
+            if not self._gone and time.monotonic() - self._error_seen < NAME_LOST_WAIT_S:
+                return  # SIL Kit's thread may not have said who left yet: it names the lost ECU
             self._leaving = True
             self._lost = list(self._gone) or [("(a participant)", self._at_ns)]
             names = ", ".join(name for name, _ in self._lost)
