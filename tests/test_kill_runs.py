@@ -105,8 +105,8 @@ def test_stop_signals_are_remembered_in_set_up_and_writing_and_raised_in_the_loo
 
 def test_a_stop_that_comes_inside_a_finalizer_is_raised_at_the_next_chunk_without_a_traceback(monkeypatch):
     """A KeyboardInterrupt raised inside a finalizer is printed (a traceback on stderr) and dropped: the CI run
-    on 64c8561 ran a SIGINT'd run to its end, and one on 15d37d6 printed the traceback of a stop that still
-    worked. Inside ``__del__`` the handler only remembers the stop; ``check``, called by the run loop at every
+    on 64c8561 ran a SIGINT'd run to its end; one on 15d37d6 failed with an intact run, most likely for such a
+    traceback. Inside ``__del__`` the handler only remembers the stop; ``check``, called by the run loop at every
     chunk, raises it."""
     import gc
     import os
