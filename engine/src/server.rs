@@ -648,10 +648,10 @@ impl Server {
         }
     }
 
-    /// Run the bus alone to `until` (`inclusive`: events at `until` too): its own events only (`next_step`),
-    /// not the nodes' records or the radio's deliveries.
-    fn advance(&mut self, shared: &mut Shared, until: u64, inclusive: bool) {
-        while let Some((t, kind)) = self.next_step(shared, until, false).filter(|&(t, _)| inclusive || t < until) {
+    /// Run the bus alone up to `until` (its events before it): its own events only (`next_step`), not the nodes'
+    /// records or the radio's deliveries.
+    fn advance_before(&mut self, shared: &mut Shared, until: u64) {
+        while let Some((t, kind)) = self.next_step(shared, until, false).filter(|&(t, _)| t < until) {
             self.step(shared, until, t, kind);
         }
         self.floor = self.floor.max(until);
@@ -1033,7 +1033,7 @@ impl Server {
     fn process_client(&mut self, shared: &mut Shared, i: usize) {
         let now = self.now();
         while let Some(t) = self.next_record_time(i, now).map(|t| t.min(now)) {
-            self.advance(shared, t, false);
+            self.advance_before(shared, t);
             self.process_one(shared, i, t);
         }
     }
@@ -1383,6 +1383,15 @@ mod tests {
         (thread, servers)
     }
 
+    /// Stop `radio_pair`'s servers, remove their directories, close their thread.
+    fn close_radio_pair(thread: Arc<ServingThread>, mut servers: Vec<(ServerHandle, std::path::PathBuf, std::path::PathBuf)>) {
+        for (handle, _, dir) in servers.iter_mut() {
+            handle.shutdown();
+            let _ = std::fs::remove_dir_all(dir);
+        }
+        thread.close();
+    }
+
     /// The times on the wire of the routed frame of `radio_pair`, on the first bus and on the second (s).
     fn routed_frame_times() -> (f64, f64) {
         let timing = BitTiming::new(10_000, 10_000).unwrap();
@@ -1395,7 +1404,7 @@ mod tests {
     /// has it, stamped with its end there, before its SYNC.
     #[test]
     fn a_routed_frame_crosses_to_the_next_bus_at_its_end_without_a_wake_up_there() {
-        let (thread, mut servers) = radio_pair("radio");
+        let (thread, servers) = radio_pair("radio");
         let (mut sender, mut reader) = (connect_node(&servers[0].1, "S", OPTION_LAZY), connect_node(&servers[1].1, "R", OPTION_LAZY));
         let a = &servers[0].0;
         let epoch0 = a.epoch0_ns as f64 * 1e-9;
@@ -1415,18 +1424,14 @@ mod tests {
         assert_eq!(rec[0], KIND_SYNC);
         // one turn for the sender's write, one for the reader's SYNC: none at the frame's end on either bus
         assert_eq!(turns(a) - turns_before, 2);
-        for (handle, _, dir) in servers.iter_mut() {
-            handle.shutdown();
-            let _ = std::fs::remove_dir_all(dir);
-        }
-        thread.close();
+        close_radio_pair(thread, servers);
     }
 
     /// With an eager node on the next bus, the routed frame is handed over at its ends again (`needs_ends`): the
     /// node has it at once, not at the loop's next wake-up (a load window, 1 s away).
     #[test]
     fn an_eager_node_on_the_next_bus_has_the_routed_frame_as_it_ends() {
-        let (thread, mut servers) = radio_pair("radioeager");
+        let (thread, servers) = radio_pair("radioeager");
         let (mut sender, mut eager) = (connect_node(&servers[0].1, "S", OPTION_LAZY), connect_node(&servers[1].1, "E", 0));
         let a = &servers[0].0;
         let epoch0 = a.epoch0_ns as f64 * 1e-9;
@@ -1441,11 +1446,7 @@ mod tests {
         assert_eq!((rec[0], u32_at(&rec, 4)), (KIND_FRAME, 0x300));
         assert!((stamp_of(&rec) - (t_send + on_a + on_b)).abs() < 2e-6, "ended {:.6} s after the send", stamp_of(&rec) - t_send);
         assert!(got - stamp_of(&rec) < 0.1, "handed over {:.3} s after its end", got - stamp_of(&rec));
-        for (handle, _, dir) in servers.iter_mut() {
-            handle.shutdown();
-            let _ = std::fs::remove_dir_all(dir);
-        }
-        thread.close();
+        close_radio_pair(thread, servers);
     }
 
     /// One connection's frames from two senders wait in two TX queues, as two controllers' would: on a FIFO bus

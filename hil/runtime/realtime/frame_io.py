@@ -121,9 +121,9 @@ class EngineFrames:
         A lazy reader sleeps on its sockets instead, until each server's SYNC of ``sim_t``, which may come up to
         one frame before ``sim_t`` (the server's ``anticipate``: while a frame on the wire ends after it, or within
         one shortest frame of it): it then has every frame that will have ended by ``sim_t``, so it acts at once,
-        as at ``sim_t``. Its frames sent from then on carry ``sim_t``
-        while that is still ahead (``FrameLink.act_at``), and the server queues them at that instant. One wake-up
-        per read, on the SYNC, rather than a timer's and then the SYNC's."""
+        as at ``sim_t``. Its frames sent from then on carry ``sim_t`` while that is still ahead
+        (``FrameLink.act_at``), and the server queues them at that instant. One wake-up per read, on the SYNC,
+        rather than a timer's and then the SYNC's."""
         if self.lazy:
             self._wait_synced(sim_t, stop)
             t = self._epoch(sim_t)
