@@ -283,7 +283,9 @@ class FrameLink:
     def set_packing(self, packing: Packing) -> None:
         """Pack each ``send`` batch into containers; unpack the containers received into their parts."""
     def pump(self) -> int: ...
-    def take(self) -> list[tuple[int, bytes, float]]: ...
+    def take(self, pump: bool = True) -> list[tuple[int, bytes, float]]:
+        """The kept frames received since the last call: [(frame_id, data, t_sim)]; ``pump``: read the socket first
+        (not needed by a lazy link just synced)."""
     def send(self, frames: Sequence[tuple[int, bytes]], extended: bool = False, fd: bool = False,
              brs: bool = True, sender: int = 0) -> None:
         """FRAME records of [(frame_id, data)]: 29-bit IDs with ``extended``, CAN FD frames with ``fd`` (and BRS);

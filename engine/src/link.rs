@@ -99,8 +99,14 @@ impl Link {
 
     /// Hand over every frame that ended by read time `t` (epoch s), waiting up to `timeout_s` (wall) for the
     /// server's SYNC of it; whether it came.
+    /// Already synced to `t` (its SYNC was read with an earlier one's), it hands over what it held back and reads
+    /// nothing: every frame that ended by `t` came before that SYNC.
     pub fn wait_synced(&mut self, t: f64, timeout_s: f64, mut each: impl FnMut(u32, u8, f64, &[u8])) -> Result<bool, LinkError> {
         self.horizon = self.horizon.max(t);
+        self.hand_over(&mut each);
+        if self.synced >= t - crate::protocol::SYNC_TOLERANCE_S {
+            return Ok(true);
+        }
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(timeout_s.max(0.0));
         loop {
             self.pump(&mut each)?;
@@ -123,7 +129,7 @@ impl Link {
     }
 
     /// Read every record waiting and call `each(can_id, flags, stamp, data)` for each whole frame (up to the
-    /// horizon, on a lazy link).
+    /// horizon, on a lazy link). A read that does not fill the buffer took all there was: no second read to learn it.
     pub fn pump(&mut self, mut each: impl FnMut(u32, u8, f64, &[u8])) -> Result<(), LinkError> {
         let mut buf = [0u8; 64 * RECORD_SIZE];
         self.hand_over(&mut each); // what an earlier horizon held back
@@ -139,6 +145,9 @@ impl Link {
             }
             self.partial.extend_from_slice(&buf[..n as usize]);
             self.hand_over(&mut each);
+            if (n as usize) < buf.len() {
+                return Ok(());
+            }
         }
     }
 
@@ -241,6 +250,39 @@ mod tests {
         assert_eq!(got, vec![0x10]); // 0x11 ended after the read time
         assert!(!rx.wait_synced(2.0, 0.01, |id, _, _, _| got.push(id)).unwrap()); // no SYNC of 2.0: timed out
         assert_eq!(got, vec![0x10, 0x11]); // what came before the missing SYNC is handed over
+    }
+
+    /// A second read time already synced by the SYNCs read with the first: its frames come without a read of the
+    /// socket (what is there is for later), and a pump takes everything waiting, more than one buffer too.
+    #[test]
+    fn a_lazy_link_synced_ahead_hands_over_without_reading_and_a_pump_reads_past_a_full_buffer() {
+        let (a, b) = UnixStream::pair().unwrap();
+        b.set_nonblocking(true).unwrap();
+        let mut rx = Link::lazy(b.as_raw_fd());
+        let mut stream = Vec::new();
+        crate::protocol::pack_frame_records(0x10, &[1], 0, 1.0, &mut stream);
+        stream.extend_from_slice(&crate::protocol::pack_sync(1.5));
+        crate::protocol::pack_frame_records(0x11, &[2], 0, 1.6, &mut stream);
+        stream.extend_from_slice(&crate::protocol::pack_sync(1.7));
+        use std::io::Write;
+        (&a).write_all(&stream).unwrap();
+        let mut got = Vec::new();
+        assert!(rx.wait_synced(1.5, 1.0, |id, _, _, _| got.push(id)).unwrap());
+        let mut later = Vec::new();
+        crate::protocol::pack_frame_records(0x12, &[3], 0, 1.8, &mut later);
+        (&a).write_all(&later).unwrap();
+        assert!(rx.wait_synced(1.7, 1.0, |id, _, _, _| got.push(id)).unwrap());
+        assert_eq!(got, vec![0x10, 0x11]);
+        assert_eq!(waiting(b.as_raw_fd()), RECORD_SIZE); // 0x12 was not read
+        let mut many = Vec::new();
+        for k in 0..200u32 {
+            crate::protocol::pack_frame_records(0x100 + k, &[0; 8], 0, 2.0, &mut many);
+        }
+        (&a).write_all(&many).unwrap();
+        let mut eager = Link::new(b.as_raw_fd());
+        let mut n = 0;
+        eager.pump(|_, _, _, _| n += 1).unwrap();
+        assert_eq!(n, 200);
     }
 
     /// Bytes waiting on a non-blocking socket or FIFO.

@@ -141,9 +141,13 @@ impl FrameLink {
         self.link.fd()
     }
 
-    /// The kept frames received since the last call, in arrival order: [(frame_id, data, t_sim)].
-    fn take<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
-        self.pump()?;
+    /// The kept frames received since the last call, in arrival order: [(frame_id, data, t_sim)]. `pump`: read
+    /// the socket first (a lazy link just synced has read what its read time needs: no system call then).
+    #[pyo3(signature = (pump = true))]
+    fn take<'py>(&mut self, py: Python<'py>, pump: bool) -> PyResult<Bound<'py, PyList>> {
+        if pump {
+            self.pump()?;
+        }
         let kept = std::mem::take(&mut self.kept);
         let items: Vec<Bound<'py, PyTuple>> = kept.iter()
             .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))

@@ -66,9 +66,10 @@ class EngineFrames:
         """Frames of ``frame_id`` on ``bus`` go into ``mailbox`` in the engine (never to ``on_frame``)."""
         self.links[bus].route(frame_id, mailbox)
 
-    def drain(self, on_frame: FrameHandler | None = None) -> None:
-        """Everything waiting on every bus; ``on_frame`` sees the frames in time order across the buses."""
-        taken = [(i, link.take()) for i, link in enumerate(self.links)]
+    def drain(self, on_frame: FrameHandler | None = None, synced: set[int] = frozenset()) -> None:
+        """Everything waiting on every bus; ``on_frame`` sees the frames in time order across the buses. The
+        ``synced`` buses were just synced to a read time: what is on their sockets is for later reads (not read)."""
+        taken = [(i, link.take(i not in synced)) for i, link in enumerate(self.links)]
         if on_frame is None:
             return
         batches = [(i, frames) for i, frames in taken if frames]
@@ -124,14 +125,15 @@ class EngineFrames:
         as at ``sim_t``. Its frames sent from then on carry ``sim_t`` while that is still ahead
         (``FrameLink.act_at``), and the server queues them at that instant. One wake-up per read, on the SYNC,
         rather than a timer's and then the SYNC's."""
+        synced: set[int] = set()
         if self.lazy:
-            self._wait_synced(sim_t, stop)
+            synced = self._wait_synced(sim_t, stop)
             t = self._epoch(sim_t)
             for link in self.links:
                 link.act_at(t)
         else:
             self._sleep_until(sim_t, stop, spin_s)
-        self.drain(on_frame)
+        self.drain(on_frame, synced)
 
     def _sleep_until(self, sim_t: float, stop, spin_s: float = 0.0) -> None:
         """Sleep to ``sim_t``, noticing a stop request every MAX_SLEEP_S; the last ``spin_s`` wall seconds polled."""
@@ -140,23 +142,25 @@ class EngineFrames:
         while not stop and self.clock.wall_until(sim_t) > 0:
             pass
 
-    def _wait_synced(self, sim_t: float, stop) -> None:
+    def _wait_synced(self, sim_t: float, stop) -> set[int]:
         """Until every bus server has synced us to ``sim_t`` (asking once if it is not a foreseen read time), or
         SYNC_GRACE_S past it (a server that does not answer: go on with what came). The buses are waited for
-        together (one sleep for whichever SYNC comes next), so a node on several buses does not wake once per bus."""
+        together (one sleep for whichever SYNC comes next), so a node on several buses does not wake once per bus.
+        Returns the buses that were synced."""
         t = self._epoch(sim_t)
         buses = self._foreseen(sim_t)
         if not buses:  # asked once, on the buses not yet synced to it (another event at this time was)
             buses = {i for i, link in enumerate(self.links) if not link.sync_to(t, 0.0)}
             for i in buses:
                 self.links[i].read_every(t, 0.0)
-        waiting = [self.links[i] for i in sorted(buses)]
+        waiting = sorted(buses)
         while not stop:
-            waiting = [link for link in waiting if not link.sync_to(t, 0.0)]
+            waiting = [i for i in waiting if not self.links[i].sync_to(t, 0.0)]
             left = self.clock.wall_until(sim_t)
             if not waiting or left < -SYNC_GRACE_S:
-                return
-            engine.wait_readable([link.fd for link in waiting], min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S))
+                break
+            engine.wait_readable([self.links[i].fd for i in waiting], min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S))
+        return buses.difference(waiting)
 
     def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0) -> None:
         self.links[bus].send(frames, self.extended, self.fd, self.brs, sender)
