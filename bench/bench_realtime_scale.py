@@ -14,18 +14,20 @@ Each configuration also prints the CPU per simulated second by role (ECU, plant 
 servers' threads, the orchestrator), the profile the real-time cost is read from, and the host's steal time during
 the run (a virtual machine's CPUs taken by its host: every node stalls at once). A stall watch
 (``bench/stall_watch.py``, a process that only sleeps) runs beside the rig: the bench prints its stalls and how
-many ECU misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR`` keeps each run's
-files (the nodes' timing series) under DIR instead of deleting them.
+many ECU and plant deadline misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR``
+keeps each run's files (the nodes' timing series) under DIR instead of deleting them.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -66,18 +68,26 @@ def start_stall_watch(path: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, str(ROOT / "bench" / "stall_watch.py"), str(path)])
 
 
-def misses_in_stalls(nodes_dir: Path, t0: float, pace: float, stalls: np.ndarray) -> tuple[int, int]:
-    """(ECU deadline misses, how many of them overlap a stall of the watcher): each miss is the wall interval from
-    its deadline to its cycle's start (the nodes' timing series), each stall the watcher's late sleep."""
+def misses_in_stalls(series: Iterable[Path], period_wall_s: float, t0: float, pace: float,
+                     stalls: np.ndarray) -> tuple[int, int]:
+    """(deadline misses in the nodes' timing ``series``, how many of them overlap a stall of the watcher): a miss is
+    a row late by more than ``period_wall_s``, the wall interval from its deadline to its start; each stall is the
+    watcher's late sleep."""
     stall_spans = [(w - late - SLEEP_S, w) for w, late, _ in stalls]
     n = overlapped = 0
-    for f in nodes_dir.glob("timing_ecu_*.bin"):
+    for f in series:
         rows = np.fromfile(f).reshape(-1, 2)
-        for deadline, lateness in rows[rows[:, 1] > CYCLE_S / pace]:
+        for deadline, lateness in rows[rows[:, 1] > period_wall_s]:
             start = t0 + deadline / pace
             n += 1
             overlapped += any(a < start + lateness and start < b for a, b in stall_spans)
     return n, overlapped
+
+
+def publication_period_s(sc) -> float:
+    """The plant's publication period (simulated s): its Sensor and Reference ticks, as plant_node schedules them."""
+    step = sc.plant.step_s
+    return step * math.gcd(max(1, round(sc.can.sensor_period_s / step)), max(1, round(sc.reference.period_s / step)))
 
 
 def cpu_seconds() -> float:
@@ -214,7 +224,10 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
                 w.terminate()
                 w.wait()
         stalls = read_stalls(out / "stalls.bin")
-        misses_seen, in_stalls = misses_in_stalls(out / "nodes", t0[0], pace, stalls)
+        nodes = out / "nodes"
+        ecu_in_stalls = misses_in_stalls(nodes.glob("timing_ecu_*.bin"), CYCLE_S / pace, t0[0], pace, stalls)
+        plant_in_stalls = misses_in_stalls([nodes / "timing_plant.bin"], publication_period_s(sc) / pace, t0[0],
+                                           pace, stalls)
     roles = by_role.stop()
     steal = steal_s() - steal0
     m = res.metrics
@@ -230,18 +243,19 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "lost": m["frames_lost"], "lost_on_buses": [b.frames_dropped for b in res.log.buses],
             "cpu_per_sim_s": (cpu_seconds() - cpu0[0]) / duration, "keeps_up": keeps_up,
             "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,
-            "misses_in_stalls": (misses_seen, in_stalls),
+            "plant_misses": m["plant_deadline_misses"], "publications": m["realtime"]["plant"]["cycles"],
+            "misses_in_stalls": ecu_in_stalls, "plant_misses_in_stalls": plant_in_stalls,
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())}}
 
 
-def stall_line(stalls: np.ndarray, misses: int, in_stalls: int) -> str:
-    """What the stall watcher saw, and how many ECU misses fell in its stalls."""
+def stall_line(stalls: np.ndarray, ecu: tuple[int, int], plant: tuple[int, int]) -> str:
+    """What the stall watcher saw, and how many ECU and plant deadline misses (of all) fell in its stalls."""
+    misses = f"ECU misses {ecu[1]} of {ecu[0]}, plant misses {plant[1]} of {plant[0]}"
     if not len(stalls):
-        return f"machine stalls (a sleeping process woke over 3 ms late): none; ECU misses: {misses}"
+        return f"machine stalls (a sleeping process woke over 3 ms late): none; {misses}"
     with_steal = int((stalls[:, 2] > 0).sum())
     return (f"machine stalls (a sleeping process woke over 3 ms late): {len(stalls)}, longest "
-            f"{1e3 * stalls[:, 1].max():.1f} ms, {with_steal} with host steal; ECU misses during one: "
-            f"{in_stalls} of {misses}")
+            f"{1e3 * stalls[:, 1].max():.1f} ms, {with_steal} with host steal; during one: {misses}")
 
 
 def main() -> None:
@@ -291,7 +305,8 @@ def main() -> None:
                       f"{r['lost'] - on_buses} offered to the radio and not delivered")
             print(f"      host steal time during the run: {r['steal_s']:.2f} s"
                   f"{f'; files in {keep}' if keep is not None else ''}")
-            print("      " + stall_line(r["stalls"], *r["misses_in_stalls"]))
+            print(f"      plant: {r['plant_misses']} of {r['publications']} publications missed their deadline")
+            print("      " + stall_line(r["stalls"], r["misses_in_stalls"], r["plant_misses_in_stalls"]))
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
             if r["keeps_up"]:
