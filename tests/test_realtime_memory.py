@@ -10,6 +10,7 @@ import numpy as np
 from hil.scenario.layout import TrainLayout
 from hil.record.metrics import compute_metrics
 from hil.record.runlog import SUMMARY_BLOCK_ROWS, BusLog
+from hil.runtime.realtime import bus_spool
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, BusSpool, spool_paths
 from hil.sample_table import row_chunks
 from hil.runtime.realtime.merge import merge_nodes
@@ -43,6 +44,24 @@ def test_the_spool_moves_the_rows_to_files_and_the_server_keeps_none(tmp_path):
     frames_path, load_path = spool_paths(tmp_path, "bus1")
     back = np.concatenate(list(row_chunks(frames_path, FRAME_WIDTH, rows=777)))
     assert np.array_equal(back, rows) and len(list(row_chunks(load_path, 2))[0]) == 5
+
+
+def test_the_spool_moves_a_simulated_second_at_a_time_so_a_faster_pace_spools_more_often(tmp_path, monkeypatch):
+    """At pace 10 ten small spools a wall second, not one ten times larger (a burst on one of two cores)."""
+    clock = [100.0]
+    monkeypatch.setattr(bus_spool.time, "monotonic", lambda: clock[0])
+    spools = {}
+    for pace in (1.0, 10.0):
+        (tmp_path / f"pace{pace}").mkdir()
+        spools[pace] = BusSpool([FakeServer("bus1")], tmp_path / f"pace{pace}", pace)
+    calls = {pace: 0 for pace in spools}
+    for pace, spool in spools.items():
+        monkeypatch.setattr(spool, "spool", lambda p=pace: calls.__setitem__(p, calls[p] + 1))
+    for _ in range(1000):  # one wall second in 1 ms turns
+        for spool in spools.values():
+            spool.tick()
+        clock[0] += 0.001
+    assert calls[1.0] == 1 and calls[10.0] == 10
 
 
 def test_a_real_time_run_merged_chunk_by_chunk_has_the_metrics_of_the_whole(rt, tmp_path):  # noqa: F811

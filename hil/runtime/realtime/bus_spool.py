@@ -1,9 +1,10 @@
 """The bus servers' per-frame rows and load windows of a real-time run, spooled to files as the run goes.
 
-Every SPOOL_EVERY_WALL_S the orchestrator moves each server's new rows into ``nodes/<bus>.frames.bin`` (rows of
-``hil.can.frame_stats``: t_end, frame id, latency, queueing) and ``nodes/<bus>.load.bin`` (t_window_end, load),
-native float64, and lets them go from the server's BusLog; so its memory does not grow with the frames. At the end
-the merge reads them back chunk by chunk (``hil.sample_table.row_chunks``), in bus time, into the recording and the bus statistics.
+Every SPOOL_EVERY_SIM_S of simulated time (in wall time: that over the pace) the orchestrator moves each server's
+new rows into ``nodes/<bus>.frames.bin`` (rows of ``hil.can.frame_stats``: t_end, frame id, latency, queueing) and
+``nodes/<bus>.load.bin`` (t_window_end, load), native float64, and lets them go from the server's BusLog; so its
+memory does not grow with the frames. At the end the merge reads them back chunk by chunk
+(``hil.sample_table.row_chunks``), in bus time, into the recording and the bus statistics.
 """
 from __future__ import annotations
 
@@ -15,7 +16,9 @@ import numpy as np
 from hil.can.frame_stats import WIDTH as FRAME_WIDTH
 from hil.record.runlog import BusLog
 
-SPOOL_EVERY_WALL_S = 1.0
+# a simulated second of rows at a time: at pace 10 ten small spools a wall second, not one ten times larger (a 2 ms
+# burst of the orchestrator on one of two cores made the plant and the ECUs miss deadlines once a second)
+SPOOL_EVERY_SIM_S = 1.0
 LOAD_WIDTH = 2
 
 
@@ -27,8 +30,9 @@ def spool_paths(nodes_dir: Path, bus: str) -> tuple[Path, Path]:
 class BusSpool:
     """Moves the servers' new frame rows and load windows to their files; ``tick`` from the supervising loop."""
 
-    def __init__(self, servers: list, nodes_dir: Path) -> None:
+    def __init__(self, servers: list, nodes_dir: Path, pace: float = 1.0) -> None:
         self.servers, self.nodes_dir = servers, nodes_dir
+        self.every_wall_s = SPOOL_EVERY_SIM_S / pace
         self._files = {}
         self._written: dict[str, list[int]] = {}  # bus -> [frame rows, load rows] written
         for s in servers:
@@ -42,7 +46,7 @@ class BusSpool:
     def tick(self, _sim_now: float = 0.0) -> None:
         if time.monotonic() >= self._next:
             self.spool()
-            self._next = time.monotonic() + SPOOL_EVERY_WALL_S
+            self._next = time.monotonic() + self.every_wall_s
 
     def spool(self) -> None:
         """Every server's rows so far into the files (under each server's lock)."""

@@ -277,7 +277,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
                 servers.append(server.start())
             faults = _faults(scenario, layout, servers, seed, db, radio)
-            spool = BusSpool(servers, nodes_dir)  # the servers' frame rows to files as the run goes
+            spool = BusSpool(servers, nodes_dir, pace)  # the servers' frame rows to files as the run goes
             if on_channels is not None:
                 on_channels(channels(run, scenario))
             env = node_environment(scenario)
