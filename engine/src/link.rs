@@ -232,15 +232,8 @@ mod tests {
 
     #[test]
     fn a_lazy_link_hands_over_only_what_ended_by_its_read_time() {
-        let (a, b) = UnixStream::pair().unwrap();
-        b.set_nonblocking(true).unwrap();
+        let (_a, b) = written(&records(&[(Some(0x10), 1.0), (None, 1.5), (Some(0x11), 1.7)]));
         let mut rx = Link::lazy(b.as_raw_fd());
-        let mut stream = Vec::new();
-        crate::protocol::pack_frame_records(0x10, &[1], 0, 1.0, &mut stream);
-        stream.extend_from_slice(&crate::protocol::pack_sync(1.5));
-        crate::protocol::pack_frame_records(0x11, &[2], 0, 1.7, &mut stream);
-        use std::io::Write;
-        (&a).write_all(&stream).unwrap();
         let mut got = Vec::new();
         rx.pump(|id, _, _, _| got.push(id)).unwrap();
         assert!(got.is_empty()); // no read time yet
@@ -256,21 +249,12 @@ mod tests {
     /// socket (what is there is for later), and a pump takes everything waiting, more than one buffer too.
     #[test]
     fn a_lazy_link_synced_ahead_hands_over_without_reading_and_a_pump_reads_past_a_full_buffer() {
-        let (a, b) = UnixStream::pair().unwrap();
-        b.set_nonblocking(true).unwrap();
+        let (a, b) = written(&records(&[(Some(0x10), 1.0), (None, 1.5), (Some(0x11), 1.6), (None, 1.7)]));
         let mut rx = Link::lazy(b.as_raw_fd());
-        let mut stream = Vec::new();
-        crate::protocol::pack_frame_records(0x10, &[1], 0, 1.0, &mut stream);
-        stream.extend_from_slice(&crate::protocol::pack_sync(1.5));
-        crate::protocol::pack_frame_records(0x11, &[2], 0, 1.6, &mut stream);
-        stream.extend_from_slice(&crate::protocol::pack_sync(1.7));
-        use std::io::Write;
-        (&a).write_all(&stream).unwrap();
         let mut got = Vec::new();
         assert!(rx.wait_synced(1.5, 1.0, |id, _, _, _| got.push(id)).unwrap());
-        let mut later = Vec::new();
-        crate::protocol::pack_frame_records(0x12, &[3], 0, 1.8, &mut later);
-        (&a).write_all(&later).unwrap();
+        use std::io::Write;
+        (&a).write_all(&records(&[(Some(0x12), 1.8)])).unwrap();
         assert!(rx.wait_synced(1.7, 1.0, |id, _, _, _| got.push(id)).unwrap());
         assert_eq!(got, vec![0x10, 0x11]);
         assert_eq!(waiting(b.as_raw_fd()), RECORD_SIZE); // 0x12 was not read
@@ -283,6 +267,27 @@ mod tests {
         let mut n = 0;
         eager.pump(|_, _, _, _| n += 1).unwrap();
         assert_eq!(n, 200);
+    }
+
+    /// The records of one-byte frames `(Some(id), stamp)` and SYNCs `(None, stamp)`, in order.
+    fn records(items: &[(Option<u32>, f64)]) -> Vec<u8> {
+        let mut out = Vec::new();
+        for &(id, stamp) in items {
+            match id {
+                Some(id) => crate::protocol::pack_frame_records(id, &[1], 0, stamp, &mut out),
+                None => out.extend_from_slice(&crate::protocol::pack_sync(stamp)),
+            }
+        }
+        out
+    }
+
+    /// A socket pair whose first end wrote `stream`; the second end, non-blocking, is the node's.
+    fn written(stream: &[u8]) -> (UnixStream, UnixStream) {
+        let (a, b) = UnixStream::pair().unwrap();
+        b.set_nonblocking(true).unwrap();
+        use std::io::Write;
+        (&a).write_all(stream).unwrap();
+        (a, b)
     }
 
     /// Bytes waiting on a non-blocking socket or FIFO.
