@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import heapq
 import time
+from collections.abc import Collection
 from typing import Callable
 
 import can
@@ -66,7 +67,7 @@ class EngineFrames:
         """Frames of ``frame_id`` on ``bus`` go into ``mailbox`` in the engine (never to ``on_frame``)."""
         self.links[bus].route(frame_id, mailbox)
 
-    def drain(self, on_frame: FrameHandler | None = None, synced: set[int] = frozenset()) -> None:
+    def drain(self, on_frame: FrameHandler | None = None, synced: Collection[int] = ()) -> None:
         """Everything waiting on every bus; ``on_frame`` sees the frames in time order across the buses. The
         ``synced`` buses were just synced to a read time: what is on their sockets is for later reads (not read)."""
         taken = [(i, link.take(i not in synced)) for i, link in enumerate(self.links)]
