@@ -36,6 +36,9 @@ from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 
 CACHE_DIR = Path("/sys/devices/system/cpu/cpu0/cache")
+TIMED_EVERY = 20  # one call in this many is timed (and prepared): the sleeps would take too long for all
+GAP_S = 0.01  # a 100 Hz node's sleep between cycles
+SHORT_GAP_S = 0.001  # a sleep ten times shorter: whether the cold comes with the length of the sleep
 
 
 def cache_bytes(level: int) -> int | None:
@@ -50,17 +53,13 @@ def cache_bytes(level: int) -> int | None:
     return None
 
 
-TIMED_EVERY = 20  # one call in this many is timed (and prepared): the sleeps would take too long for all
-GAP_S = 0.01  # a 100 Hz node's sleep between cycles
-SHORT_GAP_S = 0.001  # a sleep ten times shorter: whether the cold comes with the length of the sleep
-
-
 def touch(buffer: np.ndarray) -> None:
     """Write every cache line of ``buffer``, pushing other data out of the caches."""
     np.add(buffer, 1.0, out=buffer)
 
 
 def busy_wait(seconds: float) -> None:
+    """Keep the CPU busy for ``seconds`` (no sleep: the core is not given up)."""
     end = time.perf_counter() + seconds
     while time.perf_counter() < end:
         pass
@@ -123,6 +122,7 @@ def main() -> None:
         ecu, plant = rig.mean_us("ecu"), rig.mean_us("plant")
         print(f"  {name:36s} ECU cycle {ecu:6.1f} us ({ecu / warm.mean_us('ecu'):4.1f}x)   "
               f"plant step {plant:6.1f} us ({plant / warm.mean_us('plant'):4.1f}x)")
+
 
 if __name__ == "__main__":
     main()

@@ -49,7 +49,7 @@ def test_the_spool_moves_the_rows_to_files_and_the_server_keeps_none(tmp_path):
 def test_the_spool_moves_a_simulated_second_at_a_time_so_a_faster_pace_spools_more_often(tmp_path, monkeypatch):
     """At pace 10 ten small spools a wall second, not one ten times larger (a burst on one of two cores)."""
     clock = [100.0]
-    monkeypatch.setattr(bus_spool.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(bus_spool, "time", SimpleNamespace(monotonic=lambda: clock[0]))  # this module's clock only
     spools = {}
     for pace in (1.0, 10.0):
         (tmp_path / f"pace{pace}").mkdir()
