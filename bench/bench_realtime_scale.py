@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import subprocess
 import sys
 import tempfile
@@ -37,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
+from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
@@ -82,12 +82,6 @@ def misses_in_stalls(series: Iterable[Path], period_wall_s: float, t0: float, pa
             n += 1
             overlapped += any(a < start + lateness and start < b for a, b in stall_spans)
     return n, overlapped
-
-
-def publication_period_s(sc) -> float:
-    """The plant's publication period (simulated s): its Sensor and Reference ticks, as plant_node schedules them."""
-    step = sc.plant.step_s
-    return step * math.gcd(max(1, round(sc.can.sensor_period_s / step)), max(1, round(sc.reference.period_s / step)))
 
 
 def cpu_seconds() -> float:
@@ -227,8 +221,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
         stalls = read_stalls(out / "stalls.bin")
         nodes = out / "nodes"
         ecu_in_stalls = misses_in_stalls(nodes.glob("timing_ecu_*.bin"), CYCLE_S / pace, t0[0], pace, stalls)
-        plant_in_stalls = misses_in_stalls([nodes / "timing_plant.bin"], publication_period_s(sc) / pace, t0[0],
-                                           pace, stalls)
+        publication_s = publication_steps(tick_periods(sc)) * sc.plant.step_s
+        plant_in_stalls = misses_in_stalls([nodes / "timing_plant.bin"], publication_s / pace, t0[0], pace, stalls)
     roles = by_role.stop()
     steal = steal_s() - steal0
     m = res.metrics

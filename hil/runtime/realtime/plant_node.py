@@ -88,7 +88,7 @@ class PlantNode:
         self.next_save = self.next_stream = 0.0  # time.monotonic() of the next save and stream
         self.tick = 0  # the plant's state is at simulated time tick * plant.step_s
         self.target = 0  # tick of the next publication
-        self.every = {"record": max(1, round(sc.recording.period_s / sc.plant.step_s))}
+        self.every = tick_periods(sc)  # plant steps between Sensor and Reference publications and recording samples
         self.late_commands = 0  # commands that reached the plant after it had integrated past their arrival time
         self.faults = None  # the fault schedule's clock and the plant-side faults (hil/runtime/realtime/faults.py)
         if sc.faults:
@@ -175,10 +175,8 @@ class PlantNode:
         self.clock = clock
         self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can, self.packing, lazy=True)
         self.kernel = PacedKernel(clock, self.frames, stop, self.on_frame, spin_s)
-        sc, step = self.sc, self.sc.plant.step_s
-        self.every = {name: max(1, round(period / step)) for name, period in
-                      (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
-        self.publish_every = math.gcd(self.every["sensor"], self.every["ref"])
+        step = self.sc.plant.step_s
+        self.publish_every = publication_steps(self.every)
         self.stats = LatenessStats(self.publish_every * step, clock.pace,
                                    None if self.out is None else self.out / "timing_plant.bin")
         self.n_steps = int(round(duration / step))
@@ -260,6 +258,18 @@ class SignalStream:
 
     def close(self) -> None:
         os.close(self.fd)
+
+
+def tick_periods(sc) -> dict[str, int]:
+    """Plant steps (at least one) between Sensor publications, Reference publications and recording samples."""
+    step = sc.plant.step_s
+    return {name: max(1, round(period / step)) for name, period in
+            (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
+
+
+def publication_steps(ticks: dict[str, int]) -> int:
+    """Plant steps between the plant's publications: each Sensor and each Reference tick is one."""
+    return math.gcd(ticks["sensor"], ticks["ref"])
 
 
 def main(argv: list[str] | None = None) -> int:
