@@ -199,6 +199,7 @@ class ServingThread:
     each ``BusServerCore`` of a rig; it ends once dropped and its servers have shut down."""
 
     alive: bool
+    native_id: int  # the thread's Linux TID (as threading.Thread.native_id), for setting its scheduling
 
     def __init__(self) -> None: ...
 

@@ -10,7 +10,7 @@
 use std::io::Write;
 use std::os::fd::AsRawFd;
 use std::os::unix::net::UnixStream;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -40,6 +40,7 @@ pub struct ServingThread {
     wake_r: UnixStream,
     wake_w: UnixStream,
     thread: Mutex<Option<JoinHandle<()>>>,
+    tid: AtomicI32,
 }
 
 impl ServingThread {
@@ -50,11 +51,23 @@ impl ServingThread {
         wake_w.set_nonblocking(true)?;
         let me = Arc::new(ServingThread {
             incoming: Mutex::new(Vec::new()), closed: AtomicBool::new(false), wake_r, wake_w, thread: Mutex::new(None),
+            tid: AtomicI32::new(-1),
         });
         let served = me.clone();
-        let handle = std::thread::Builder::new().name(name.to_string()).spawn(move || served.serve())?;
+        let (tid_tx, tid_rx) = std::sync::mpsc::channel();
+        let handle = std::thread::Builder::new().name(name.to_string()).spawn(move || {
+            // SAFETY: gettid has no preconditions.
+            let _ = tid_tx.send(unsafe { libc::gettid() });
+            served.serve()
+        })?;
+        me.tid.store(tid_rx.recv().unwrap_or(-1), Ordering::SeqCst);
         *me.thread.lock().unwrap() = Some(handle);
         Ok(me)
+    }
+
+    /// The thread's kernel id (Linux TID): its scheduling can be set from outside (SCHED_FIFO for the rig's servers).
+    pub fn thread_id(&self) -> i32 {
+        self.tid.load(Ordering::SeqCst)
     }
 
     /// Serve `server` from the next turn on.
@@ -123,5 +136,21 @@ impl ServingThread {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_thread_id_names_the_serving_thread_of_this_process_not_the_caller() {
+        let thread = ServingThread::start("tid test").unwrap();
+        let tid = thread.thread_id();
+        // SAFETY: gettid has no preconditions.
+        assert_ne!(tid, unsafe { libc::gettid() });
+        let comm = std::fs::read_to_string(format!("/proc/self/task/{tid}/comm")).unwrap();
+        assert_eq!(comm.trim(), "tid test");
+        thread.close();
     }
 }

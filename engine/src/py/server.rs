@@ -30,6 +30,12 @@ impl ServingThread {
     fn alive(&self) -> bool {
         self.inner.alive()
     }
+
+    /// The thread's kernel id (a Linux TID, as ``threading.Thread.native_id``): for setting its scheduling.
+    #[getter]
+    fn native_id(&self) -> i32 {
+        self.inner.thread_id()
+    }
 }
 
 impl Drop for ServingThread {
