@@ -49,13 +49,29 @@ def test_ecu_processes_are_started_in_groups_of_the_layout(tmp_path, monkeypatch
     sc = load_scenario("seed000")
     layout = TrainLayout.from_config(sc.trains)
     per_process = default_ecus_per_process(layout.n_units, cores=2, units_per_train=sc.trains.units)
-    orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, per_process, 0.0)
+    common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, fifo=False)
+    orchestrator._start_nodes(layout, tmp_path, common, per_process, 0.0)
     groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
     assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # one ECU process per train
     assert [kind for kind, *_ in started] == ["plant", "ecu", "ecu", "ecu"]  # the radio is in the bus servers
     started.clear()
-    orchestrator._start_nodes("run", layout, tmp_path, 0, 1.0, 1.0, per_process, 0.0, radio_node=True)  # SocketCAN
+    orchestrator._start_nodes(layout, tmp_path, common, per_process, 0.0, radio_node=True)  # SocketCAN
     assert [kind for kind, *_ in started][:2] == ["plant", "radio"]
+    assert not any("--fifo" in argv for _, *argv in started)
+
+
+def test_under_sched_fifo_every_node_is_told_so_restarted_ones_too(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    started: list[list[str]] = []
+    monkeypatch.setattr(orchestrator, "launch_node", lambda name, kind, argv, stderr_path, env: started.append(argv))
+    from hil.scenario import load_scenario
+    from hil.scenario.layout import TrainLayout
+
+    layout = TrainLayout.from_config(load_scenario("seed000").trains)
+    common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, fifo=True)
+    orchestrator._start_nodes(layout, tmp_path, common, 4, 0.0)
+    orchestrator._respawn(tmp_path, common, layout, {})(5)
+    assert len(started) == 5 and all("--fifo" in argv for argv in started)
+    assert started[-1][-3:] == ["--unit", "5", "--join-late"]
 
 
 def test_the_progress_bar_redraws_rarely_into_a_file(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -17,8 +17,8 @@ from pathlib import Path
 
 from hil.cli_values import positive_int, positive_number, positive_seconds
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US
-from hil.runtime.realtime.pacing import set_fifo_priority
 from hil.runtime.realtime.native_server import NativeBusServer
+from hil.runtime.realtime.scheduling import SCHEDULING_MODES, set_fifo_priority
 from hil.runtime.realtime.sockets import BusServerError, remove_run_dir
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
@@ -70,9 +70,10 @@ def cmd_bus_server(args: argparse.Namespace, server_cls=NativeBusServer) -> int:
     ``server_cls``: the engine's server; the tests' oracle server runs through here too."""
     if args.verbose:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    if args.fifo is not None and not set_fifo_priority(args.fifo):  # before the serving thread starts: it inherits it
-        print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here; running as a normal "
-              "process", file=sys.stderr)
+    # before the serving thread starts: it inherits it
+    if args.fifo is not None and (why := set_fifo_priority(args.fifo, reset_on_fork=False)) is not None:
+        print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here ({why}); running as a "
+              "normal process", file=sys.stderr)
     if args.data_bitrate is not None and not args.fd:
         print("hil bus-server: error: --data-bitrate is for CAN FD buses: add --fd", file=sys.stderr)
         return 2
@@ -107,7 +108,7 @@ def cmd_bus_server(args: argparse.Namespace, server_cls=NativeBusServer) -> int:
 
 
 def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
-    """Add ``--realtime``, ``--pace`` and ``--ecus-per-process`` to the ``hil run`` parser."""
+    """Add ``--realtime`` and its options (``--pace``, ``--ecus-per-process``, ``--scheduling`` ...) to ``hil run``."""
     g = run.add_argument_group("real time (HIL)")
     g.add_argument("--realtime", action="store_true",
                    help="run on the real-time rig: bus servers, radio, plant and ECU processes paced to the wall clock")
@@ -116,6 +117,10 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
     g.add_argument("--ecus-per-process", type=int, default=None, metavar="N",
                    help="with --realtime: host N ECUs per process (default: one ECU process per core left after "
                         "the bus servers, plant and radio, one train's units at most in each)")
+    g.add_argument("--scheduling", choices=SCHEDULING_MODES, default=None,
+                   help="with --realtime: auto (the default) runs the bus servers, plant and ECU processes under "
+                        "SCHED_FIFO where the host permits it, else under the normal scheduler; fifo: SCHED_FIFO or "
+                        "exit 1; normal: never")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")
@@ -155,7 +160,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
     return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
                         run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
-                        source=str(args.scenario), keep_signals=False)
+                        source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto")
 
 
 def print_channels(channels) -> None:

@@ -28,6 +28,7 @@ from hil.record.integrity import write_json_atomic
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
+from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
 from hil.runtime.firmware import build_ecu
@@ -41,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
+    scheduling = enter_role("ecu", args.fifo)
     sc = load_scenario_json(args.scenario_json)
     parts = assemble(sc, args.seed)
     layout, db = parts.layout, load_train_db(sc)
@@ -80,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         train, unit = layout.train_unit(u)
         stats[u].series.close()  # its rows are in timing_ecu_<train>_<unit>.bin
         write_json_atomic(out / f"ecu_{train + 1}_{unit + 1}.json", {
-            "name": ecu.name, "unit": u, **stats[u].summary(), "e2e": ecu.e2e_summary(),
+            "name": ecu.name, "unit": u, **stats[u].summary(), "scheduling": scheduling, "e2e": ecu.e2e_summary(),
             "controller_errors": ecu.counters.controller_errors,
             "events": [list(e) for e in ecu.events], "codec_saturations": db.total_saturations()})
     return 0

@@ -24,6 +24,8 @@ def node_parser(prog: str, description: str) -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, required=True, help="simulated seconds to run")
     p.add_argument("--pace", type=float, default=1.0, help="simulated seconds per wall second")
     p.add_argument("--out", required=True, help="directory for this node's results")
+    p.add_argument("--fifo", action="store_true",
+                   help="run under SCHED_FIFO at the node's priority (hil/runtime/realtime/scheduling.py)")
     return p
 
 

@@ -54,6 +54,7 @@ from hil.scenario.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
+from hil.runtime.realtime.scheduling import SchedulingMode, choose_scheduling
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.engine_radio import EngineRadio
 from hil.runtime.realtime.native_server import NativeBusServer
@@ -209,7 +210,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  can_log: str | bool | None = None,
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
-                 keep_signals: bool = True, radio_in_servers: bool = True):
+                 keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto"):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -221,7 +222,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     (``hil run``): the merge lets the signals and the bus rows go chunk by chunk once written, so
     ``result.log`` holds the last of them only. ``live``: stream the
     recording to a viewer as the run goes (hil/runtime/realtime/live_tail.py). ``radio_in_servers=False``: the
-    radio as a node process on the emulated buses too, as before it moved into the servers (benchmarks compare)."""
+    radio as a node process on the emulated buses too, as before it moved into the servers (benchmarks compare).
+    ``scheduling``: "auto" runs the serving thread and the nodes under SCHED_FIFO where the host permits it,
+    "fifo" insists (SchedulingRefused otherwise), "normal" never does (hil/runtime/realtime/scheduling.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
@@ -252,6 +255,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     servers: list[BusServer] = []
     radio = None  # EngineRadio: the radio in the bus servers (emulated buses, two trains or more)
     radio_stats = None  # its links' counters at the end
+    sched = None  # Scheduling: what the serving thread and the nodes run under
     nodes: list[Node] = []
     events: list[Event] = []
     wall0 = time.perf_counter()
@@ -268,6 +272,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if not socketcan and layout.n_trains > 1 and radio_in_servers:
                 radio = EngineRadio(scenario, db, seed, pace, bus_packing(scenario, db), save_to=nodes_dir)
             serving = None if socketcan else engine.ServingThread()  # every bus on one thread: shared wake-ups
+            sched = choose_scheduling(scheduling, None if serving is None else serving.native_id)
+            events.append(Event(0.0, "INFO", "rig", f"scheduling: {sched.describe()}"))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
@@ -283,11 +289,12 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             env = node_environment(scenario)
             per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
                                                                         units_per_train=scenario.trains.units)
-            nodes = _start_nodes(run, layout, nodes_dir, seed, duration, pace, per_process, plant_spin_us,
+            node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo")
+            nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
-                say(f"{len(nodes)} node processes, pace {pace:g}" + (
+                say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}" + (
                     f"; waiting up to {scenario.ecu.join_timeout_s:g} s for external unit(s) "
                     f"{', '.join(scenario.ecu.external)}" if external else ""))
             _wait_ready(nodes, stop)
@@ -303,7 +310,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 if on_start is not None:
                     on_start(t0)
                 if faults is not None:
-                    faults.go(t0, pace, nodes, _respawn(run, nodes_dir, seed, duration, pace, layout, env))
+                    faults.go(t0, pace, nodes, _respawn(nodes_dir, node_args, layout, env))
                 if live is not None:
                     tail = LiveTail(live, scenario, layout, nodes_dir, (t0, pace), run)
                     if say is not None:
@@ -319,7 +326,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if faults is not None:
                 faults.release()
             _stop_nodes(nodes)
-    except NodeError as exc:  # the rig never ran: say so, not "running" (which would point to hil recover)
+    except RigDidNotStart as exc:  # the rig never ran: say so, not "running" (which would point to hil recover)
         mark_failed(out_dir / "metrics.json", scenario.name, "realtime", str(exc))
         raise
     finally:
@@ -357,6 +364,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             _finish_log(log, faults, t0, pace, scenario)
         log.events.append(Event(log.sim_time_s, "ERROR", "rig", f"run.rrd cut: {exc.strerror}"))
     extra["realtime"]["bus_servers"] = server_stats
+    if sched is not None:
+        extra["realtime"]["scheduling"] = sched.as_dict()
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
@@ -468,27 +477,27 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
     return RealtimeFaults(scenario, layout, servers, seed, db, radio)
 
 
-def _respawn(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, layout: TrainLayout,
-             env: dict[str, str]):
+def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, fifo: bool) -> list[str]:
+    """The arguments every node process of a run takes (``hil.runtime.realtime.node.node_parser``)."""
+    return ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
+            "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir), *(["--fifo"] if fifo else [])]
+
+
+def _respawn(nodes_dir: Path, common: list[str], layout: TrainLayout, env: dict[str, str]):
     """spawn(unit): a late-joining ECU process for a restarted unit, started as every node is (``launch_node``)."""
     serial = iter(range(1, 1 << 30))
 
     def spawn(u: int) -> Node:
-        argv = ["hil.runtime.realtime.ecu_node", "--run", run, "--scenario-json", str(nodes_dir / "scenario.json"),
-                "--seed", str(seed), "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir),
-                "--unit", str(u), "--join-late"]
+        argv = ["hil.runtime.realtime.ecu_node", *common, "--unit", str(u), "--join-late"]
         return launch_node(layout.unit_name(u), "ecu", argv, nodes_dir / f"ecu_restart_{next(serial)}.stderr", env)
 
     return spawn
 
 
-def _start_nodes(run: str, layout: TrainLayout, nodes_dir: Path, seed: int, duration: float, pace: float,
-                 per_process: int, spin_us: float, solo=(), external=(), env: dict[str, str] | None = None,
-                 radio_node: bool = False) -> list[Node]:
+def _start_nodes(layout: TrainLayout, nodes_dir: Path, common: list[str], per_process: int, spin_us: float,
+                 solo=(), external=(), env: dict[str, str] | None = None, radio_node: bool = False) -> list[Node]:
     """The plant first (``nodes[0]``), the radio (``radio_node``: on SocketCAN; on the emulated buses the radio is
-    in the bus servers), then the ECU processes; none for ``external`` units."""
-    common = ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
-              "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir)]
+    in the bus servers), then the ECU processes; none for ``external`` units. ``common``: ``_node_arguments``."""
     specs = [("plant", "plant", ["hil.runtime.realtime.plant_node", "--spin-us", repr(spin_us)])]
     if radio_node and layout.n_trains > 1:
         specs.append(("radio", "radio", ["hil.runtime.realtime.radio_node"]))

@@ -25,7 +25,7 @@ import numpy as np
 from hil.runtime.realtime.streamed_series import StreamedSeries
 
 __all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "freeze_setup_heap", "handshake", "linger", "wait_until",
-           "set_timer_slack", "set_fifo_priority"]
+           "set_timer_slack"]
 PR_SET_TIMERSLACK = 29
 
 
@@ -36,18 +36,6 @@ def set_timer_slack(ns: int = 1) -> bool:
         return libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0) == 0
     except (OSError, AttributeError):
         return False
-
-
-def set_fifo_priority(priority: int) -> bool:
-    """Run this process under SCHED_FIFO at ``priority`` (1..99) where permitted; False otherwise.
-
-    Wake-ups then preempt ordinary processes at once. Keep the spin window short with it: a real-time task that
-    spins most of the time runs into the kernel's RT throttling (by default 50 ms stalls once per second)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (AttributeError, OSError, ValueError):
-        return False
-    return True
 
 
 class SimClock:

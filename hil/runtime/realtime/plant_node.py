@@ -45,6 +45,7 @@ from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_fr
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.streamed_series import StreamedSeries
+from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
@@ -88,6 +89,7 @@ class PlantNode:
         self.next_save = self.next_stream = 0.0  # time.monotonic() of the next save and stream
         self.tick = 0  # the plant's state is at simulated time tick * plant.step_s
         self.target = 0  # tick of the next publication
+        self.scheduling = "normal"  # the policy the node runs under ("fifo": SCHED_FIFO), for its results
         self.every = tick_periods(sc)  # plant steps between Sensor and Reference publications and recording samples
         self.late_commands = 0  # commands that reached the plant after it had integrated past their arrival time
         self.faults = None  # the fault schedule's clock and the plant-side faults (hil/runtime/realtime/faults.py)
@@ -231,7 +233,7 @@ class PlantNode:
     def results(self, stats: LatenessStats) -> dict:
         e2e = self.e2e
         return {"sim_time_s": self.log.sim_time_s, "wall_time_s": self.log.wall_time_s,
-                "interrupted": self.log.interrupted, **stats.summary(),
+                "interrupted": self.log.interrupted, **stats.summary(), "scheduling": self.scheduling,
                 "e2e_latency_n": e2e.n, "e2e_latency_p50_s": e2e.percentile(50), "e2e_latency_p99_s": e2e.percentile(99),
                 "e2e_latency_max_s": e2e.max if e2e.n else None, "e2e_crc_errors": self.io.e2e_errors,
                 "late_commands": self.late_commands, "late_command_max_s": self.late_command_max_s,
@@ -279,11 +281,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
+    scheduling = enter_role("plant", args.fifo)
     sc = load_scenario_json(args.scenario_json)
     db = load_train_db(sc)
     n = sc.trains.count
     out = Path(args.out)
     node = PlantNode(sc, args.seed, db, [], [], out)
+    node.scheduling = scheduling
     try:
         for i in range(n):
             node.buses.append(open_bus(args.run, i, node.rx_ids(i), sc.can, "Plant", packing=node.packing, lazy=True))

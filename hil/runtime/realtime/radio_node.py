@@ -20,6 +20,7 @@ from hil.record.integrity import write_json_atomic
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
+from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import random_streams
 from hil.radio.gateway import build_gateway
@@ -33,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
+    scheduling = enter_role("radio", args.fifo)
     sc = load_scenario_json(args.scenario_json)
     db = load_train_db(sc)
     gateway = build_gateway(sc, db, random_streams(args.seed)["radio"])
@@ -61,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
             b.shutdown()
     write_json_atomic(Path(args.out) / "radio.json",
                {"links": {name: dict(link.stats) for name, link in gateway.links.items()},
-                "undelivered_queued": bridge.in_flight if "bridge" in locals() else 0})
+                "undelivered_queued": bridge.in_flight if "bridge" in locals() else 0, "scheduling": scheduling})
     return 0
 
 
