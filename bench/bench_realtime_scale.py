@@ -8,14 +8,16 @@ the rig used per simulated second once every node was ready (all processes; psut
 p99 lateness is below a tenth of the 10 ms cycle and fewer than 0.1 % of cycles miss.
 
     python bench/bench_realtime_scale.py [--ecus 12 24 48 64] [--per-process 0 1 8] [--duration 10] [--pace 1]
-                                         [--plant-spin-us 0 200]
+                                         [--plant-spin-us 0 200] [--scheduling auto normal]
 
 Each configuration also prints the CPU per simulated second by role (ECU, plant and radio processes, the bus
 servers' threads, the orchestrator), the profile the real-time cost is read from, and the host's steal time during
 the run (a virtual machine's CPUs taken by its host: every node stalls at once). A stall watch
 (``bench/stall_watch.py``, a process that only sleeps) runs beside the rig: the bench prints its stalls and how
 many ECU and plant deadline misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR``
-keeps each run's files (the nodes' timing series) under DIR instead of deleting them.
+keeps each run's files (the nodes' timing series) under DIR instead of deleting them. ``--scheduling auto normal``
+runs each configuration under SCHED_FIFO where permitted and under the normal scheduler, side by side (under
+SCHED_FIFO the stall watch, an ordinary process, also sees the rig's own bursts that hold both cores).
 """
 from __future__ import annotations
 
@@ -38,6 +40,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
+from hil.runtime.realtime.scheduling import SCHEDULING_MODES  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
 
@@ -191,7 +194,7 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
-        radio: str = "servers", keep: Path | None = None) -> dict:
+        radio: str = "servers", keep: Path | None = None, scheduling: str = "auto") -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -210,7 +213,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
         try:
             res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
                                plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
-                               on_start=started)
+                               on_start=started, scheduling=scheduling)  # type: ignore[arg-type]
         finally:
             for w in watcher:
                 with contextlib.suppress(psutil.Error):
@@ -240,7 +243,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,
             "plant_misses": m["plant_deadline_misses"], "publications": m["realtime"]["plant"]["cycles"],
             "misses_in_stalls": ecu_in_stalls, "plant_misses_in_stalls": plant_in_stalls,
-            "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())}}
+            "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())},
+            "scheduling": m["realtime"]["scheduling"]["policy"]}
 
 
 def stall_line(stalls: np.ndarray, ecu: tuple[int, int], plant: tuple[int, int]) -> str:
@@ -264,6 +268,8 @@ def main() -> None:
     ap.add_argument("--pace", type=float, default=1.0)
     ap.add_argument("--radio", nargs="+", choices=("servers", "process"), default=["servers"],
                     help="the radio inside the bus servers (the rig's) or as a node process (before); several: side by side")
+    ap.add_argument("--scheduling", nargs="+", choices=SCHEDULING_MODES, default=["auto"],
+                    help="the rig's scheduling (hil run --scheduling); several: side by side, alternated")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
@@ -278,12 +284,12 @@ def main() -> None:
     print(head)
     best = 0
     for n in args.ecus:
-        for k, spin, radio in [(k, spin, radio) for k in args.per_process for spin in args.plant_spin_us
-                               for radio in args.radio]:
+        for k, spin, radio, mode in [(k, spin, radio, mode) for k in args.per_process for spin in args.plant_spin_us
+                                     for radio in args.radio for mode in args.scheduling]:
             t = time.monotonic()
             sc = scenario_for(n, args.scenario)
-            keep = args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}" if args.keep is not None else None
-            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep)
+            keep = args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}" if args.keep is not None else None
+            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
@@ -291,6 +297,7 @@ def main() -> None:
                   f"{r['cpu_per_sim_s']:11.2f}  {'yes' if r['keeps_up'] else 'no'}"
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
+                  f"  ({r['scheduling']})"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))
