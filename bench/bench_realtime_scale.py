@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
-from hil.runtime.realtime.scheduling import SCHEDULING_MODES  # noqa: E402
+from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
 
@@ -194,7 +194,7 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
-        radio: str = "servers", keep: Path | None = None, scheduling: str = "auto") -> dict:
+        radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto") -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -213,7 +213,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
         try:
             res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
                                plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
-                               on_start=started, scheduling=scheduling)  # type: ignore[arg-type]
+                               on_start=started, scheduling=scheduling)
         finally:
             for w in watcher:
                 with contextlib.suppress(psutil.Error):

@@ -36,8 +36,8 @@ def set_fifo_priority(priority: int, tid: int = 0, reset_on_fork: bool = True) -
     """Run thread ``tid`` (0: the calling thread) under SCHED_FIFO at ``priority`` (1-99); None when done, else why
     not (the OS's words). ``reset_on_fork``: the threads and processes it starts run under the normal scheduler
     (without it they inherit SCHED_FIFO, as a server's serving thread should)."""
-    policy = os.SCHED_FIFO | (os.SCHED_RESET_ON_FORK if reset_on_fork else 0)
-    try:
+    try:  # (AttributeError: a platform without SCHED_FIFO)
+        policy = os.SCHED_FIFO | (os.SCHED_RESET_ON_FORK if reset_on_fork else 0)
         os.sched_setscheduler(tid, policy, os.sched_param(priority))
     except (AttributeError, OSError, ValueError) as exc:
         return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
