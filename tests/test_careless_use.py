@@ -1,10 +1,12 @@
 """Careless and hostile use, round three (issue 23): each test is one reproduction and what the user gets instead."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -93,7 +95,6 @@ def read_only_dir(tmp_path):
                                      ["sweep", "bitrate", "--duration", "1"]])
 def test_a_read_only_output_folder_is_refused_before_any_work(read_only_dir, capsys, command):
     """It used to be an OSError traceback, in compare after every run was done."""
-    import time
 
     started = time.monotonic()
     assert main([*command, "--quiet", "--out", str(read_only_dir)] if command[0] != "compare"
@@ -144,6 +145,12 @@ class OsExit0(_Law):
         os._exit(0)
 
 
+class Hangs(_Law):
+    def step(self, view):
+        while True:  # never returns (in real time only: virtual time would wait for it forever)
+            pass
+
+
 class NoStep(Controller):
     Params = ControllerParams
 
@@ -175,8 +182,6 @@ def test_a_law_that_fails_on_every_step_fails_check(bad_laws, capsys, law):
     assert code == 3, captured.err
     assert "hil: unsafe: ecu_failure (6x, first at t = " in captured.err
     assert "ecu_failure: 6x from t = " in captured.out and "ECU stopped" in captured.out
-    import json
-
     metrics = json.loads((out / "metrics.json").read_text())
     assert not metrics["safety"]["safe"] and metrics["safety"]["ecu_failure"]["count"] == 6
     assert metrics["sim_time_s"] == 1.0  # the run went on to its end, the plant's fail-safe holding the trains
@@ -190,6 +195,27 @@ def test_an_ecu_process_that_exits_fails_check_in_real_time(bad_laws):
     assert proc.returncode == 3, proc.stderr
     assert "hil: unsafe: ecu_failure (6x" in proc.stderr
     assert re.search(r"ecu_failure: 6x from t = .* \(rig: ECU process train\d/unit\d exited with code 0\)", proc.stdout)
+
+
+@pytest.mark.slow  # a real-time run: about 10 s
+def test_an_ecu_whose_law_never_returns_is_stopped_as_hung_and_fails_check(bad_laws):
+    """A law in an endless loop: its process used to run on to the end, then hold the rig 10 s (``nodes did not
+    finish``) with a "safe" verdict. Its heartbeat falls silent: it is killed within seconds, each unit's stop is
+    the ecu_failure verdict, and the run ends on time with the plant's fail-safe holding the trains."""
+    started = time.monotonic()
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "5",
+                           "--quiet", "--check", "--out", "rt-hang", "--overwrite",
+                           "--set", "controller.law=careless_laws:Hangs"],
+                          capture_output=True, text=True, timeout=300, cwd=bad_laws)
+    assert proc.returncode == 3, proc.stderr
+    assert "hil: unsafe: ecu_failure (6x" in proc.stderr
+    assert re.search(r"ecu_failure: 6x from t = .* \(rig: ECU process train\d/unit\d hung: no cycle ended for "
+                     r"\d\.\d s \(wall\)", proc.stdout), proc.stdout
+    metrics = json.loads((bad_laws / "rt-hang" / "metrics.json").read_text())
+    first = metrics["safety"]["ecu_failure"]["first_s"]
+    assert first < 3.5, first  # silent for 2 s (HUNG_AFTER_S) after its first cycle, seen within a supervising turn
+    assert "stopped_early" not in metrics
+    assert time.monotonic() - started < 60
 
 
 @pytest.mark.parametrize("law, says", [

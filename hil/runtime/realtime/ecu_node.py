@@ -29,7 +29,7 @@ from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.scheduling import enter_role
-from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
+from hil.runtime.realtime.pacing import Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
 from hil.runtime.firmware import build_ecu
 from hil.runtime.train_db import bus_packing, load_train_db
@@ -122,8 +122,9 @@ def timing_name(layout, u: int) -> str:
 
 class UnitCycles:
     """Each hosted unit's cycle as a kernel event: cycle the firmware, send its frames, book its lateness, and
-    schedule the next deadline (a unit more than one cycle late skips to its next future deadline). Each unit
-    sends as its own sender on its bus (its own TX queue there, as its own CAN controller would have)."""
+    schedule the next deadline (a unit more than one cycle late skips to its next future deadline), and beat the
+    process's heartbeat. Each unit sends as its own sender on its bus (its own TX queue there, as its own CAN
+    controller would have)."""
 
     def __init__(self, kernel: PacedKernel, sc, layout, ecus: dict, io, bus_of: dict, out: Path | None) -> None:
         self.kernel, self.ecus, self.io, self.bus_of = kernel, ecus, io, bus_of
@@ -132,6 +133,7 @@ class UnitCycles:
         self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace, None if out is None else out / timing_name(layout, u))
                       for u in ecus}
         self.watchdog = Watchdog(sc.ecu.restart_after_s) if sc.ecu.restart_after_s is not None else None
+        self.heartbeat = Heartbeat()  # a cycle that never returns silences it: the orchestrator stops us as hung
 
     def schedule(self, u: int, deadline: float) -> None:
         self.kernel.at(to_ns(deadline), self.run_cycle, (u, deadline))
@@ -146,6 +148,7 @@ class UnitCycles:
         overrun = self.stats[u].add(now - deadline, deadline)
         self.stats[u].skipped += overrun
         self.schedule(u, deadline + (1 + overrun) * self.cycle_s)
+        self.heartbeat()
 
     def _send_outputs(self, u: int, outputs: list) -> None:
         self.io.send_outputs(self.bus_of[u], outputs, self.sender[u])

@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import queue
 import signal
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -198,6 +199,7 @@ class RealtimeFaults:
         if node is None:
             return
         os.kill(node.proc.pid, signal.SIGSTOP)
+        node.held = True  # the orchestrator's hang watch leaves an injected hang to us
         self._hung[u] = node
         self._event(t, "WARN", f"ECU process {node.name} stopped (SIGSTOP): hang, still connected")
         self.watchdog.stopped(u, "hang", t, spec.duration_s)
@@ -207,6 +209,7 @@ class RealtimeFaults:
         self.watchdog.up(u)
         if node is not None and node.proc.poll() is None:
             os.kill(node.proc.pid, signal.SIGCONT)
+            node.held, node.last_alive = False, time.time()  # watched again from now
             self._event(t, "INFO", f"ECU process {node.name} continued (SIGCONT): the hang is over, no reset")
 
     def _restart(self, u: int, t: float, by: str, why: str | None) -> None:

@@ -59,6 +59,8 @@ from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.engine_radio import EngineRadio
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.external import JOIN_LINE, ExternalUnitMissing, JoinWait
+from hil.runtime.realtime.hang_watch import HangWatch, hung_after_s
+from hil.runtime.realtime.pacing import ALIVE_LINE
 from hil.runtime.realtime.live_tail import LiveTail
 from hil.runtime.realtime.sockets import remove_run_dir, remove_stale_run_dirs, validate_name
 from hil.runtime.realtime.socketcan import check_channels
@@ -91,7 +93,7 @@ RUNNING_NOTE = ("a real-time run writes run.rrd and these metrics when it ends; 
 
 # The first words of the lines a node prints for the orchestrator: "ready" (pacing.handshake), the plant's
 # "joined" (an external unit, JoinWait) and "fault" lines (hil/runtime/realtime/faults.py); anything else is the node's
-# own code printing.
+# own code printing. An ECU process's "alive" (pacing.Heartbeat) only stamps ``Node.last_alive`` (hang_watch.py).
 PROTOCOL_WORDS = frozenset({"ready", JOIN_LINE, "fault"})
 PRINTED_TAIL_LINES = 20
 
@@ -114,16 +116,23 @@ class Node:
     #: the last lines the node's own code printed (a law's print calls), kept bounded: a chatty law costs no memory
     printed: "collections.deque[str]" = field(default_factory=lambda: collections.deque(maxlen=PRINTED_TAIL_LINES))
     printed_count: int = 0
+    last_alive: float = field(default_factory=time.time)  # epoch s of its last "ready" or "alive" line
+    held: bool = False  # stopped on purpose (an injected ecu_hang): the hang watch leaves it alone
 
     def start_reader(self) -> None:
-        """Drain the node's stdout for as long as it lives: protocol lines ("ready") to ``lines``, the rest to the
-        bounded ``printed`` tail (never left in the pipe, where a full pipe would block the node)."""
+        """Drain the node's stdout for as long as it lives: protocol lines ("ready") to ``lines``, heartbeats to
+        ``last_alive``, the rest to the bounded ``printed`` tail (never left in the pipe, where a full pipe would
+        block the node)."""
         stdout = self.proc.stdout
         assert stdout is not None  # started with stdout=PIPE
 
         def read() -> None:
             for line in stdout:
                 line = line.strip()
+                if line == ALIVE_LINE or line == "ready":
+                    self.last_alive = time.time()
+                    if line == ALIVE_LINE:
+                        continue
                 if line.partition(" ")[0] in PROTOCOL_WORDS:
                     self.lines.put(line)
                 else:
@@ -317,9 +326,10 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                         say(live.describe())
                 ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None,
                                      spool.tick) if f]
+                hangs = HangWatch(hung_after_s(scenario.ecu.cycle_s, pace), t0)
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
                                          _all_of(ticks) if ticks else None, join,
-                                         FAULT_TICK_S if faults is not None else SUPERVISE_S)
+                                         FAULT_TICK_S if faults is not None else SUPERVISE_S, hangs)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
             else:
                 stop_reason = stop.requested
@@ -549,11 +559,12 @@ def _indent(text: str) -> str:
 
 def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop: _StopRequest,
                events: list[Event], progress: bool, on_tick: Callable[[float], None] | None = None,
-               join: JoinWait | None = None, every_s: float = SUPERVISE_S) -> str | None:
+               join: JoinWait | None = None, every_s: float = SUPERVISE_S,
+               hangs: HangWatch | None = None) -> str | None:
     """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed).
     The loop turns every ``every_s`` wall seconds (FAULT_TICK_S with fault injection, else SUPERVISE_S: the rig's
     processes share two cores with it); ``on_tick(sim_now)`` runs every turn; ``join`` stops the run when an
-    external unit has not joined in time."""
+    external unit has not joined in time; ``hangs`` kills the ECU processes whose cycles stopped."""
     end_wall = t0 + duration / pace
     bar = _progress_bar(duration) if progress else None
     try:
@@ -578,6 +589,8 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                         events.append(Event(sim_now, "ERROR", "rig", text + (f": {tail}" if tail and code > 0 else "")))
                     if n.kind != "ecu":
                         return f"{n.kind} node exited"
+            if hangs is not None and now < end_wall:
+                hangs.check(nodes, now, sim_now, events)
             if all(n.proc.poll() is not None for n in nodes):
                 return None
             if on_tick is not None:

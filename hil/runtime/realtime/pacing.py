@@ -23,9 +23,11 @@ import numpy as np
 
 from hil.runtime.realtime.streamed_series import StreamedSeries
 
-__all__ = ["SimClock", "LatenessStats", "StopFlag", "drain", "freeze_setup_heap", "handshake", "linger", "wait_until",
-           "set_timer_slack"]
+__all__ = ["SimClock", "LatenessStats", "StopFlag", "Heartbeat", "drain", "freeze_setup_heap", "handshake", "linger",
+           "wait_until", "set_timer_slack"]
 PR_SET_TIMERSLACK = 29
+ALIVE_LINE = "alive"  # a node's stdout line while its event loop turns (the orchestrator's hang watch)
+HEARTBEAT_S = 0.25  # wall seconds between two of them at most
 
 
 def set_timer_slack(ns: int = 1) -> bool:
@@ -116,6 +118,21 @@ class StopFlag:
 
     def __bool__(self) -> bool:
         return self.event.is_set()
+
+
+class Heartbeat:
+    """Says "alive" on stdout at most every ``every_s`` wall seconds when called from a node's event loop: a node
+    whose loop stops turning (a law that never returns) falls silent, and the orchestrator stops it as hung."""
+
+    def __init__(self, every_s: float = HEARTBEAT_S) -> None:
+        self.every_s = every_s
+        self._next = 0.0
+
+    def __call__(self) -> None:
+        now = time.monotonic()
+        if now >= self._next:
+            self._next = now + self.every_s
+            print(ALIVE_LINE, flush=True)
 
 
 def freeze_setup_heap() -> None:
