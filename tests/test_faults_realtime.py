@@ -74,3 +74,19 @@ def test_the_watchdog_restarts_a_crashed_process_and_a_controller_error_in_real_
     restarted = [e.t for e in ecu if "restarted with a reset controller (watchdog, after a controller error)" in e.text]
     assert len(restarted) == 1 and 1.4 <= restarted[0] < 2.0, [(e.t, e.text) for e in ecu]  # 0.4 s after the error
     assert res.metrics["faults"]["injected"] == 1
+
+
+def test_an_injected_hang_longer_than_the_hang_watch_is_left_to_the_fault_machinery(rt, tmp_path):  # noqa: F811
+    """An ``ecu_hang`` (SIGSTOP) outlasting the orchestrator's hang watch (2 s of silence) is the fault's own: it
+    continues at its end, no reset and no "hung" kill, while a process whose law never returns is killed
+    (test_careless_use)."""
+    sc = load_scenario("faults", overrides={"ecu": {"restart_after_s": None},  # no watchdog: the hang runs out
+                                            "faults": [{"kind": "ecu_hang", "train": 1, "unit": 2, "at_s": 0.5,
+                                                        "duration_s": 3.0}]})
+    res = run_realtime(sc, tmp_path / "rt", pace=1.0, duration_s=4.5, ecus_per_process=4)
+    rig = [(e.t, e.text) for e in res.log.events if e.source == "rig"]
+    assert any("stopped (SIGSTOP): hang" in t for _, t in rig), rig
+    resumed = [t for t, text in rig if "continued (SIGCONT): the hang is over" in text]
+    assert len(resumed) == 1 and resumed[0] == pytest.approx(3.5, abs=0.2), rig
+    assert not any("hung:" in t or "killed" in t for _, t in rig), rig
+    assert res.metrics["faults"]["injected"] == 1
