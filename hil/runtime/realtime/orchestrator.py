@@ -16,6 +16,7 @@ real-time rig. Steps:
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
+   One whose cycles stopped (a law that never returns) is killed as hung (``hang_watch``), the same way.
    With ``ecu.restart_after_s`` the watchdog starts it again (``hil.runtime.realtime.faults``). A plant or radio
    process that dies ends the run early (recorded as an event).
 4. Ctrl-C / SIGTERM: every node is told "stop", finishes its loop and writes its results; stragglers are
