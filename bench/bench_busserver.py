@@ -13,10 +13,12 @@ Reported:
   * deviation of real time from the model's schedule: the server's delivery lateness (frame handed to the
     nodes' sockets minus its end of transmission on the model bus) and the receiver's (received minus end);
     the issue's target is "within one frame duration" (<~130 us at 1 Mbit/s);
-  * the server's CPU share (it spins the last 200 us before every frame end, so at full load about one core).
+  * the server's CPU share, its scheduling and spin window (by default the server's own: SCHED_FIFO where
+    permitted, sleeping to each frame end; under the normal scheduler it spins the last 200 us before each).
 
     python bench/bench_busserver.py [--duration 10] [--senders 4] [--window 4] [--bitrate 1000000]
-                                    [--spin-us 200] [--fifo PRIORITY] [--python-server] [--busy-core]
+                                    [--scheduling auto|fifo|normal] [--spin-us US] [--fifo PRIORITY]
+                                    [--python-server] [--busy-core]
 """
 from __future__ import annotations
 
@@ -106,8 +108,9 @@ def main() -> None:
     p.add_argument("--senders", type=int, default=4)
     p.add_argument("--window", type=int, default=4)
     p.add_argument("--bitrate", type=int, default=1_000_000)
-    p.add_argument("--spin-us", type=float, default=200.0, help="the server's spin window (0: sleep only)")
-    p.add_argument("--fifo", type=int, help="run the server under SCHED_FIFO at this priority (if permitted)")
+    p.add_argument("--scheduling", choices=("auto", "fifo", "normal"), default="auto", help="the server's (hil bus-server)")
+    p.add_argument("--spin-us", type=float, help="the server's spin window (default: the server's; 0: sleep only)")
+    p.add_argument("--fifo", type=int, help="the server's SCHED_FIFO priority (default: the server's)")
     p.add_argument("--python-server", action="store_true", help="the Python bus server instead of the engine's")
     p.add_argument("--busy-core", action="store_true", help="keep a busy-loop process running beside the rig")
     p.add_argument("--role", choices=("main", "sender", "receiver"), default="main", help=argparse.SUPPRESS)
@@ -123,11 +126,12 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="thb", dir="/tmp"))
     env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp), "PYTHONPATH": str(ROOT)}
     stats_file, rx_file = tmp / "stats.json", tmp / "rx.npz"
-    fifo = ["--fifo", str(a.fifo)] if a.fifo else []
+    options = [*(["--fifo", str(a.fifo)] if a.fifo else []), *(["--spin-us", str(a.spin_us)] if a.spin_us is not None
+                                                                else []), "--scheduling", a.scheduling]
     module = "tests.oracle.python_server" if a.python_server else "hil.runtime.realtime.bus_server"
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if a.busy_core else None
     server = subprocess.Popen([sys.executable, "-m", module, "--run", "bench", "--bus", "bus1",
-                               "--bitrate", str(a.bitrate), "--spin-us", str(a.spin_us), *fifo,
+                               "--bitrate", str(a.bitrate), *options,
                                "--stats-json", str(stats_file)],
                               stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
     assert server.stdout.readline().startswith("ready"), "bus server did not start"
@@ -181,7 +185,8 @@ def report(rx, stats: dict, a: argparse.Namespace, server_cpu: float) -> None:
     print(f"  dropped / rejected / rx overruns: {stats['frames_dropped']} / {stats['frames_rejected']} / "
           f"{stats['rx_overruns']}")
     print(f"  server CPU share          {server_cpu * 100:.0f} % of one core ({'Python' if a.python_server else 'engine'} "
-          f"server, spin window {a.spin_us:g} us{f', SCHED_FIFO {a.fifo}' if a.fifo else ''}"
+          f"server, {'SCHED_FIFO' if stats['scheduling'] == 'fifo' else 'normal scheduler'}, spin window "
+          f"{stats['spin_us']:g} us"
           f"{', a busy loop on the other core' if a.busy_core else ''})")
     print(f"  host load average at the end: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
 

@@ -3,6 +3,7 @@ normal scheduler with the reason where it does not, and what each node really ra
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -73,3 +74,42 @@ def test_hil_run_refuses_scheduling_without_realtime(tmp_path) -> None:
                           str(tmp_path / "r")], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
     assert "--scheduling only applies with --realtime" in out.stderr
+
+
+# --------------------------------------------------------------------------- the standalone bus server
+
+
+def serve_briefly(tmp_path, *options: str) -> tuple[subprocess.CompletedProcess, dict]:
+    """``hil bus-server`` for 0.3 s with ``options``; its run and its final statistics."""
+    stats = tmp_path / "stats.json"
+    proc = subprocess.run([sys.executable, "-m", "hil.runtime.realtime.bus_server", "--run", "sched", "--bus", "bus1",
+                           "--duration", "0.3", "--stats-json", str(stats), *options],
+                          capture_output=True, text=True, timeout=60, env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)})
+    return proc, json.loads(stats.read_text()) if stats.exists() else {}
+
+
+def test_the_standalone_server_sleeps_to_frame_ends_under_sched_fifo_and_spins_under_the_normal_scheduler(tmp_path):
+    """By default where permitted, SCHED_FIFO and no spin (bench_busserver --busy-core: p99 61-82 us against
+    198-301 us spinning 200 us under the normal scheduler); the statistics say which it ran under."""
+    proc, stats = serve_briefly(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert (stats["scheduling"], stats["spin_us"]) == (("fifo", 0) if FIFO_PERMITTED else ("normal", 200))
+    proc, stats = serve_briefly(tmp_path, "--scheduling", "normal")
+    assert proc.returncode == 0 and (stats["scheduling"], stats["spin_us"]) == ("normal", 200), proc.stderr
+    proc, stats = serve_briefly(tmp_path, "--spin-us", "30")
+    assert proc.returncode == 0 and stats["spin_us"] == 30, proc.stderr
+    proc, _ = serve_briefly(tmp_path, "--fifo", "5", "--scheduling", "normal")
+    assert proc.returncode == 2 and "--fifo PRIORITY with --scheduling normal: choose one" in proc.stderr
+
+
+def test_the_standalone_server_refused_sched_fifo_falls_back_or_exits_1(tmp_path, monkeypatch, capsys):
+    from hil.runtime.realtime.command_line import bus_server_main
+
+    monkeypatch.setattr(scheduling.os, "sched_setscheduler", refuse)
+    chosen = scheduling.choose_server_scheduling("auto", 7)
+    assert chosen.policy == "normal" and "Operation not permitted" in chosen.why_normal
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    assert bus_server_main(["--run", "sched", "--bus", "bus1", "--scheduling", "fifo", "--fifo", "7"]) == 1
+    err = capsys.readouterr().err
+    assert "hil bus-server: error: --scheduling fifo: SCHED_FIFO is not permitted here" in err and "ulimit -r 7" in err
+    assert not (tmp_path / "trainhil" / "sched").exists()  # refused before any socket was made

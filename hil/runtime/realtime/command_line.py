@@ -18,7 +18,7 @@ from pathlib import Path
 from hil.cli_values import positive_int, positive_number, positive_seconds
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US
 from hil.runtime.realtime.native_server import NativeBusServer
-from hil.runtime.realtime.scheduling import SCHEDULING_MODES, set_fifo_priority
+from hil.runtime.realtime.scheduling import PRIORITIES, SCHEDULING_MODES, SchedulingRefused, choose_server_scheduling
 from hil.runtime.realtime.sockets import BusServerError, remove_run_dir
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
@@ -34,10 +34,15 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --fd: the data phase's bitrate of frames with BRS (default: --bitrate)")
     p.add_argument("--policy", choices=("priority", "fifo"), default="priority", help="TX queue policy per node")
     p.add_argument("--depth", type=positive_int, default=64, help="TX queue depth per node (default 64)")
-    p.add_argument("--spin-us", type=float, default=DEFAULT_SPIN_US,
-                   help=f"spin the last microseconds before a frame ends (default {DEFAULT_SPIN_US}; 0: never spin)")
+    p.add_argument("--scheduling", choices=SCHEDULING_MODES, default="auto",
+                   help="auto (default): serve under SCHED_FIFO where the host permits it, else under the normal "
+                        "scheduler; fifo: insist (exit 1 where refused); normal: never")
     p.add_argument("--fifo", type=int, metavar="PRIORITY",
-                   help="run under SCHED_FIFO at this priority (1-99) where permitted; use a short --spin-us with it")
+                   help=f"the SCHED_FIFO priority (1-99, default {PRIORITIES['bus servers']}); a refusal is "
+                        "warned about")
+    p.add_argument("--spin-us", type=float, default=None,
+                   help="spin the last microseconds before a frame ends (default: 0 under SCHED_FIFO, which wakes "
+                        f"on time; {DEFAULT_SPIN_US} under the normal scheduler; 0: never spin)")
     p.add_argument("--pace", type=positive_number, default=1.0,
                    help="model seconds per wall second (default 1.0; 0.5: frames last twice as long in wall time)")
     p.add_argument("--duration", type=positive_seconds, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
@@ -70,15 +75,22 @@ def cmd_bus_server(args: argparse.Namespace, server_cls=NativeBusServer) -> int:
     ``server_cls``: the engine's server; the tests' oracle server runs through here too."""
     if args.verbose:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    # before the serving thread starts: it inherits it
-    if args.fifo is not None and (why := set_fifo_priority(args.fifo, reset_on_fork=False)) is not None:
-        print(f"hil bus-server: warning: SCHED_FIFO priority {args.fifo} not permitted here ({why}); running as a "
-              "normal process", file=sys.stderr)
     if args.data_bitrate is not None and not args.fd:
         print("hil bus-server: error: --data-bitrate is for CAN FD buses: add --fd", file=sys.stderr)
         return 2
+    if args.fifo is not None and args.scheduling == "normal":
+        print("hil bus-server: error: --fifo PRIORITY with --scheduling normal: choose one", file=sys.stderr)
+        return 2
+    try:  # before the serving thread starts: it inherits it
+        sched = choose_server_scheduling(args.scheduling, args.fifo or PRIORITIES["bus servers"])
+    except (SchedulingRefused, ValueError) as exc:
+        print(f"hil bus-server: error: {exc}", file=sys.stderr)
+        return 1 if isinstance(exc, SchedulingRefused) else 2
+    if args.fifo is not None and sched.policy == "normal":
+        print(f"hil bus-server: warning: {sched.why_normal}; running under the normal scheduler", file=sys.stderr)
+    spin_us = args.spin_us if args.spin_us is not None else 0 if sched.policy == "fifo" else DEFAULT_SPIN_US
     try:
-        server = server_cls(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=args.spin_us,
+        server = server_cls(args.run, args.bus, args.bitrate, args.policy, args.depth, spin_us=spin_us,
                             keep_log=False, pace=args.pace, tcp=args.tcp, tcp_host=args.tcp_host, fd=args.fd,
                             data_bitrate=args.data_bitrate)
     except (ValueError, OSError, BusServerError) as exc:
@@ -98,7 +110,7 @@ def cmd_bus_server(args: argparse.Namespace, server_cls=NativeBusServer) -> int:
             timer.cancel()
         for s, h in previous.items():
             signal.signal(s, h)
-        stats = server.stats.as_dict()
+        stats = {**server.stats.as_dict(), "scheduling": sched.policy, "spin_us": spin_us}
         server.close()
         remove_run_dir(args.run)  # if no other server of the run is left in it
     _print_stats(stats)

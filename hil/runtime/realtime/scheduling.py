@@ -19,7 +19,7 @@ import os
 import sys
 import threading
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Callable, Literal
 
 from hil.runtime.errors import RigDidNotStart
 
@@ -78,14 +78,28 @@ def choose_scheduling(mode: SchedulingMode, serving_tid: int | None) -> Scheduli
     """Put the serving thread (``serving_tid``; None on SocketCAN, where there is none: a probe thread tries
     instead) under SCHED_FIFO unless ``mode`` is "normal", and decide the nodes' policy from the outcome.
     "fifo" on a host that refuses raises :class:`SchedulingRefused`; "auto" falls back to the normal scheduler."""
+    priority = PRIORITIES["bus servers"]
+    return _decide(mode, priority, lambda: set_fifo_priority(priority, serving_tid) if serving_tid is not None
+                   else _probe(priority))
+
+
+def choose_server_scheduling(mode: SchedulingMode, priority: int = PRIORITIES["bus servers"]) -> Scheduling:
+    """A standalone bus server's (``hil bus-server``): the calling thread under SCHED_FIFO at ``priority`` unless
+    ``mode`` is "normal", inherited by the serving thread it starts next; refusals as ``choose_scheduling``."""
+    return _decide(mode, priority, lambda: set_fifo_priority(priority, reset_on_fork=False),
+                   {"bus server": priority})
+
+
+def _decide(mode: SchedulingMode, priority: int, try_fifo: Callable[[], str | None],
+            priorities: dict[str, int] | None = None) -> Scheduling:
+    """The policy ``mode`` gives where ``try_fifo()`` (None: done, else why not) is the host's answer."""
     if mode not in SCHEDULING_MODES:
         raise ValueError(f"scheduling={mode!r} must be one of {', '.join(SCHEDULING_MODES)}")
     if mode == "normal":
         return Scheduling("normal", "asked for: --scheduling normal")
-    priority = PRIORITIES["bus servers"]
-    why = set_fifo_priority(priority, serving_tid) if serving_tid is not None else _probe(priority)
+    why = try_fifo()
     if why is None:
-        return Scheduling("fifo")
+        return Scheduling("fifo", priorities=priorities or dict(PRIORITIES))
     if mode == "fifo":
         raise SchedulingRefused(f"--scheduling fifo: SCHED_FIFO is not permitted here ({why}); run as root, give "
                                 f"python CAP_SYS_NICE, or raise RLIMIT_RTPRIO (ulimit -r {priority}); or use "
@@ -111,4 +125,4 @@ def enter_role(role: str, fifo: bool) -> Literal["fifo", "normal"]:
 
 
 __all__ = ["PRIORITIES", "SCHEDULING_MODES", "Scheduling", "SchedulingMode", "SchedulingRefused", "choose_scheduling",
-           "current_policy", "enter_role", "set_fifo_priority"]
+           "choose_server_scheduling", "current_policy", "enter_role", "set_fifo_priority"]
