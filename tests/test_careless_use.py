@@ -151,6 +151,12 @@ class Hangs(_Law):
             pass
 
 
+class Silences(_Law):
+    def step(self, view):
+        sys.stdout = open(os.devnull, "w")  # quiets a chatty library for good
+        return super().step(view)
+
+
 class NoStep(Controller):
     Params = ControllerParams
 
@@ -216,6 +222,18 @@ def test_an_ecu_whose_law_never_returns_is_stopped_as_hung_and_fails_check(bad_l
     assert first < 3.5, first  # silent for 2 s (HUNG_AFTER_S) after its first cycle, seen within a supervising turn
     assert "stopped_early" not in metrics
     assert time.monotonic() - started < 60
+
+
+@pytest.mark.slow  # a real-time run: about 10 s
+def test_a_law_that_redirects_stdout_is_not_taken_for_hung(bad_laws):
+    """The heartbeat goes to the process's own stdout, not to whatever ``sys.stdout`` a law put there."""
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "4",
+                           "--quiet", "--out", "rt-silent", "--overwrite",
+                           "--set", "controller.law=careless_laws:Silences"],
+                          capture_output=True, text=True, timeout=300, cwd=bad_laws)
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((bad_laws / "rt-silent" / "metrics.json").read_text())
+    assert metrics["safety"]["ecu_failure"]["count"] == 0, metrics["safety"]["ecu_failure"]
 
 
 @pytest.mark.parametrize("law, says", [

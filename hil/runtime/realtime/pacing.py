@@ -122,7 +122,9 @@ class StopFlag:
 
 class Heartbeat:
     """Says "alive" on stdout at most every ``every_s`` wall seconds when called from a node's event loop: a node
-    whose loop stops turning (a law that never returns) falls silent, and the orchestrator stops it as hung."""
+    whose loop stops turning (a law that never returns) falls silent, and the orchestrator stops it as hung.
+    Written to the process's own stdout (``sys.__stdout__``), so a law that redirects ``sys.stdout`` to silence
+    itself does not silence the heartbeat."""
 
     def __init__(self, every_s: float = HEARTBEAT_S) -> None:
         self.every_s = every_s
@@ -132,7 +134,10 @@ class Heartbeat:
         now = time.monotonic()
         if now >= self._next:
             self._next = now + self.every_s
-            print(ALIVE_LINE, flush=True)
+            try:
+                print(ALIVE_LINE, file=sys.__stdout__, flush=True)
+            except (OSError, ValueError):  # the orchestrator is gone (the stdin watch stops us) or stdout closed
+                pass
 
 
 def freeze_setup_heap() -> None:
