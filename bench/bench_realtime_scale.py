@@ -16,8 +16,8 @@ the run (a virtual machine's CPUs taken by its host: every node stalls at once).
 (``bench/stall_watch.py``, a process that only sleeps) runs beside the rig: the bench prints its stalls and how
 many ECU and plant deadline misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR``
 keeps each run's files (the nodes' timing series) under DIR instead of deleting them. ``--scheduling auto normal``
-runs each configuration under SCHED_FIFO where permitted and under the normal scheduler, side by side (under
-SCHED_FIFO the stall watch, an ordinary process, also sees the rig's own bursts that hold both cores).
+runs each configuration under SCHED_FIFO where permitted and under the normal scheduler, side by side (the stall
+watch sleeps under SCHED_FIFO above the rig where permitted, so the rig's own bursts are not counted as stalls).
 """
 from __future__ import annotations
 

@@ -5,7 +5,9 @@
 It sleeps ``SLEEP_S`` over and over and writes each wake-up later than ``LATE_S`` to OUT as a row of float64
 ``(wall epoch at the wake-up, lateness s, host steal s since the last reading before it)``. It shares no lock, socket or
 thread with the rig, so where it is late at the instant the rig's nodes all are, the machine stalled (the host took
-the CPUs: steal time; or every core was busy), not the rig's serving thread.
+the CPUs: steal time; or every core was busy), not the rig's serving thread. Where the host permits it, it sleeps
+under SCHED_FIFO at WATCH_PRIORITY, above every thread of the rig (hil/runtime/realtime/scheduling.py), so the
+rig's own bursts under SCHED_FIFO do not make it late: what it sees is the machine's (the host, the kernel).
 """
 from __future__ import annotations
 
@@ -17,9 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from hil.runtime.realtime.scheduling import PRIORITIES, set_fifo_priority  # noqa: E402
+
 SLEEP_S = 0.002
 LATE_S = 0.003  # a wake-up this much past its sleep counts (the rig's misses are stalls of 10 ms and more)
 READ_STEAL_EVERY = 5  # sleeps between readings of the steal counter (10 ms: its resolution)
+WATCH_PRIORITY = max(PRIORITIES.values()) + 1  # above the rig's serving thread
 
 
 def steal_s() -> float:
@@ -58,4 +64,5 @@ def read_stalls(path: Path) -> np.ndarray:
 
 
 if __name__ == "__main__":
+    set_fifo_priority(WATCH_PRIORITY)  # where refused, an ordinary process (it then also sees the rig's bursts)
     watch(Path(sys.argv[1]))
