@@ -203,6 +203,37 @@ def _virtual_metric_keys(sc) -> list[str]:
     return list(compute_metrics(run_virtual(sc, 0.2), sc.plant.coupler_band_m))
 
 
+def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):
+    """A plant whose step never returns (SIGSTOP here: silent as a model stuck in its solver) used to leave the rig
+    running to its end and then waiting for it. Its heartbeat falls silent: within about 2 s (HUNG_AFTER_S) it is
+    killed and the run stops there, as when it dies."""
+    from hil.runtime.realtime.hang_watch import HUNG_AFTER_S
+    from hil.runtime.realtime.pacing import HEARTBEAT_S
+
+    timers = []
+
+    def stop_plant() -> None:
+        for p in psutil.Process().children(recursive=True):
+            if "hil.runtime.realtime.plant_node" in p.cmdline():
+                p.send_signal(signal.SIGSTOP)
+
+    def on_start(t0: float) -> None:
+        timers.append(threading.Timer(max(t0 + 1.0 - time.time(), 0.0), stop_plant))
+        timers[0].start()
+
+    started = time.monotonic()
+    res = run_realtime(load_scenario("seed000"), tmp_path / "rt", pace=1.0, duration_s=30.0, ecus_per_process=6,
+                       on_start=on_start, record=False)
+    timers[0].join()
+    m = res.metrics
+    assert m["stopped_early"].startswith("plant node hung: no step ended for ")
+    hung = [e for e in res.log.events if e.source == "rig" and e.text.startswith("plant process hung")]
+    # silent since its last heartbeat, up to HEARTBEAT_S before it was stopped
+    assert len(hung) == 1 and 1.0 + HUNG_AFTER_S - HEARTBEAT_S <= hung[0].t < 1.0 + HUNG_AFTER_S + 1.5, hung
+    assert time.monotonic() - started < 25  # not the 30 s run and the stop grace after it
+    assert m["sim_time_s"] < 1.5  # the plant's data up to its stop
+
+
 def test_sigterm_to_the_orchestrator_stops_everything_and_keeps_the_files(rt, tmp_path):
     out = tmp_path / "rt"
     env = dict(os.environ, PYTHONPATH=str(REPO))

@@ -95,7 +95,7 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
 
     With ``ecu.restart_after_s``, a unit whose controller stopped it (exception, NaN) is restarted in place after
     that long, as the virtual rig's watchdog does."""
-    kernel = PacedKernel(clock, io, stop)
+    kernel = PacedKernel(clock, io, stop, heartbeat=Heartbeat())  # silent when a cycle never returns: hung
     cycles = UnitCycles(kernel, sc, layout, ecus, io, bus_of, out)
     start = clock.now() if join_late else 0.0
     for u in ecus:
@@ -122,9 +122,8 @@ def timing_name(layout, u: int) -> str:
 
 class UnitCycles:
     """Each hosted unit's cycle as a kernel event: cycle the firmware, send its frames, book its lateness, and
-    schedule the next deadline (a unit more than one cycle late skips to its next future deadline), and beat the
-    process's heartbeat. Each unit sends as its own sender on its bus (its own TX queue there, as its own CAN
-    controller would have)."""
+    schedule the next deadline (a unit more than one cycle late skips to its next future deadline). Each unit
+    sends as its own sender on its bus (its own TX queue there, as its own CAN controller would have)."""
 
     def __init__(self, kernel: PacedKernel, sc, layout, ecus: dict, io, bus_of: dict, out: Path | None) -> None:
         self.kernel, self.ecus, self.io, self.bus_of = kernel, ecus, io, bus_of
@@ -133,7 +132,6 @@ class UnitCycles:
         self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace, None if out is None else out / timing_name(layout, u))
                       for u in ecus}
         self.watchdog = Watchdog(sc.ecu.restart_after_s) if sc.ecu.restart_after_s is not None else None
-        self.heartbeat = Heartbeat()  # a cycle that never returns silences it: the orchestrator stops us as hung
 
     def schedule(self, u: int, deadline: float) -> None:
         self.kernel.at(to_ns(deadline), self.run_cycle, (u, deadline))
@@ -148,7 +146,6 @@ class UnitCycles:
         overrun = self.stats[u].add(now - deadline, deadline)
         self.stats[u].skipped += overrun
         self.schedule(u, deadline + (1 + overrun) * self.cycle_s)
-        self.heartbeat()
 
     def _send_outputs(self, u: int, outputs: list) -> None:
         self.io.send_outputs(self.bus_of[u], outputs, self.sender[u])

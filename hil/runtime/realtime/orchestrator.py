@@ -16,7 +16,8 @@ real-time rig. Steps:
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
-   One whose cycles stopped (a law that never returns) is killed as hung (``hang_watch``), the same way.
+   One whose cycles stopped (a law that never returns) is killed as hung (``hang_watch``), the same way; a hung
+   plant is killed and stops the run.
    With ``ecu.restart_after_s`` the watchdog starts it again (``hil.runtime.realtime.faults``). A plant or radio
    process that dies ends the run early (recorded as an event).
 4. Ctrl-C / SIGTERM: every node is told "stop", finishes its loop and writes its results; stragglers are
@@ -327,7 +328,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                         say(live.describe())
                 ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None,
                                      spool.tick) if f]
-                hangs = HangWatch(hung_after_s(scenario.ecu.cycle_s, pace), t0)
+                hangs = HangWatch(hung_after_s(max(scenario.ecu.cycle_s, scenario.can.sensor_period_s), pace), t0)
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
                                          _all_of(ticks) if ticks else None, join,
                                          FAULT_TICK_S if faults is not None else SUPERVISE_S, hangs)
@@ -565,7 +566,8 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
     """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed).
     The loop turns every ``every_s`` wall seconds (FAULT_TICK_S with fault injection, else SUPERVISE_S: the rig's
     processes share two cores with it); ``on_tick(sim_now)`` runs every turn; ``join`` stops the run when an
-    external unit has not joined in time; ``hangs`` kills the ECU processes whose cycles stopped."""
+    external unit has not joined in time; ``hangs`` kills the ECU and plant processes whose events stopped (a hung
+    plant stops the run)."""
     end_wall = t0 + duration / pace
     bar = _progress_bar(duration) if progress else None
     try:
@@ -590,8 +592,8 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                         events.append(Event(sim_now, "ERROR", "rig", text + (f": {tail}" if tail and code > 0 else "")))
                     if n.kind != "ecu":
                         return f"{n.kind} node exited"
-            if hangs is not None and now < end_wall:
-                hangs.check(nodes, now, sim_now, events)
+            if hangs is not None and now < end_wall and (why := hangs.check(nodes, now, sim_now, events)):
+                return why
             if all(n.proc.poll() is not None for n in nodes):
                 return None
             if on_tick is not None:

@@ -16,10 +16,14 @@ Two ways to wait, because the nodes differ in what a frame means to them:
 * ``wake_on_frame=True`` (radio): wake at every arrival, since a frame's handler may schedule an event (a
   delivery) before the one waited for.
 
-A stop request (``stop``, the node's ``StopFlag``) ends the wait, and no further event runs. ``run(until)`` waits
+A stop request (``stop``, the node's ``StopFlag``) ends the wait, and no further event runs. ``heartbeat`` (the
+ECU and plant nodes' ``pacing.Heartbeat``) is called after each event: a node whose event never returns falls
+silent, and the orchestrator's hang watch stops it. ``run(until)`` waits
 only for events before ``until``: a node that must listen up to the end schedules an event there (plant, radio).
 """
 from __future__ import annotations
+
+from typing import Callable
 
 from hil.runtime.kernel import NS, Kernel
 from hil.runtime.realtime.frame_io import FrameHandler
@@ -32,10 +36,11 @@ class PacedKernel(Kernel):
     """Runs each event when ``clock`` reaches its time; frames on ``io`` go to ``on_frame`` while it waits."""
 
     def __init__(self, clock: SimClock, io, stop: StopFlag, on_frame: FrameHandler | None = None,
-                 spin_s: float = 0.0, wake_on_frame: bool = False) -> None:
+                 spin_s: float = 0.0, wake_on_frame: bool = False, heartbeat: Callable[[], None] | None = None) -> None:
         super().__init__()
         self.clock, self.io, self.stop = clock, io, stop
         self.on_frame, self.spin_s, self.wake_on_frame = on_frame, spin_s, wake_on_frame
+        self.heartbeat = heartbeat
 
     def step(self) -> None:
         """Wait for the next event's time (receiving frames), then run it; after a stop request, run nothing."""
@@ -47,6 +52,8 @@ class PacedKernel(Kernel):
             self._queue.clear()
             return
         super().step()
+        if self.heartbeat is not None:
+            self.heartbeat()
 
     def _wait_waking(self) -> None:
         """Sleep until the earliest event is due, waking at every frame (its handler may schedule an earlier one)."""

@@ -46,7 +46,7 @@ from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.streamed_series import StreamedSeries
 from hil.runtime.realtime.scheduling import enter_role
-from hil.runtime.realtime.pacing import LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
+from hil.runtime.realtime.pacing import Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.plant.can_node import PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
@@ -176,7 +176,8 @@ class PlantNode:
         """The node's paced kernel, with the first publication and the end of the run on it."""
         self.clock = clock
         self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can, self.packing, lazy=True)
-        self.kernel = PacedKernel(clock, self.frames, stop, self.on_frame, spin_s)
+        self.kernel = PacedKernel(clock, self.frames, stop, self.on_frame, spin_s,
+                                  heartbeat=Heartbeat())  # silent when a step never returns: hung
         step = self.sc.plant.step_s
         self.publish_every = publication_steps(self.every)
         self.stats = LatenessStats(self.publish_every * step, clock.pace,
