@@ -15,6 +15,7 @@ owns it.
 from __future__ import annotations
 
 import subprocess
+from collections.abc import Sequence
 from typing import Protocol
 
 from ecu_sim.runtime import ECU_STOPPED
@@ -50,7 +51,7 @@ class HangWatch:
     def __init__(self, after_s: float, t0: float) -> None:
         self.after_s, self.t0 = after_s, t0
 
-    def check(self, nodes: list, now: float, sim_now: float, events: list[Event]) -> str | None:
+    def check(self, nodes: Sequence[WatchedNode], now: float, sim_now: float, events: list[Event]) -> str | None:
         """Stop (kill) every hung process among ``nodes`` at epoch ``now``, its events to ``events``; returns why
         the run must stop (the plant hung), else None."""
         stop = None

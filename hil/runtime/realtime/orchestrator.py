@@ -95,7 +95,8 @@ RUNNING_NOTE = ("a real-time run writes run.rrd and these metrics when it ends; 
 
 # The first words of the lines a node prints for the orchestrator: "ready" (pacing.handshake), the plant's
 # "joined" (an external unit, JoinWait) and "fault" lines (hil/runtime/realtime/faults.py); anything else is the node's
-# own code printing. An ECU process's "alive" (pacing.Heartbeat) only stamps ``Node.last_alive`` (hang_watch.py).
+# own code printing. An ECU or plant process's "alive" (pacing.Heartbeat) only stamps ``Node.last_alive``
+# (hang_watch.py).
 PROTOCOL_WORDS = frozenset({"ready", JOIN_LINE, "fault"})
 PRINTED_TAIL_LINES = 20
 
