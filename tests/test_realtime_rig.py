@@ -15,6 +15,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -203,6 +204,23 @@ def _virtual_metric_keys(sc) -> list[str]:
     return list(compute_metrics(run_virtual(sc, 0.2), sc.plant.coupler_band_m))
 
 
+def signal_plant_at(sim_s: float, pace: float, sig: int) -> tuple[Callable[[float], None], list[threading.Timer]]:
+    """``on_start`` for run_realtime that sends ``sig`` to the plant process at simulated ``sim_s``, and the timer
+    it starts (join it after the run)."""
+    timers: list[threading.Timer] = []
+
+    def send() -> None:
+        for p in psutil.Process().children(recursive=True):
+            if "hil.runtime.realtime.plant_node" in p.cmdline():
+                p.send_signal(sig)
+
+    def on_start(t0: float) -> None:
+        timers.append(threading.Timer(max(t0 + sim_s / pace - time.time(), 0.0), send))
+        timers[0].start()
+
+    return on_start, timers
+
+
 def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):
     """A plant whose step never returns (SIGSTOP here: silent as a model stuck in its solver) used to leave the rig
     running to its end and then waiting for it. Its heartbeat falls silent: within about 2 s (HUNG_AFTER_S) it is
@@ -210,17 +228,7 @@ def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):
     from hil.runtime.realtime.hang_watch import HUNG_AFTER_S
     from hil.runtime.realtime.pacing import HEARTBEAT_S
 
-    timers = []
-
-    def stop_plant() -> None:
-        for p in psutil.Process().children(recursive=True):
-            if "hil.runtime.realtime.plant_node" in p.cmdline():
-                p.send_signal(signal.SIGSTOP)
-
-    def on_start(t0: float) -> None:
-        timers.append(threading.Timer(max(t0 + 1.0 - time.time(), 0.0), stop_plant))
-        timers[0].start()
-
+    on_start, timers = signal_plant_at(1.0, 1.0, signal.SIGSTOP)
     started = time.monotonic()
     res = run_realtime(load_scenario("seed000"), tmp_path / "rt", pace=1.0, duration_s=30.0, ecus_per_process=6,
                        on_start=on_start, record=False)
@@ -271,17 +279,7 @@ def test_a_killed_plant_ends_the_run_early_with_the_data_it_saved(rt, tmp_path):
     from hil.runtime.realtime.plant_node import SAVE_EVERY_WALL_S
 
     assert SAVE_EVERY_WALL_S * PACE <= 2.5
-    timers = []
-
-    def kill_plant() -> None:
-        for p in psutil.Process().children(recursive=True):
-            if "hil.runtime.realtime.plant_node" in p.cmdline():
-                p.send_signal(signal.SIGKILL)
-
-    def on_start(t0: float) -> None:
-        timers.append(threading.Timer(max(t0 + 3.5 / PACE - time.time(), 0.0), kill_plant))
-        timers[0].start()
-
+    on_start, timers = signal_plant_at(3.5, PACE, signal.SIGKILL)
     res = run_realtime(load_scenario("seed000"), tmp_path / "rt", pace=PACE, duration_s=20.0, ecus_per_process=6,
                        on_start=on_start)
     timers[0].join()
