@@ -100,6 +100,8 @@ def test_the_standalone_server_sleeps_to_frame_ends_under_sched_fifo_and_spins_u
     assert proc.returncode == 0 and stats["spin_us"] == 30, proc.stderr
     proc, _ = serve_briefly(tmp_path, "--fifo", "5", "--scheduling", "normal")
     assert proc.returncode == 2 and "--fifo PRIORITY with --scheduling normal: choose one" in proc.stderr
+    proc, _ = serve_briefly(tmp_path, "--fifo", "0")
+    assert proc.returncode == 2 and "'0' is not a SCHED_FIFO priority (a whole number from 1 to 99)" in proc.stderr
 
 
 def test_the_standalone_server_refused_sched_fifo_falls_back_or_exits_1(tmp_path, monkeypatch, capsys):

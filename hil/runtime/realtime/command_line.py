@@ -25,6 +25,17 @@ DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes 
                "can.Bus(interface='trainhil', channel='<run>/<bus>').")
 
 
+def _fifo_priority(text: str) -> int:
+    """A SCHED_FIFO priority: a whole number from 1 to 99."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= 99:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a SCHED_FIFO priority (a whole number from 1 to 99)")
+    return value
+
+
 def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run", required=True, help="run name: the socket is <runtime root>/<run>/<bus>.sock")
     p.add_argument("--bus", required=True, help="bus name, e.g. bus1 (python-can channel \"<run>/<bus>\")")
@@ -37,7 +48,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduling", choices=SCHEDULING_MODES, default="auto",
                    help="auto (default): serve under SCHED_FIFO where the host permits it, else under the normal "
                         "scheduler; fifo: insist (exit 1 where refused); normal: never")
-    p.add_argument("--fifo", type=int, metavar="PRIORITY",
+    p.add_argument("--fifo", type=_fifo_priority, metavar="PRIORITY",
                    help=f"the SCHED_FIFO priority (1-99, default {PRIORITIES['bus servers']}); a refusal is "
                         "warned about")
     p.add_argument("--spin-us", type=float, default=None,
@@ -82,7 +93,7 @@ def cmd_bus_server(args: argparse.Namespace, server_cls=NativeBusServer) -> int:
         print("hil bus-server: error: --fifo PRIORITY with --scheduling normal: choose one", file=sys.stderr)
         return 2
     try:  # before the serving thread starts: it inherits it
-        sched = choose_server_scheduling(args.scheduling, args.fifo or PRIORITIES["bus servers"])
+        sched = choose_server_scheduling(args.scheduling, PRIORITIES["bus servers"] if args.fifo is None else args.fifo)
     except (SchedulingRefused, ValueError) as exc:
         print(f"hil bus-server: error: {exc}", file=sys.stderr)
         return 1 if isinstance(exc, SchedulingRefused) else 2
