@@ -42,6 +42,13 @@ pub struct CommandTable {
 impl CommandTable {
     /// The command a frame carries, or None when it must be rejected (wrong length, CRC, unknown mode).
     fn decode(&self, frame_id: u32, data: &[u8], t_ns: u64, scratch: &mut Vec<f64>) -> Option<Command> {
+        let (unit, force, mode, counter) = self.check(frame_id, data, scratch)?;
+        Some((unit, force, mode, t_ns as f64 * 1e-9, counter))
+    }
+
+    /// (unit, force, mode, alive counter) of a frame of this table, or None when it is not one of its IDs or
+    /// must be rejected (wrong length, E2E CRC, a mode not in `valid_modes`); `scratch` holds the decoded values.
+    pub fn check(&self, frame_id: u32, data: &[u8], scratch: &mut Vec<f64>) -> Option<(usize, f64, i64, u8)> {
         let (unit, layout) = self.by_id.get(&frame_id)?;
         if data.len() != layout.dlc || !crate::e2e::crc_ok(layout.data_id, data) {
             return None;
@@ -52,7 +59,7 @@ impl CommandTable {
         if m as f64 != mode || !self.valid_modes.contains(&m) {
             return None;
         }
-        Some((*unit, force, m, t_ns as f64 * 1e-9, crate::e2e::counter_of(data)))
+        Some((*unit, force, m, crate::e2e::counter_of(data)))
     }
 }
 
@@ -297,6 +304,40 @@ mod tests {
 
     fn no_draws(_: usize) -> Result<Draws, FrameError> {
         Ok(Draws::default())
+    }
+
+    fn command_table() -> CommandTable {
+        let layout = crate::codec::MessageLayout {
+            name: "TractionCmd_U01".into(), frame_id: 0x80, dlc: 8, data_id: 0x10,
+            signals: vec![
+                crate::codec::SignalSpec { name: "Mode".into(), start: 12, length: 4, signed: false, scale: 1.0, offset: 0.0, raw_min: 0, raw_max: 15 },
+                crate::codec::SignalSpec { name: "Force".into(), start: 16, length: 24, signed: true, scale: 1.0, offset: 0.0, raw_min: -(1 << 23), raw_max: (1 << 23) - 1 },
+            ],
+        };
+        let mut table = CommandTable { valid_modes: vec![0, 1, 2], ..Default::default() };
+        table.by_id.insert(0x80, (3, Arc::new(layout)));
+        table
+    }
+
+    fn command_frame(table: &CommandTable, mode: f64, force: f64, counter: i64) -> Vec<u8> {
+        let (mut sat, mut out) = ([0u64; 2], [0u8; frame::MAX_DATA]);
+        let n = table.by_id[&0x80].1.encode(&[mode, force], counter, &mut sat, &mut out).unwrap();
+        out[..n].to_vec()
+    }
+
+    #[test]
+    fn a_command_table_decodes_its_frames_and_refuses_what_the_plant_must_not_apply() {
+        let (table, mut scratch) = (command_table(), Vec::new());
+        let good = command_frame(&table, 1.0, -1200.0, 7);
+        assert_eq!(table.check(0x80, &good, &mut scratch), Some((3, -1200.0, 1, 7)));
+        assert_eq!(table.check(0x81, &good, &mut scratch), None, "not one of its IDs");
+        assert_eq!(table.check(0x80, &good[..7], &mut scratch), None, "wrong length");
+        let mut corrupt = good.clone();
+        corrupt[4] ^= 0x01;
+        assert_eq!(table.check(0x80, &corrupt, &mut scratch), None, "CRC");
+        let unknown_mode = command_frame(&table, 5.0, 0.0, 8);
+        assert_eq!(table.check(0x80, &unknown_mode, &mut scratch), None, "mode not valid");
+        assert_eq!(table.decode(0x80, &good, 2_500_000, &mut scratch), Some((3, -1200.0, 1, 0.0025, 7)));
     }
 
     #[test]

@@ -6,8 +6,9 @@ callers send the frames it returns and hand it the frames they receive, as the E
 """
 from __future__ import annotations
 
+import trainhil_engine as engine
+
 from ecu_sim.codec import TrainDb
-from ecu_sim.e2e import counter_of
 from ecu_sim.view import BrakeMode
 from hil.scenario.layout import TrainLayout
 from hil.plant.command_streams import CommandStreams
@@ -15,7 +16,7 @@ from hil.plant.dynamics import Plant
 from hil.record.runlog import RunLog
 from hil.reference_profile import ReferenceProfile
 
-VALID_MODES = frozenset(float(m) for m in BrakeMode)
+VALID_MODES = sorted(int(m) for m in BrakeMode)  # a TractionCmd's Mode must be one of them
 
 
 class PlantCanNode:
@@ -32,28 +33,39 @@ class PlantCanNode:
         self.e2e_errors = 0
         self.malformed_frames = 0  # TractionCmd frames of the wrong length
         self.streams = CommandStreams(layout.n_units)  # each unit's command stream in sequence (hil/plant/command_streams.py)
+        self._decoders = [engine.CommandDecoder(self.command_table(i), VALID_MODES) for i in range(layout.n_trains)]
+
+    def command_table(self, train: int) -> list[tuple[int, engine.MessageCodec, int]]:
+        """(frame id, codec, unit) of a train's TractionCmd frames: what the engine checks and decodes."""
+        return [(fid, self.db.by_id[fid], u) for fid, u in self.cmd_unit[train].items()]
 
     def command(self, train: int, frame_id: int, data: bytes, t: float) -> int | None:
-        """Apply a TractionCmd received on a train's bus at time t; the unit it drove, or None if rejected (logged)."""
-        codec = self.db.by_id[frame_id]
-        source = f"bus{train + 1}/plant"
+        """Apply a TractionCmd received on a train's bus at time t; the unit it drove, or None if rejected (logged).
+        Checked (length, CRC, mode) and decoded in one engine call, as the virtual network does on delivery."""
+        checked = self._decoders[train].decode(frame_id, data)
+        if checked is None:
+            self._reject(train, frame_id, data, t)
+            return None
+        u, force, mode, counter = checked
+        if not self.in_sequence(u, counter, t):
+            return None
+        self.plant.command(u, force, mode, t)
+        return u
+
+    def _reject(self, train: int, frame_id: int, data: bytes, t: float) -> None:
+        """Count and log why a TractionCmd was refused: its length, its CRC or its Mode."""
+        if frame_id not in self.cmd_unit[train]:
+            raise KeyError(f"frame 0x{frame_id:X} is not a TractionCmd of train {train + 1}")
+        codec, source = self.db.by_id[frame_id], f"bus{train + 1}/plant"
         if len(data) != codec.dlc:  # a foreign or broken node: counted and logged, never decoded
             self.malformed_frames += 1
             self.log.event(t, "WARN", source, f"{codec.name}: {len(data)} bytes, DLC is {codec.dlc}: frame ignored")
-            return None
-        if not codec.crc_ok(data):
+        elif not codec.crc_ok(data):
             self.e2e_errors += 1
             self.log.event(t, "WARN", source, f"{codec.name}: CRC error, frame ignored")
-            return None
-        mode, force = codec.decode(data)
-        if mode not in VALID_MODES:  # CRC-valid but meaningless: a firmware fault, not a command
+        else:  # CRC-valid but meaningless: a firmware fault, not a command
+            mode = codec.decode(data)[0]
             self.log.event(t, "WARN", source, f"{codec.name}: unknown Mode {mode:g}, frame ignored")
-            return None
-        u = self.cmd_unit[train][frame_id]
-        if not self.in_sequence(u, counter_of(data), t):
-            return None
-        self.plant.command(u, force, int(mode), t)
-        return u
 
     def in_sequence(self, u: int, counter: int, t: float) -> bool:
         """Whether unit u's command with alive counter ``counter`` continues its stream; a rejection is counted

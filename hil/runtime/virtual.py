@@ -102,8 +102,7 @@ class VirtualRig:
         """The plant's node on train i's bus. The engine checks and decodes its TractionCmd frames on delivery and
         queues them; they are applied at the next plant step (a command acts from the first step after its
         arrival, as with a per-frame callback)."""
-        commands = [(fid, self.db.by_id[fid], u) for fid, u in self.plant_io.cmd_unit[i].items()]
-        node, table = self.net.attach_commands(self.buses[i].index, "Plant", commands, sorted(int(m) for m in VALID_MODES))
+        node, table = self.net.attach_commands(self.buses[i].index, "Plant", self.plant_io.command_table(i), VALID_MODES)
         self._command_train[table] = i
         return node
 

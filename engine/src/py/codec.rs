@@ -195,3 +195,35 @@ impl Packing {
         self.inner.parts(frame_id).map(|parts| parts.iter().map(|p| (p.id, p.offset, p.len)).collect())
     }
 }
+
+/// A command table from (frame_id, codec with signals (Mode, Force), unit index) and the valid modes.
+pub(super) fn command_table(commands: Vec<(u32, PyRef<'_, MessageCodec>, usize)>, valid_modes: Vec<i64>) -> PyResult<CommandTable> {
+    let mut table = CommandTable { valid_modes, ..Default::default() };
+    for (frame_id, codec, unit) in commands {
+        if codec.layout.signals.len() != 2 {
+            return Err(PyValueError::new_err(format!("{}: a command needs the signals (Mode, Force)", codec.name)));
+        }
+        table.by_id.insert(frame_id, (unit, codec.layout.clone()));
+    }
+    Ok(table)
+}
+
+/// The plant's check of a TractionCmd (length, E2E CRC, a mode in `valid_modes`) and its decoding in one call:
+/// what `Network.attach_commands` does on delivery, for a plant that receives its frames itself (real time).
+#[pyclass(module = "trainhil_engine._native", frozen)]
+pub struct CommandDecoder {
+    table: CommandTable,
+}
+
+#[pymethods]
+impl CommandDecoder {
+    #[new]
+    fn new(commands: Vec<(u32, PyRef<'_, MessageCodec>, usize)>, valid_modes: Vec<i64>) -> PyResult<Self> {
+        Ok(CommandDecoder { table: command_table(commands, valid_modes)? })
+    }
+
+    /// (unit, force, mode, alive counter), or None for a frame not of the table or to be rejected.
+    fn decode(&self, frame_id: u32, data: &[u8]) -> Option<(usize, f64, i64, u8)> {
+        self.table.check(frame_id, data, &mut Vec::with_capacity(2))
+    }
+}

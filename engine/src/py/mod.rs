@@ -15,7 +15,7 @@ use crate::guardian::Guardian;
 use crate::rng::Pcg64;
 use crate::frame::{self, BitTiming, FrameError, MAX_DATA};
 use crate::mailbox as core_mailbox;
-use crate::network::{Network as CoreNetwork, FAULT_DRAWS};
+use crate::network::{CommandTable, Network as CoreNetwork, FAULT_DRAWS};
 use crate::packing::{Container, Packing as CorePacking, Part};
 use crate::radio::{Draws, GatewayError, Hop, Link, Loss};
 
@@ -46,7 +46,7 @@ mod radio_hub;
 mod server;
 
 use self::bus_events::{errors_summary, event_fields};
-use self::codec::{encode_outputs, MessageCodec, Output, Packing};
+use self::codec::{command_table, encode_outputs, CommandDecoder, MessageCodec, Output, Packing};
 use self::frames::*;
 use self::link::{wait_readable, FrameLink};
 use self::mailbox::Mailbox;
@@ -84,6 +84,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(frame_error, m)?)?;
     m.add_function(wrap_pyfunction!(filters_accept, m)?)?;
     m.add_class::<MessageCodec>()?;
+    m.add_class::<CommandDecoder>()?;
     m.add_class::<Mailbox>()?;
     m.add_class::<Network>()?;
     m.add_class::<Packing>()?;
@@ -91,7 +92,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<ServingThread>()?;
     m.add_class::<RadioHub>()?;
     m.add_class::<FrameLink>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "Mailbox", "Network", "Packing",
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "CommandDecoder", "Mailbox", "Network", "Packing",
                           "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"])?;
     Ok(())
 }

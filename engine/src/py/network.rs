@@ -74,13 +74,7 @@ impl Network {
     fn attach_commands(&mut self, bus: usize, name: &str, commands: Vec<(u32, PyRef<'_, MessageCodec>, usize)>,
                        valid_modes: Vec<i64>) -> PyResult<(usize, usize)> {
         self.bus_mut(bus)?;
-        let mut table = crate::network::CommandTable { valid_modes, ..Default::default() };
-        for (frame_id, codec, unit) in commands {
-            if codec.layout.signals.len() != 2 {
-                return Err(PyValueError::new_err(format!("{}: a command needs the signals (Mode, Force)", codec.name)));
-            }
-            table.by_id.insert(frame_id, (unit, codec.layout.clone()));
-        }
+        let table = command_table(commands, valid_modes)?;
         Ok(self.core.attach_commands(bus, name, table))
     }
 

@@ -34,7 +34,6 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 
 from ecu_sim.codec import TrainDb
 from hil.record.integrity import write_json_atomic
@@ -72,8 +71,9 @@ class PlantNode:
         L = self.layout
         self.state_unit = [{db.agent_state(L.train_unit(u)[1]).frame_id: u for u in self.train_units(i)}
                            for i in range(L.n_trains)]
-        self.sensor_pub = np.full((L.n_units, 16), -math.inf)  # publication time by unit and sample counter
-        self.last_cmd_t = np.full(L.n_units, -math.inf)
+        # publication time by unit and sample counter; each unit's last command's arrival (lists: read per frame)
+        self.sensor_pub = [[-math.inf] * 16 for _ in range(L.n_units)]
+        self.last_cmd_t = [-math.inf] * L.n_units
         self.out = out
         # sensor-to-actuator latencies (s), by the command arrival time they end at
         self.e2e = StreamedSeries(None if out is None else out / "timing_e2e.bin")
@@ -111,31 +111,37 @@ class PlantNode:
     # ---- receiving
     def on_frame(self, i: int, fid: int, data: bytes, t: float) -> None:
         """A frame heard on train i's bus at simulated time t (a TractionCmd, or an AgentState for the latency)."""
-        if i >= self.layout.n_trains:
+        if i >= len(self.state_unit):
             return  # the wayside's connections hear nothing
         if fid in self.io.cmd_unit[i]:
-            # first step starting at or after the arrival; never past a pending publication (its sample must be
-            # taken at its own time: only a lagging plant receives commands stamped beyond it)
-            k = min(math.ceil(t / self.sc.plant.step_s - 1e-9), self.target)
-            if k < self.tick:
-                self.late_commands += 1
-                self.late_command_max_s = max(self.late_command_max_s, (self.tick - k) * self.sc.plant.step_s)
-            self.advance_to(k)
-            u = self.io.command(i, fid, data, t)
-            if u is not None:
-                self.last_cmd_t[u] = t
-                if self.external is not None and self.external.command(u, t):
-                    print(f"{JOIN_LINE} {u} {t!r}", flush=True)  # the orchestrator waits for it (JoinWait)
+            self.on_command(i, fid, data, t)
             return
         u = self.state_unit[i].get(fid)
-        if u is not None and self.last_cmd_t[u] >= (pub := self.sensor_pub[u, data[1] & 0xF]):
-            self.e2e.add(self.last_cmd_t[u], self.last_cmd_t[u] - pub)
+        if u is not None and (last := self.last_cmd_t[u]) >= (pub := self.sensor_pub[u][data[1] & 0xF]):
+            self.e2e.add(last, last - pub)
+
+    def on_command(self, i: int, fid: int, data: bytes, t: float) -> None:
+        """A TractionCmd heard at t: the plant integrated up to the first step starting at or after t (never past a
+        pending publication: its sample must be taken at its own time; only a lagging plant receives commands
+        stamped beyond it), then the command applied."""
+        step = self.sc.plant.step_s
+        k = min(math.ceil(t / step - 1e-9), self.target)
+        if k < self.tick:
+            self.late_commands += 1
+            self.late_command_max_s = max(self.late_command_max_s, (self.tick - k) * step)
+        elif k > self.tick:
+            self.advance_to(k)
+        u = self.io.command(i, fid, data, t)
+        if u is not None:
+            self.last_cmd_t[u] = t
+            if self.external is not None and self.external.command(u, t):
+                print(f"{JOIN_LINE} {u} {t!r}", flush=True)  # the orchestrator waits for it (JoinWait)
 
     # ---- sending
     def publish_sensors(self, t: float) -> None:
         per_train: list[list[tuple[int, bytes]]] = [[] for _ in self.buses]
         for train, u, frame_id, data in self.io.sensor_frames():
-            self.sensor_pub[u, data[1] & 0xF] = t
+            self.sensor_pub[u][data[1] & 0xF] = t
             per_train[train].append((frame_id, data))
         for train, frames in enumerate(per_train):
             self.frames.send(train, frames)
