@@ -290,7 +290,7 @@ def main() -> None:
             sc = scenario_for(n, args.scenario)
             keep = args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}" if args.keep is not None else None
             r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode)
-            r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units)
+            r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units, pace=args.pace)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "

@@ -20,13 +20,24 @@ def test_one_ecu_process_per_core_the_rest_of_the_rig_leaves(n_ecus: int, cores:
 
 
 @pytest.mark.parametrize("n_ecus, cores, units_per_train, expected", [
-    (12, 2, 4, 4),     # seed000 on 2 cores: one process per train
+    (12, 2, 4, 12),    # seed000 on 2 cores in real time: one process, its units share the wake-ups
+    (64, 2, 16, 64),
+    (12, 8, 12, 2),    # many cores: a train spread over processes
+])
+def test_in_real_time_a_process_hosts_units_of_several_trains(n_ecus: int, cores: int, units_per_train: int,
+                                                               expected: int) -> None:
+    assert default_ecus_per_process(n_ecus, cores, units_per_train, pace=1.0) == expected
+
+
+@pytest.mark.parametrize("n_ecus, cores, units_per_train, expected", [
+    (12, 2, 4, 4),     # seed000 on 2 cores at pace 10: one process per train
     (12, 2, 12, 12),   # one train of 12: one process
     (64, 2, 16, 16),   # four trains of 16
     (12, 8, 12, 2),    # many cores: a train spread over processes
 ])
-def test_no_process_hosts_units_of_two_trains(n_ecus: int, cores: int, units_per_train: int, expected: int) -> None:
-    assert default_ecus_per_process(n_ecus, cores, units_per_train) == expected
+def test_faster_than_real_time_no_process_hosts_units_of_two_trains(n_ecus: int, cores: int, units_per_train: int,
+                                                                     expected: int) -> None:
+    assert default_ecus_per_process(n_ecus, cores, units_per_train, pace=10.0) == expected
 
 
 def test_the_cores_are_this_process_s_affinity(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -48,11 +59,11 @@ def test_ecu_processes_are_started_in_groups_of_the_layout(tmp_path, monkeypatch
 
     sc = load_scenario("seed000")
     layout = TrainLayout.from_config(sc.trains)
-    per_process = default_ecus_per_process(layout.n_units, cores=2, units_per_train=sc.trains.units)
-    common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, fifo=False)
+    per_process = default_ecus_per_process(layout.n_units, cores=2, units_per_train=sc.trains.units, pace=10.0)
+    common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 10.0, fifo=False)
     orchestrator._start_nodes(layout, tmp_path, common, per_process, 0.0)
     groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
-    assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # one ECU process per train
+    assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # at pace 10, one ECU process per train
     assert [kind for kind, *_ in started] == ["plant", "ecu", "ecu", "ecu"]  # the radio is in the bus servers
     started.clear()
     orchestrator._start_nodes(layout, tmp_path, common, per_process, 0.0, radio_node=True)  # SocketCAN

@@ -12,7 +12,7 @@ real-time rig. Steps:
    on its bus to the next train's server itself, with no process or Python per frame.
 2. Node processes (same Python): the plant + wayside, the ECUs (``ecus_per_process``
    units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
-   leaves, but one train's units at most in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
+   leaves, and faster than real time one train's units at most in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
@@ -202,18 +202,25 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_train: int | None = None) -> int:
+def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_train: int | None = None,
+                             pace: float = 1.0) -> int:
     """ECUs per process when the user does not say: one ECU process per core left after the bus servers (with
-    the radio in them) and the plant take one, so the ECUs of a process share its wake-ups and no more Python processes start
-    than the cores can run; but no process hosts units of two trains (``units_per_train``): units of several trains
-    share their deadlines, and a process runs the units due at one instant one after another. On 2 cores: seed000's
-    3 trains x 4 units in 3 processes, one train of 12 in one. Measured side by side, interleaved
-    (``bench/bench_realtime_scale.py --scenario seed000 --per-process 4 12 4 12 4 12``): seed000's 12 units in one
-    process cost 15 % less CPU (0.30-0.32 against 0.35-0.39 CPU-s per simulated second) but run later (p50
-    0.8-0.9 ms against 0.5, p99 1.9-2.5 ms against 1.4-1.6, a few misses); 64 units in one process fall behind."""
+    the radio in them) and the plant take one, so the ECUs of a process share its wake-ups and no more Python
+    processes start than the cores can run. Faster than real time (``pace`` > 1), no process hosts units of two
+    trains (``units_per_train``): their units share their deadlines, and with a tenth of the wall time per cycle
+    the processes' parallelism matters more than sharing wake-ups.
+
+    Measured on 2 cores under SCHED_FIFO, interleaved (``bench/bench_realtime_scale.py --scenario seed000
+    --per-process 0 12 0 12 0 12 --duration 60``): at pace 1, seed000's 12 units in one process cost 0.13-0.16
+    CPU-s per simulated second against 0.18-0.19 for one process per train, ECU p99 0.51-0.68 ms against 0.65-0.74;
+    64 units (``--ecus 64 --per-process 16 64 16 --duration 30``) 0.48 against 0.52-0.54, p99 1.95 against
+    2.07-2.12 ms. At pace 10 (``hil run seed000 --realtime --pace 10 --duration 300``, three pairs) one process
+    missed more: 32-41 late plant publications of 30,000 against 23-35, ECU misses 35-159 against 1-52."""
     ecu_processes = max(1, (usable_cores() if cores is None else cores) - 1)
     per_process = max(1, math.ceil(n_ecus / ecu_processes))
-    return per_process if units_per_train is None else max(1, min(per_process, units_per_train))
+    if pace <= 1.0 or units_per_train is None:
+        return per_process
+    return max(1, min(per_process, units_per_train))
 
 
 def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, duration_s: float | None = None,
@@ -300,7 +307,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 on_channels(channels(run, scenario))
             env = node_environment(scenario)
             per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
-                                                                        units_per_train=scenario.trains.units)
+                                                                        units_per_train=scenario.trains.units, pace=pace)
             node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo")
             nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None)
