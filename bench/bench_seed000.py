@@ -60,6 +60,105 @@ def firmware_engine_calls_us(rig: VirtualRig) -> dict[str, float]:
     }
 
 
+class PartTimes:
+    """Wall time spent in named parts of a run, by wrapping the callables that do them (about 0.1 us per call)."""
+
+    def __init__(self) -> None:
+        self.s: dict[str, float] = {}
+
+    def wrap(self, name: str, fn):
+        """``fn`` with its time added to part ``name``."""
+        clock, s = time.perf_counter, self.s
+        s.setdefault(name, 0.0)
+
+        def timed_call(*args):
+            t0 = clock()
+            try:
+                return fn(*args)
+            finally:
+                s[name] += clock() - t0
+        return timed_call
+
+
+def _time_laws_and_plant(parts: PartTimes, controllers, plant) -> None:
+    """Time every law's ``step`` and the plant's integration step (instance attributes, so nothing else changes)."""
+    for c in controllers:
+        c.step = parts.wrap("law", c.step)
+    plant.step = parts.wrap("plant integration", plant.step)
+
+
+class TimedIdeal(IdealLoop):
+    """The ideal loop with its control step timed."""
+
+    def __init__(self, sc, parts: PartTimes) -> None:
+        super().__init__(sc)
+        self._control = parts.wrap("control step", self._control)  # type: ignore[method-assign]
+        _time_laws_and_plant(parts, self.parts.controllers, self.parts.plant)
+
+
+class TimedRig(VirtualRig):
+    """The network rig with its tasks timed (the kernel holds the bound methods made here)."""
+
+    def __init__(self, sc, parts: PartTimes) -> None:
+        self._parts = parts
+        super().__init__(sc)
+        _time_laws_and_plant(parts, [e.controller for e in self.ecus], self.plant)
+        for bus in self.buses:  # the engine calls that encode and queue (ECU outputs; sensor and wayside frames)
+            bus.send_outputs = parts.wrap("send outputs", bus.send_outputs)  # type: ignore[method-assign]
+            bus.send_frames = parts.wrap("send frames", bus.send_frames)  # type: ignore[method-assign]
+
+    def _schedule(self) -> None:
+        p = self._parts
+        self._plant_tick = p.wrap("plant task", self._plant_tick)  # type: ignore[method-assign]
+        self._apply_commands = p.wrap("commands", self._apply_commands)  # type: ignore[method-assign]
+        self._publish_sensors = p.wrap("sensors", self._publish_sensors)  # type: ignore[method-assign]
+        self._wayside_tick = p.wrap("wayside", self._wayside_tick)  # type: ignore[method-assign]
+        self._ecu_tick = p.wrap("ECU task", self._ecu_tick)  # type: ignore[method-assign]
+        super()._schedule()
+
+
+def timed_parts(build, sim_s: float) -> tuple[object, float, dict[str, float]]:
+    """(runner, wall seconds to run sim_s, the wall seconds of its timed parts) of ``build(parts)``."""
+    parts = PartTimes()
+    runner, wall = timed(lambda: build(parts), sim_s)
+    return runner, wall, parts.s
+
+
+def breakdown(sc, sim_s: float, repeat: int) -> None:
+    """Where the ideal loop's and the network rig's time goes, in ms per simulated second, side by side (the
+    fastest of ``repeat`` runs of each, alternated, as the machine's speed drifts)."""
+    ideal_wall = net_wall = float("inf")
+    for _ in range(repeat):
+        _, wall, parts = timed_parts(lambda p: TimedIdeal(sc, p), sim_s)
+        if wall < ideal_wall:
+            ideal_wall, i = wall, parts
+        run, wall, parts = timed_parts(lambda p: TimedRig(sc, p), sim_s)
+        if wall < net_wall:
+            rig, net_wall, n = run, wall, parts
+    engine_s = rig.net.busy_s  # type: ignore[attr-defined]
+    rows = [
+        ("plant integration", i["plant integration"], n["plant integration"]),
+        ("laws", i["law"], n["law"]),
+        ("the loop's view building and commands", i["control step"] - i["law"], 0.0),
+        ("ECU firmware around the law (inputs, E2E, outputs)", 0.0, n["ECU task"] - n["law"] - n["send outputs"]),
+        ("engine: ECU outputs encoded and queued", 0.0, n["send outputs"]),
+        ("engine: sensor and wayside frames queued", 0.0, n["send frames"]),
+        ("engine: event loop (arbitration, delivery, radio)", 0.0, engine_s - n["send outputs"] - n["send frames"]),
+        ("commands applied to the plant", 0.0, n["commands"]),
+        ("sensor and wayside sampling and encoding", 0.0, n["sensors"] + n["wayside"] - n["send frames"]),
+        ("plant task: the rest (recording)", 0.0,
+         n["plant task"] - n["plant integration"] - n["commands"] - n["sensors"]),
+    ]
+    rows.append(("the rest (loop, dispatch, timers)", ideal_wall - sum(r[1] for r in rows),
+                 net_wall - sum(r[2] for r in rows)))
+    ms = 1e3 / sim_s
+    print(f"where the time goes (ms per simulated second; timers add about 0.1 us per timed call):")
+    print(f"  {'':52s} {'ideal':>7s} {'network':>8s}")
+    for name, a, b in rows:
+        print(f"  {name:52s} {a * ms:7.2f} {b * ms:8.2f}")
+    print(f"  {'total':52s} {ideal_wall * ms:7.2f} {net_wall * ms:8.2f}   ({net_wall / ideal_wall:.2f} x)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sim", type=float, default=30.0, help="simulated seconds per run")
@@ -70,6 +169,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="runs of each, interleaved; the fastest of each counts")
     ap.add_argument("--python-model", action="store_true", help="also run the rig on the Python bus model")
     ap.add_argument("--profile", action="store_true", help="print the top Python functions of the engine run")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="print where the ideal loop's and the network run's time goes, part by part")
     args = ap.parse_args()
     overrides: dict[str, object] = {}
     if args.trains or args.units:  # the trains then start one slot apart at seed000's first speed
@@ -111,6 +212,8 @@ def main() -> None:
     if args.python_model:
         print(f"python bus model: {args.sim / py_wall:8.1f} x real time ({py_wall:.2f} s wall), "
               f"{py_wall / net_wall:.2f} x the engine run's cost")
+    if args.breakdown:
+        breakdown(sc, args.sim, max(1, args.repeat))
     if args.profile:
         prof = cProfile.Profile()
         rig = VirtualRig(sc)
