@@ -93,3 +93,28 @@ def test_a_stop_request_ends_the_wait_and_runs_no_further_event():
     k.run(to_ns(1.0))
     assert ran == [0, 1_000_000, 2_000_000]
     assert k.next_time() is None
+
+
+def test_events_due_at_the_same_time_run_after_one_wait_in_their_order_and_a_stop_ends_the_batch():
+    """Several units' cycles of one ECU host at one instant: one wait (one SYNC) for them all; a later instant
+    waits again, and a stop request between two same-time events runs no further one."""
+    clock, stop, ran = FakeClock(), Stop(), []
+    io = FakeFrames(clock, [])
+    k = PacedKernel(clock, io, stop)
+    for name in ("a", "b", "c"):
+        k.at(to_ns(0.005), ran.append, name)
+    k.at(to_ns(0.006), ran.append, "d")
+    k.run(to_ns(0.01))
+    assert ran == ["a", "b", "c", "d"] and io.waits == 2
+
+    def stopping(name: str) -> None:
+        ran.append(name)
+        stop.requested = True
+
+    ran.clear()
+    k2 = PacedKernel(clock, FakeFrames(clock, []), stop)
+    k2.at(to_ns(0.02), stopping, "e")
+    k2.at(to_ns(0.02), ran.append, "f")
+    k2.run(to_ns(0.03))
+    assert ran == ["e"]
+

@@ -43,14 +43,27 @@ class PacedKernel(Kernel):
         self.heartbeat = heartbeat
 
     def step(self) -> None:
-        """Wait for the next event's time (receiving frames), then run it; after a stop request, run nothing."""
+        """Wait for the next event's time (receiving frames), then run it; after a stop request, run nothing.
+
+        Sleeping on frames, the events due at that same time run after the one wait (several units' cycles of one
+        host, a plant's publications): a frame sent at that instant cannot end by it, so a second wait would
+        hand over nothing they may read, and would only cost its system calls and bookkeeping."""
+        t_ns = self._queue[0][0]
         if self.wake_on_frame:
             self._wait_waking()
         else:
-            self.io.wait(self._queue[0][0] / NS, self.on_frame, self.stop, self.spin_s)
+            self.io.wait(t_ns / NS, self.on_frame, self.stop, self.spin_s)
         if self.stop:
             self._queue.clear()
             return
+        self._run_next()
+        if not self.wake_on_frame:
+            queue = self._queue
+            while queue and queue[0][0] == t_ns and not self.stop:
+                self._run_next()
+
+    def _run_next(self) -> None:
+        """The next event, then a heartbeat (a node whose event never returns falls silent)."""
         super().step()
         if self.heartbeat is not None:
             self.heartbeat()
