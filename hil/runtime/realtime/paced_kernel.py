@@ -45,8 +45,8 @@ class PacedKernel(Kernel):
     def step(self) -> None:
         """Wait for the next event's time (receiving frames), then run it; after a stop request, run nothing.
 
-        Sleeping on frames, the events due at that same time run after the one wait (several units' cycles of one
-        host, a plant's publications): a frame sent at that instant cannot end by it, so a second wait would
+        Sleeping on frames, the events due at that same time run after the one wait (the cycles of units of several
+        trains at one offset, in one ECU host): a frame sent at that instant cannot end by it, so a second wait would
         hand over nothing they may read, and would only cost its system calls and bookkeeping."""
         t_ns = self._queue[0][0]
         if self.wake_on_frame:
