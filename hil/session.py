@@ -198,10 +198,12 @@ def run_scenario(scenario: Scenario, out_dir: Path, *, seed: int | None = None, 
 
 
 def _checking(stop: StopSignals, on_chunk: Callable[[RunLog], None]) -> Callable[[RunLog], None]:
-    """``on_chunk``, after raising a stop signal whose exception was lost (``StopSignals.check``)."""
+    """``on_chunk``, after raising a stop signal whose exception was lost (``StopSignals.check``); a stop signal
+    that comes while it runs stops the run once it is done (``StopSignals.held``)."""
     def chunk(log: RunLog) -> None:
         stop.check()
-        on_chunk(log)
+        with stop.held():
+            on_chunk(log)
 
     return chunk
 

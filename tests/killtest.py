@@ -45,6 +45,7 @@ class KillOutcome:
     finished_first: bool  # the run ended before the kill could be sent
     traceback: bool
     report: IntegrityReport
+    stderr_tail: str = ""  # the end of what the run printed on stderr (why it failed, when it did)
 
     @property
     def intact(self) -> bool:
@@ -146,7 +147,7 @@ def kill_run(argv: list[str], out_dir: Path, delay_s: float, sig: int = signal.S
         raise
     report = check_run_dir(out_dir)
     return KillOutcome(str(out_dir), delay_s, signal.Signals(sig).name, target, proc.returncode, finished_first,
-                       "Traceback" in err, report)
+                       "Traceback" in err, report, err[-2000:])
 
 
 def random_kills(n: int, out_root: Path, seed: int = 0, max_delay_s: float = 5.0, realtime: bool = False,

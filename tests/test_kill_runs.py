@@ -38,8 +38,8 @@ def test_virtual_run_killed_at_a_random_moment_leaves_readable_incomplete_result
     write_json_atomic(out / "metrics.json", {"interrupted": False, "sim_time_s": 600.0, "stale": True})  # a past run
     outcome = kill_run(hil_run_argv(out, extra=("--overwrite",)), out, delay, sig)  # replacing the past run
     rep = outcome.report
-    assert outcome.intact, outcome.as_dict()
-    assert outcome.returncode == 130 and not outcome.traceback
+    assert outcome.intact, outcome.stderr_tail or outcome.as_dict()
+    assert outcome.returncode == 130 and not outcome.traceback, outcome.stderr_tail
     assert rep.complete is False and rep.interrupted is True
     metrics = json.loads((out / "metrics.json").read_text())
     assert "stale" not in metrics  # the old result was replaced as soon as the run started
@@ -135,3 +135,34 @@ def test_a_stop_that_comes_inside_a_finalizer_is_raised_at_the_next_chunk_withou
         stop.check()  # no longer armed: the files are being written
     finally:
         stop.restore()
+
+
+def test_a_stop_signal_inside_a_chunks_recording_stops_the_run_once_that_recording_is_done(tmp_path: Path, monkeypatch):
+    """CI on 97bfda5: SIGHUP landed between two statements of a recording flush's row release; the frame table's
+    rows and counters disagreed and the metrics failed (IndexError, exit 1). A stop signal inside a chunk's work is
+    now raised when that work is done: the rest of the flush runs, and the run ends interrupted, whole."""
+    import os
+
+    from hil.scenario import load_scenario
+    from hil.session import IncrementalRecorder, run_scenario
+
+    record = IncrementalRecorder.__call__
+    signalled: list[bool] = []
+    after_signal: list[bool] = []
+
+    def flush_signalled_midway(self, log) -> None:
+        if not signalled:
+            signalled.append(True)
+            os.kill(os.getpid(), signal.SIGTERM)  # the handler runs at the next bytecode ...
+            after_signal.append(True)  # ... which, while a chunk is recorded, must not raise
+        record(self, log)
+
+    monkeypatch.setattr(IncrementalRecorder, "__call__", flush_signalled_midway)
+    previous = signal.getsignal(signal.SIGTERM)
+    result = run_scenario(load_scenario("seed000"), tmp_path / "run", duration_s=30.0, chunk_s=1.0,
+                          min_flush_wall_s=0.0)
+    assert signalled == after_signal == [True]
+    assert result.log.interrupted and 0 < result.log.sim_time_s < 30.0
+    rep = check_run_dir(tmp_path / "run")
+    assert rep.ok and rep.complete is False and rep.interrupted is True, rep.problems
+    assert signal.getsignal(signal.SIGTERM) == previous

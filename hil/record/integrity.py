@@ -7,7 +7,8 @@ What a run writes to keep it so (``hil.session``):
   by the full metrics at the end. A run killed at any moment (even SIGKILL) leaves JSON that parses and says
   it is incomplete, never a half-written file and never a stale result of an earlier run.
 * ``StopSignals``: during the run loop SIGTERM and SIGHUP interrupt like Ctrl-C (the loop stops cleanly and
-  everything so far is written); during the final writing every stop signal is only remembered.
+  everything so far is written), except inside a chunk's recording, which they interrupt only once it is done;
+  during the final writing every stop signal is only remembered.
 
 ``check_run_dir(path)`` is the verdict the kill tests and the reliability benchmark share: metrics.json parses
 and says complete or incomplete, run.rrd opens with rerun's Python API and streams to its end, and the two
@@ -15,12 +16,14 @@ agree (a complete run recorded up to its end; an incomplete one no further than 
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import multiprocessing
 import os
 import signal
 import threading
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -132,6 +135,24 @@ class StopSignals:
         self._armed = False
         if self._previous:
             self._set(self._remember)
+
+    @contextlib.contextmanager
+    def held(self) -> Iterator[None]:
+        """While armed, a stop signal inside the block is remembered and raised when the block ends, so work of
+        several steps (a recording flush, the rows it lets go) is never left half done: a KeyboardInterrupt between
+        two of them left a frame table whose rows and counters disagreed, and the metrics failed (IndexError).
+        An exception of the block's own goes on as it is (the stop stays remembered, as in the final writing)."""
+        if not self._armed:
+            yield
+            return
+        self.defer()
+        try:
+            yield
+        except BaseException:
+            self._armed = True
+            self._set(self._interrupt)
+            raise
+        self.arm()  # raises the stop that came meanwhile
 
     def restore(self) -> None:
         self._armed = False
