@@ -22,19 +22,19 @@ class SampleTable:
     def append(self, row) -> None:
         if len(row) != self.width:
             raise ValueError(f"row of {len(row)} values, table has {self.width} columns")
+        self._cache = None  # before the rows change: a stop signal between the two never leaves a stale array
         if isinstance(row, np.ndarray):
             self._buf.frombytes(row.astype(float, copy=False).tobytes())
         else:
             self._buf.extend(row)
-        self._cache = None
 
     def extend_bytes(self, rows: bytes) -> None:
         """Append whole rows given as native float64 bytes (how the frame engine hands over its statistics)."""
         if len(rows) % (8 * self.width):
             raise ValueError(f"{len(rows)} bytes are not whole rows of {self.width} float64 values")
         if rows:
+            self._cache = None  # first, as in append
             self._buf.frombytes(rows)
-            self._cache = None
 
     def __len__(self) -> int:
         """Rows appended so far (released ones included)."""
@@ -59,9 +59,9 @@ class SampleTable:
         is always held (``last``)."""
         row = min(row, len(self) - 1)
         if row > self.released:
+            self._cache = None
             del self._buf[:self._held(row)]
             self.released = row
-            self._cache = None
 
     def last(self, column: int = 0) -> float:
         """Value of ``column`` in the last row (NaN when empty), without materialising the table."""
