@@ -138,9 +138,10 @@ def test_a_stop_that_comes_inside_a_finalizer_is_raised_at_the_next_chunk_withou
 
 
 def test_a_stop_signal_inside_a_chunks_recording_stops_the_run_once_that_recording_is_done(tmp_path: Path, monkeypatch):
-    """CI on 97bfda5: SIGHUP landed between two statements of a recording flush's row release; the frame table's
-    rows and counters disagreed and the metrics failed (IndexError, exit 1). A stop signal inside a chunk's work is
-    now raised when that work is done: the rest of the flush runs, and the run ends interrupted, whole."""
+    """A stop signal inside a chunk's recording (a flush, then the rows it lets go: tables whose buffers and
+    offsets change in several steps) is raised when that work is done: the rest of it runs, and the run ends
+    interrupted, whole. (CI on 97bfda5 failed a SIGHUP kill with IndexError in the metrics; the cause turned out
+    to be a table's stale array, tests/test_sample_table.py.)"""
     import os
 
     from hil.scenario import load_scenario

@@ -139,9 +139,8 @@ class StopSignals:
     @contextlib.contextmanager
     def held(self) -> Iterator[None]:
         """While armed, a stop signal inside the block is remembered and raised when the block ends, so work of
-        several steps (a recording flush, the rows it lets go) is never left half done: a KeyboardInterrupt between
-        two of them left a frame table whose rows and counters disagreed, and the metrics failed (IndexError).
-        An exception of the block's own goes on as it is (the stop stays remembered, as in the final writing).
+        several steps (a recording flush, the rows it lets go: a table's buffer and its offsets) is never left half
+        done, which the metrics computed after the stop would trip over. An exception of the block's own goes on as it is (the stop stays remembered, as in the final writing).
         Outside the main thread (a SIL Kit run's chunks come in its simulation thread) nothing changes: a signal's
         exception is raised in the main thread, never inside the block."""
         if not self._armed or threading.current_thread() is not threading.main_thread():
