@@ -117,4 +117,3 @@ def test_events_due_at_the_same_time_run_after_one_wait_in_their_order_and_a_sto
     k2.at(to_ns(0.02), ran.append, "f")
     k2.run(to_ns(0.03))
     assert ran == ["e"]
-

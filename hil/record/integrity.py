@@ -119,11 +119,15 @@ class StopSignals:
 
     def arm(self) -> None:
         if self._previous:
-            self._armed = True
-            self._set(self._interrupt)
+            self._interrupt_from_now()
             if self._pending is not None:
                 self._pending = None
                 raise KeyboardInterrupt(self.received)
+
+    def _interrupt_from_now(self) -> None:
+        """Stop signals raise KeyboardInterrupt from here on (one remembered before stays remembered)."""
+        self._armed = True
+        self._set(self._interrupt)
 
     def check(self) -> None:
         """Raise the KeyboardInterrupt of a stop signal received while armed (one whose exception Python dropped
@@ -140,9 +144,10 @@ class StopSignals:
     def held(self) -> Iterator[None]:
         """While armed, a stop signal inside the block is remembered and raised when the block ends, so work of
         several steps (a recording flush, the rows it lets go: a table's buffer and its offsets) is never left half
-        done, which the metrics computed after the stop would trip over. An exception of the block's own goes on as it is (the stop stays remembered, as in the final writing).
-        Outside the main thread (a SIL Kit run's chunks come in its simulation thread) nothing changes: a signal's
-        exception is raised in the main thread, never inside the block."""
+        done, which the metrics computed after the stop would trip over. An exception of the block's own goes on as
+        it is (the stop stays remembered, as in the final writing). Outside the main thread (a SIL Kit run's chunks
+        come in its simulation thread) nothing changes: a signal's exception is raised in the main thread, never
+        inside the block."""
         if not self._armed or threading.current_thread() is not threading.main_thread():
             yield
             return
@@ -150,8 +155,7 @@ class StopSignals:
         try:
             yield
         except BaseException:
-            self._armed = True
-            self._set(self._interrupt)
+            self._interrupt_from_now()
             raise
         self.arm()  # raises the stop that came meanwhile
 
