@@ -10,6 +10,8 @@ thread's CPU clock, with before each timed one:
 
 * nothing (warm, as virtual time runs);
 * a 10 ms sleep, as a real-time node sleeps between its 100 Hz cycles, or a 1 ms sleep;
+* a 10 ms sleep with the CPUs' wake-up latency limit held at 0 µs (``hil run --realtime --idle-latency-us 0``): an
+  idle CPU then polls instead of halting (only where this user may hold ``/dev/cpu_dma_latency``);
 * a 10 ms busy wait: the same gap with the CPU kept busy (the sleep, not the time, is what matters if these two
   differ);
 * a touch of a buffer twice one core's L2 cache (the cycle's lines then come from L3), or twice the last-level
@@ -23,6 +25,8 @@ mean CPU per timed call and its ratio to warm.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -32,6 +36,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from hil.runtime.realtime.idle_latency import CPU_LATENCY_FILE, IdleLatencyHold  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 
@@ -94,6 +99,16 @@ class TimedRig(VirtualRig):
         self._timed("plant", lambda: super(TimedRig, self)._plant_step(t_ns))
 
 
+class Held:
+    """The CPUs' wake-up latency limit held at 0 µs while in the block."""
+
+    def __enter__(self) -> None:
+        self.hold = IdleLatencyHold(0).open()
+
+    def __exit__(self, *_) -> None:
+        self.hold.close()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sim", type=float, default=8.0, help="simulated seconds per mode")
@@ -108,19 +123,25 @@ def main() -> None:
         "warm (virtual time)": lambda: None,
         f"after a {GAP_S * 1e3:g} ms sleep": lambda: time.sleep(GAP_S),
         f"after a {SHORT_GAP_S * 1e3:g} ms sleep": lambda: time.sleep(SHORT_GAP_S),
+        f"after a {GAP_S * 1e3:g} ms sleep, latency held": lambda: time.sleep(GAP_S),
         f"after a {GAP_S * 1e3:g} ms busy wait": lambda: busy_wait(GAP_S),
         f"L2 evicted ({2 * l2 >> 20} MiB touched)": lambda: touch(l2_buffer),
         f"all caches evicted ({2 * llc >> 20} MiB touched)": lambda: touch(llc_buffer)}
+    held = {name for name in modes if name.endswith("latency held")}
+    if not os.access(CPU_LATENCY_FILE, os.W_OK):
+        print(f"(not permitted to hold {CPU_LATENCY_FILE}: the held mode is left out)")
+        modes = {name: prepare for name, prepare in modes.items() if name not in held}
     rigs = {name: TimedRig(sc, prepare) for name, prepare in modes.items()}
     for second in range(1, int(args.sim) + 1):  # interleaved, a simulated second each
-        for rig in rigs.values():
-            rig.kernel.run(second * 1_000_000_000)
+        for name, rig in rigs.items():
+            with Held() if name in held else contextlib.nullcontext():
+                rig.kernel.run(second * 1_000_000_000)
     print(f"scenario {sc.name}: {args.sim:g} simulated s per mode, interleaved; one call in {TIMED_EVERY} timed; "
           f"L2 {l2 >> 10} KiB per core, last level {llc >> 20} MiB; CPU time per call (thread clock)")
     warm = next(iter(rigs.values()))
     for name, rig in rigs.items():
         ecu, plant = rig.mean_us("ecu"), rig.mean_us("plant")
-        print(f"  {name:36s} ECU cycle {ecu:6.1f} us ({ecu / warm.mean_us('ecu'):4.1f}x)   "
+        print(f"  {name:44s} ECU cycle {ecu:6.1f} us ({ecu / warm.mean_us('ecu'):4.1f}x)   "
               f"plant step {plant:6.1f} us ({plant / warm.mean_us('plant'):4.1f}x)")
 
 

@@ -15,7 +15,9 @@ servers' threads, the orchestrator), the profile the real-time cost is read from
 the run (a virtual machine's CPUs taken by its host: every node stalls at once). A stall watch
 (``bench/stall_watch.py``, a process that only sleeps) runs beside the rig: the bench prints its stalls and how
 many ECU and plant deadline misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR``
-keeps each run's files (the nodes' timing series) under DIR instead of deleting them. ``--scheduling auto normal``
+keeps each run's files (the nodes' timing series) under DIR instead of deleting them. ``--idle-latency-us host 0``
+runs each configuration as the host idles and with idle CPUs kept polling (``hil run --idle-latency-us``), side by
+side. ``--scheduling auto normal``
 runs each configuration under SCHED_FIFO where permitted and under the normal scheduler, side by side (the stall
 watch sleeps under SCHED_FIFO above the rig where permitted, so the rig's own bursts are not counted as stalls).
 """
@@ -40,6 +42,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
+from hil.cli_values import latency_us  # noqa: E402
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
@@ -194,7 +197,8 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
-        radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto") -> dict:
+        radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto",
+        idle_latency_us: int | None = None) -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -213,7 +217,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
         try:
             res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
                                plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
-                               on_start=started, scheduling=scheduling)
+                               on_start=started, scheduling=scheduling, idle_latency_us=idle_latency_us)
         finally:
             for w in watcher:
                 with contextlib.suppress(psutil.Error):
@@ -247,6 +251,11 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "scheduling": m["realtime"]["scheduling"]["policy"]}
 
 
+def idle_latency(text: str) -> int | None:
+    """An ``--idle-latency-us`` value: "host" (the host's own, None) or a whole number of µs."""
+    return None if text == "host" else latency_us(text)
+
+
 def stall_line(stalls: np.ndarray, ecu: tuple[int, int], plant: tuple[int, int]) -> str:
     """What the stall watcher saw, and how many ECU and plant deadline misses (of all) fell in its stalls."""
     misses = f"ECU misses {ecu[1]} of {ecu[0]}, plant misses {plant[1]} of {plant[0]}"
@@ -270,6 +279,9 @@ def main() -> None:
                     help="the radio inside the bus servers (the rig's) or as a node process (before); several: side by side")
     ap.add_argument("--scheduling", nargs="+", choices=SCHEDULING_MODES, default=["auto"],
                     help="the rig's scheduling (hil run --scheduling); several: side by side, alternated")
+    ap.add_argument("--idle-latency-us", type=idle_latency, nargs="+", default=[None], metavar="US",
+                    help="the CPUs' wake-up latency limit held for each run (hil run --idle-latency-us), or 'host' "
+                         "(the default: none held); several: side by side, alternated")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
@@ -284,12 +296,14 @@ def main() -> None:
     print(head)
     best = 0
     for n in args.ecus:
-        for k, spin, radio, mode in [(k, spin, radio, mode) for k in args.per_process for spin in args.plant_spin_us
-                                     for radio in args.radio for mode in args.scheduling]:
+        for k, spin, radio, mode, idle in [(k, spin, radio, mode, idle) for k in args.per_process
+                                           for spin in args.plant_spin_us for radio in args.radio
+                                           for mode in args.scheduling for idle in args.idle_latency_us]:
             t = time.monotonic()
             sc = scenario_for(n, args.scenario)
-            keep = args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}" if args.keep is not None else None
-            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode)
+            keep = (args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}"
+                    if args.keep is not None else None)
+            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units, pace=args.pace)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
@@ -298,6 +312,7 @@ def main() -> None:
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
                   f"  ({r['scheduling']})"
+                  f"{'' if idle is None else f'  (idle latency {idle} us)'}"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))

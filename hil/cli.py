@@ -106,7 +106,8 @@ def _check_run_options(args: argparse.Namespace) -> None:
     """Options that do nothing in the chosen runtime are errors, not silently ignored."""
     if not args.realtime:
         given = [name for name, value in (("--pace", args.pace), ("--ecus-per-process", args.ecus_per_process),
-                                          ("--run", args.run_name), ("--scheduling", args.scheduling))
+                                          ("--run", args.run_name), ("--scheduling", args.scheduling),
+                                          ("--idle-latency-us", args.idle_latency_us))
                  if value is not None]
         if given:
             verb = "applies" if len(given) == 1 else "apply"
@@ -157,9 +158,10 @@ def _silkit_options(args: argparse.Namespace):
         return None
     if args.ideal:
         raise ScenarioError("--silkit runs the rig, not the ideal loop: not with --ideal")
-    if args.realtime and (args.ecus_per_process is not None or args.run_name is not None or args.scheduling is not None):
-        raise ScenarioError("--realtime --silkit runs the virtual rig paced by SIL Kit: --ecus-per-process, --run and "
-                            "--scheduling are for the process rig (without --silkit)")
+    if args.realtime and any(v is not None for v in (args.ecus_per_process, args.run_name, args.scheduling,
+                                                     args.idle_latency_us)):
+        raise ScenarioError("--realtime --silkit runs the virtual rig paced by SIL Kit: --ecus-per-process, --run, "
+                            "--scheduling and --idle-latency-us are for the process rig (without --silkit)")
     from hil.silkit.options import SilKitOptions
 
     try:

@@ -16,6 +16,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def latency_us(text: str) -> int:
+    """An argparse type: a whole number of microseconds from 0 to 2**31 - 1 (what the kernel's latency limit takes)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of microseconds") from None
+    if not 0 <= value <= 2**31 - 1:
+        raise argparse.ArgumentTypeError(f"{value} must be from 0 to {2**31 - 1} (µs)")
+    return value
+
+
 def _finite_positive(text: str, unit: str) -> float:
     try:
         value = float(text)

@@ -15,7 +15,7 @@ import sys
 import threading
 from pathlib import Path
 
-from hil.cli_values import positive_int, positive_number, positive_seconds
+from hil.cli_values import latency_us, positive_int, positive_number, positive_seconds
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.scheduling import PRIORITIES, SCHEDULING_MODES, SchedulingRefused, choose_server_scheduling
@@ -144,6 +144,10 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: auto (the default) runs the bus servers, plant and ECU processes under "
                         "SCHED_FIFO where the host permits it, else under the normal scheduler; fifo: SCHED_FIFO or "
                         "exit 1; normal: never")
+    g.add_argument("--idle-latency-us", type=latency_us, default=None, metavar="US",
+                   help="with --realtime: hold the CPUs' wake-up latency limit at US microseconds for the run "
+                        "(/dev/cpu_dma_latency, as cyclictest does; needs root, else exit 1). 0 keeps idle CPUs "
+                        "polling instead of halting: wake-ups cost less, but the CPUs never rest (default: the host's)")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")
@@ -183,7 +187,8 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
     return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
                         run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
-                        source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto")
+                        source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto",
+                        idle_latency_us=args.idle_latency_us)
 
 
 def print_channels(channels) -> None:

@@ -56,6 +56,7 @@ from hil.scenario.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
+from hil.runtime.realtime.idle_latency import IdleLatencyHold
 from hil.runtime.realtime.scheduling import SchedulingMode, choose_scheduling
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.engine_radio import EngineRadio
@@ -229,7 +230,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  can_log: str | bool | None = None,
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
-                 keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto"):
+                 keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto",
+                 idle_latency_us: int | None = None):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -243,11 +245,14 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     recording to a viewer as the run goes (hil/runtime/realtime/live_tail.py). ``radio_in_servers=False``: the
     radio as a node process on the emulated buses too, as before it moved into the servers (benchmarks compare).
     ``scheduling``: "auto" runs the serving thread and the nodes under SCHED_FIFO where the host permits it,
-    "fifo" insists (SchedulingRefused otherwise), "normal" never does (hil/runtime/realtime/scheduling.py)."""
+    "fifo" insists (SchedulingRefused otherwise), "normal" never does (hil/runtime/realtime/scheduling.py).
+    ``idle_latency_us``: hold the CPUs' wake-up latency limit at that many µs for the run (IdleLatencyRefused where
+    the host does not permit it; hil/runtime/realtime/idle_latency.py); None: leave it to the host."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
+    idle = None if idle_latency_us is None else IdleLatencyHold(idle_latency_us)  # a bad value: before anything runs
     socketcan = scenario.can.transport == "socketcan"
     fmt = log_format(can_log)
     db = load_train_db(scenario)  # the DBC fits the scenario, before any process starts
@@ -293,6 +298,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             serving = None if socketcan else engine.ServingThread()  # every bus on one thread: shared wake-ups
             sched = choose_scheduling(scheduling, None if serving is None else serving.native_id)
             events.append(Event(0.0, "INFO", "rig", f"scheduling: {sched.describe()}"))
+            if idle is not None:
+                events.append(Event(0.0, "INFO", "rig", idle.open().describe()))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
@@ -350,6 +357,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         mark_failed(out_dir / "metrics.json", scenario.name, "realtime", str(exc))
         raise
     finally:
+        if idle is not None:
+            idle.close()
         _kill_all(nodes)
         server_stats = {s.log.name: s.stats.as_dict() for s in servers}
         if spool is not None:
@@ -386,6 +395,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     extra["realtime"]["bus_servers"] = server_stats
     if sched is not None:
         extra["realtime"]["scheduling"] = sched.as_dict()
+    extra["realtime"]["idle_latency_us"] = idle_latency_us
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")

@@ -1,0 +1,70 @@
+"""The CPUs' wake-up latency limit for a real-time run (Linux PM QoS, ``/dev/cpu_dma_latency``), held as cyclictest
+holds it.
+
+A node sleeps between its cycles. On a virtual machine an idle CPU halts, and the hypervisor gets it back to the
+guest later: on this project's 2-core KVM host the first microseconds after a 10 ms sleep run 20-25 µs longer
+than on a busy CPU (``bench/bench_wake_cost.py``). A limit of 0 µs keeps idle CPUs polling in the guest's idle
+loop instead, so a wake-up costs what it costs on a busy CPU. The price: the idle CPUs no longer rest (the host
+sees them busy). So the rig never holds it unless asked (``hil run --realtime --idle-latency-us N``).
+
+The kernel keeps the limit while the file is open and drops it when it is closed, also when the process dies:
+a killed rig leaves nothing behind.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from hil.runtime.errors import RigDidNotStart
+
+CPU_LATENCY_FILE = Path("/dev/cpu_dma_latency")
+MAX_LIMIT_US = 2**31 - 1  # the kernel takes a signed 32-bit value
+
+
+class IdleLatencyRefused(RigDidNotStart):
+    """``--idle-latency-us`` on a host that does not let this user hold the limit."""
+
+
+class IdleLatencyHold:
+    """Holds the CPUs' wake-up latency limit at ``limit_us`` from :meth:`open` to :meth:`close`."""
+
+    def __init__(self, limit_us: int, path: Path | None = None) -> None:
+        if isinstance(limit_us, bool) or not isinstance(limit_us, int) or not 0 <= limit_us <= MAX_LIMIT_US:
+            raise ValueError(f"idle_latency_us={limit_us!r} must be a whole number of µs from 0 to {MAX_LIMIT_US}")
+        self.limit_us, self.path = limit_us, CPU_LATENCY_FILE if path is None else path
+        self._fd: int | None = None
+
+    def open(self) -> "IdleLatencyHold":
+        """Ask the kernel for the limit; IdleLatencyRefused (naming the file and the OS's words) where it is not
+        permitted or not there."""
+        try:
+            fd = os.open(self.path, os.O_WRONLY | os.O_CLOEXEC)
+        except OSError as exc:
+            raise IdleLatencyRefused(f"--idle-latency-us {self.limit_us}: cannot open {self.path} ({exc.strerror}); "
+                                     "it needs root (or write access to that file) on a Linux host") from None
+        try:
+            os.write(fd, self.limit_us.to_bytes(4, "little", signed=True))
+        except OSError as exc:
+            os.close(fd)
+            raise IdleLatencyRefused(f"--idle-latency-us {self.limit_us}: {self.path} refused it "
+                                     f"({exc.strerror})") from None
+        self._fd = fd
+        return self
+
+    def close(self) -> None:
+        """Let the limit go (the kernel's default returns once no one holds one)."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def describe(self) -> str:
+        return f"CPU wake-up latency held at {self.limit_us} µs ({self.path})"
+
+
+def current_limit_us(path: Path | None = None) -> int:
+    """The limit the kernel applies now (the smallest one held; 2000000000 when none is)."""
+    fd = os.open(CPU_LATENCY_FILE if path is None else path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        return int.from_bytes(os.read(fd, 4), "little", signed=True)
+    finally:
+        os.close(fd)
