@@ -1,11 +1,12 @@
 """The CPUs' wake-up latency limit for a real-time run (Linux PM QoS, ``/dev/cpu_dma_latency``), held as cyclictest
 holds it.
 
-A node sleeps between its cycles. On a virtual machine an idle CPU halts, and the hypervisor gets it back to the
-guest later: on this project's 2-core KVM host the first microseconds after a 10 ms sleep run 20-25 µs longer
-than on a busy CPU (``bench/bench_wake_cost.py``). A limit of 0 µs keeps idle CPUs polling in the guest's idle
-loop instead, so a wake-up costs what it costs on a busy CPU. The price: the idle CPUs no longer rest (the host
-sees them busy). So the rig never holds it unless asked (``hil run --realtime --idle-latency-us N``).
+A node sleeps between its cycles. On a virtual machine an idle CPU halts, and the hypervisor gives it back to the
+guest later: on this project's 2-core KVM host a short piece of Python right after a 10 ms sleep runs 20-25 µs
+longer than warm. A limit of 0 µs keeps idle CPUs polling in the guest's idle loop instead; seed000's ECU cycle
+after a 10 ms sleep then costs 72 µs rather than 114 (warm: 9; ``bench/bench_cold_cycle.py``, the README's
+"Keeping idle CPUs awake"). The price: the idle CPUs no longer rest (the host sees them busy), so the rig never
+holds it unless asked (``hil run --realtime --idle-latency-us N``).
 
 The kernel keeps the limit while the file is open and drops it when it is closed, also when the process dies:
 a killed rig leaves nothing behind.
