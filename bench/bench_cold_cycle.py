@@ -99,16 +99,6 @@ class TimedRig(VirtualRig):
         self._timed("plant", lambda: super(TimedRig, self)._plant_step(t_ns))
 
 
-class Held:
-    """The CPUs' wake-up latency limit held at 0 µs while in the block."""
-
-    def __enter__(self) -> None:
-        self.hold = IdleLatencyHold(0).open()
-
-    def __exit__(self, *_) -> None:
-        self.hold.close()
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sim", type=float, default=8.0, help="simulated seconds per mode")
@@ -119,22 +109,22 @@ def main() -> None:
     if l2 is None or llc is None:
         raise SystemExit(f"{CACHE_DIR}: no cache sizes on this machine; the bench needs them")
     l2_buffer, llc_buffer = np.zeros(2 * l2 // 8), np.zeros(2 * llc // 8)
+    held = f"after a {GAP_S * 1e3:g} ms sleep, latency held"  # run with the limit held at 0 µs
     modes: dict[str, Callable[[], None]] = {
         "warm (virtual time)": lambda: None,
         f"after a {GAP_S * 1e3:g} ms sleep": lambda: time.sleep(GAP_S),
         f"after a {SHORT_GAP_S * 1e3:g} ms sleep": lambda: time.sleep(SHORT_GAP_S),
-        f"after a {GAP_S * 1e3:g} ms sleep, latency held": lambda: time.sleep(GAP_S),
+        held: lambda: time.sleep(GAP_S),
         f"after a {GAP_S * 1e3:g} ms busy wait": lambda: busy_wait(GAP_S),
         f"L2 evicted ({2 * l2 >> 20} MiB touched)": lambda: touch(l2_buffer),
         f"all caches evicted ({2 * llc >> 20} MiB touched)": lambda: touch(llc_buffer)}
-    held = {name for name in modes if name.endswith("latency held")}
     if not os.access(CPU_LATENCY_FILE, os.W_OK):
         print(f"(not permitted to hold {CPU_LATENCY_FILE}: the held mode is left out)")
-        modes = {name: prepare for name, prepare in modes.items() if name not in held}
+        del modes[held]
     rigs = {name: TimedRig(sc, prepare) for name, prepare in modes.items()}
     for second in range(1, int(args.sim) + 1):  # interleaved, a simulated second each
         for name, rig in rigs.items():
-            with Held() if name in held else contextlib.nullcontext():
+            with IdleLatencyHold(0) if name == held else contextlib.nullcontext():
                 rig.kernel.run(second * 1_000_000_000)
     print(f"scenario {sc.name}: {args.sim:g} simulated s per mode, interleaved; one call in {TIMED_EVERY} timed; "
           f"L2 {l2 >> 10} KiB per core, last level {llc >> 20} MiB; CPU time per call (thread clock)")

@@ -29,6 +29,9 @@ def test_the_limit_is_written_as_the_kernel_takes_it_and_let_go_on_close(tmp_pat
     hold.close()
     hold.close()  # twice is harmless
     assert hold.describe() == f"CPU wake-up latency held at 125 µs ({target})"
+    with IdleLatencyHold(7, target) as held:  # as a context manager: held inside, let go after
+        assert held._fd is not None and target.read_bytes()[-4:] == (7).to_bytes(4, "little")
+    assert held._fd is None
 
 
 @pytest.mark.parametrize("bad", [-1, 2**31, 1.5, True, "0"])

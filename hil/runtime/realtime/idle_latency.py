@@ -52,6 +52,12 @@ class IdleLatencyHold:
         self._fd = fd
         return self
 
+    def __enter__(self) -> "IdleLatencyHold":
+        return self.open()
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
+
     def close(self) -> None:
         """Let the limit go (the kernel's default returns once no one holds one)."""
         if self._fd is not None:
