@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
-from hil.cli_values import latency_us  # noqa: E402
+from hil.runtime.realtime.idle_latency import latency_us  # noqa: E402
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402

@@ -16,19 +16,6 @@ def positive_int(text: str) -> int:
     return value
 
 
-def latency_us(text: str) -> int:
-    """An argparse type: a whole number of microseconds from 0 to 2**31 - 1 (what the kernel's latency limit takes)."""
-    from hil.runtime.realtime.idle_latency import MAX_LIMIT_US
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of microseconds") from None
-    if not 0 <= value <= MAX_LIMIT_US:
-        raise argparse.ArgumentTypeError(f"{value} must be from 0 to {MAX_LIMIT_US} (µs)")
-    return value
-
-
 def _finite_positive(text: str, unit: str) -> float:
     try:
         value = float(text)

@@ -15,8 +15,9 @@ import sys
 import threading
 from pathlib import Path
 
-from hil.cli_values import latency_us, positive_int, positive_number, positive_seconds
+from hil.cli_values import positive_int, positive_number, positive_seconds
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US
+from hil.runtime.realtime.idle_latency import latency_us
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.scheduling import PRIORITIES, SCHEDULING_MODES, SchedulingRefused, choose_server_scheduling
 from hil.runtime.realtime.sockets import BusServerError, remove_run_dir

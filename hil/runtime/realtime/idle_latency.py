@@ -13,6 +13,7 @@ a killed rig leaves nothing behind.
 """
 from __future__ import annotations
 
+import argparse
 import os
 from pathlib import Path
 
@@ -20,6 +21,17 @@ from hil.runtime.errors import RigDidNotStart
 
 CPU_LATENCY_FILE = Path("/dev/cpu_dma_latency")
 MAX_LIMIT_US = 2**31 - 1  # the kernel takes a signed 32-bit value
+
+
+def latency_us(text: str) -> int:
+    """An argparse type for ``--idle-latency-us``: a whole number of microseconds the kernel's limit takes."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of microseconds") from None
+    if not 0 <= value <= MAX_LIMIT_US:
+        raise argparse.ArgumentTypeError(f"{value} must be from 0 to {MAX_LIMIT_US} (µs)")
+    return value
 
 
 class IdleLatencyRefused(RigDidNotStart):
