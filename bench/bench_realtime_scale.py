@@ -16,8 +16,8 @@ the run (a virtual machine's CPUs taken by its host: every node stalls at once).
 (``bench/stall_watch.py``, a process that only sleeps) runs beside the rig: the bench prints its stalls and how
 many ECU and plant deadline misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR``
 keeps each run's files (the nodes' timing series) under DIR instead of deleting them. ``--idle-latency-us host 0``
-runs each configuration as the host idles and with idle CPUs kept polling (``hil run --idle-latency-us``), side by
-side. ``--scheduling auto normal``
+runs each configuration as the host idles and with idle CPUs kept polling (``hil run --idle-latency-us``; the
+default, auto, polls where permitted), side by side. ``--scheduling auto normal``
 runs each configuration under SCHED_FIFO where permitted and under the normal scheduler, side by side (the stall
 watch sleeps under SCHED_FIFO above the rig where permitted, so the rig's own bursts are not counted as stalls).
 """
@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
-from hil.runtime.realtime.idle_latency import latency_us  # noqa: E402
+from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # noqa: E402
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
@@ -198,7 +198,7 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
         radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto",
-        idle_latency_us: int | None = None) -> dict:
+        idle_latency_us: IdleLatencySetting = "auto") -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -248,12 +248,12 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "plant_misses": m["plant_deadline_misses"], "publications": m["realtime"]["plant"]["cycles"],
             "misses_in_stalls": ecu_in_stalls, "plant_misses_in_stalls": plant_in_stalls,
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())},
-            "scheduling": m["realtime"]["scheduling"]["policy"]}
+            "scheduling": m["realtime"]["scheduling"]["policy"], "idle_latency_us": m["realtime"]["idle_latency_us"]}
 
 
-def idle_latency(text: str) -> int | None:
-    """An ``--idle-latency-us`` value: "host" (the host's own, None) or a whole number of µs."""
-    return None if text == "host" else latency_us(text)
+def held_text(limit_us: int | None) -> str:
+    """What the run held of the CPUs' wake-up latency limit (metrics.json's realtime.idle_latency_us)."""
+    return "idle latency: the host's" if limit_us is None else f"idle latency held at {limit_us} us"
 
 
 def stall_line(stalls: np.ndarray, ecu: tuple[int, int], plant: tuple[int, int]) -> str:
@@ -279,9 +279,9 @@ def main() -> None:
                     help="the radio inside the bus servers (the rig's) or as a node process (before); several: side by side")
     ap.add_argument("--scheduling", nargs="+", choices=SCHEDULING_MODES, default=["auto"],
                     help="the rig's scheduling (hil run --scheduling); several: side by side, alternated")
-    ap.add_argument("--idle-latency-us", type=idle_latency, nargs="+", default=[None], metavar="US",
-                    help="the CPUs' wake-up latency limit held for each run (hil run --idle-latency-us), or 'host' "
-                         "(the default: none held); several: side by side, alternated")
+    ap.add_argument("--idle-latency-us", type=latency_us, nargs="+", default=["auto"], metavar="US",
+                    help="the CPUs' wake-up latency limit for each run (hil run --idle-latency-us): auto (the "
+                         "default: 0 where permitted), host, or µs; several: side by side, alternated")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
@@ -312,7 +312,7 @@ def main() -> None:
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
                   f"  ({r['scheduling']})"
-                  f"{'' if idle is None else f'  (idle latency {idle} us)'}"
+                  f"  ({held_text(r['idle_latency_us'])})"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))

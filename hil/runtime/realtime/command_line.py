@@ -146,9 +146,10 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                         "SCHED_FIFO where the host permits it, else under the normal scheduler; fifo: SCHED_FIFO or "
                         "exit 1; normal: never")
     g.add_argument("--idle-latency-us", type=latency_us, default=None, metavar="US",
-                   help="with --realtime: hold the CPUs' wake-up latency limit at US microseconds for the run "
-                        "(/dev/cpu_dma_latency, as cyclictest does; needs root, else exit 1). 0 keeps idle CPUs "
-                        "polling instead of halting: wake-ups cost less, but the CPUs never rest (default: the host's)")
+                   help="with --realtime: the CPUs' wake-up latency limit for the run (/dev/cpu_dma_latency, as "
+                        "cyclictest holds it). auto (the default) holds 0 at pace 1 or slower where the host permits it "
+                        "(root), so idle CPUs poll instead of halting: wake-ups cost less, but the CPUs never rest; "
+                        "host leaves the host's; a number of microseconds holds that or exits 1")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")
@@ -189,7 +190,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
                         run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
                         source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto",
-                        idle_latency_us=args.idle_latency_us)
+                        idle_latency_us="auto" if args.idle_latency_us is None else args.idle_latency_us)
 
 
 def print_channels(channels) -> None:

@@ -56,7 +56,7 @@ from hil.scenario.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
-from hil.runtime.realtime.idle_latency import IdleLatencyHold
+from hil.runtime.realtime.idle_latency import IdleLatencySetting, check_setting, hold_for_run
 from hil.runtime.realtime.scheduling import SchedulingMode, choose_scheduling
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.engine_radio import EngineRadio
@@ -231,7 +231,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
                  keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto",
-                 idle_latency_us: int | None = None):
+                 idle_latency_us: IdleLatencySetting = "auto"):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -246,13 +246,15 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     radio as a node process on the emulated buses too, as before it moved into the servers (benchmarks compare).
     ``scheduling``: "auto" runs the serving thread and the nodes under SCHED_FIFO where the host permits it,
     "fifo" insists (SchedulingRefused otherwise), "normal" never does (hil/runtime/realtime/scheduling.py).
-    ``idle_latency_us``: hold the CPUs' wake-up latency limit at that many µs for the run (IdleLatencyRefused where
-    the host does not permit it; hil/runtime/realtime/idle_latency.py); None: leave it to the host."""
+    ``idle_latency_us``: "auto" holds the CPUs' wake-up latency limit at 0 µs for a run at pace <= 1 where the host
+    permits it (else the host's stays, said in the events), "host" leaves it, a number holds that many µs (IdleLatencyRefused
+    where the host does not permit it; hil/runtime/realtime/idle_latency.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
-    idle = None if idle_latency_us is None else IdleLatencyHold(idle_latency_us)  # a bad value: before anything runs
+    check_setting(idle_latency_us)  # a bad value: before anything runs
+    idle = None  # IdleLatencyHold, while the run holds the CPUs' wake-up latency limit
     socketcan = scenario.can.transport == "socketcan"
     fmt = log_format(can_log)
     db = load_train_db(scenario)  # the DBC fits the scenario, before any process starts
@@ -298,8 +300,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             serving = None if socketcan else engine.ServingThread()  # every bus on one thread: shared wake-ups
             sched = choose_scheduling(scheduling, None if serving is None else serving.native_id)
             events.append(Event(0.0, "INFO", "rig", f"scheduling: {sched.describe()}"))
-            if idle is not None:
-                events.append(Event(0.0, "INFO", "rig", idle.open().describe()))
+            idle, said = hold_for_run(idle_latency_us, pace)
+            events.append(Event(0.0, "INFO", "rig", said))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
@@ -395,7 +397,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     extra["realtime"]["bus_servers"] = server_stats
     if sched is not None:
         extra["realtime"]["scheduling"] = sched.as_dict()
-    extra["realtime"]["idle_latency_us"] = idle_latency_us
+    extra["realtime"]["idle_latency_us"] = None if idle is None else idle.limit_us  # None: the host's
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
