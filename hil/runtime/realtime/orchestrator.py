@@ -247,8 +247,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     ``scheduling``: "auto" runs the serving thread and the nodes under SCHED_FIFO where the host permits it,
     "fifo" insists (SchedulingRefused otherwise), "normal" never does (hil/runtime/realtime/scheduling.py).
     ``idle_latency_us``: "auto" holds the CPUs' wake-up latency limit at 0 µs for a run at pace <= 1 where the host
-    permits it (else the host's stays, said in the events), "host" leaves it, a number holds that many µs (IdleLatencyRefused
-    where the host does not permit it; hil/runtime/realtime/idle_latency.py)."""
+    permits it (else the host's stays, said in the events), "host" leaves it, a number holds that many µs
+    (IdleLatencyRefused where the host does not permit it; hil/runtime/realtime/idle_latency.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
