@@ -102,6 +102,12 @@ def spawn(args: list[str], env: dict) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, __file__, *args], stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
 
 
+def first_line(proc: subprocess.Popen) -> str:
+    """The first line a child started with stdout=PIPE prints (its "ready")."""
+    assert proc.stdout is not None, "started without stdout=PIPE"
+    return proc.stdout.readline()
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--duration", type=float, default=10.0)
@@ -134,14 +140,14 @@ def main() -> None:
                                "--bitrate", str(a.bitrate), *options,
                                "--stats-json", str(stats_file)],
                               stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
-    assert server.stdout.readline().startswith("ready"), "bus server did not start"
+    assert first_line(server).startswith("ready"), "bus server did not start"
     start = time.time() + 2.0
     common = ["--start", str(start), "--duration", str(a.duration), "--senders", str(a.senders),
               "--window", str(a.window)]
     receiver = spawn(["--role", "receiver", "--out", str(rx_file), *common], env)
     senders = [spawn(["--role", "sender", "--index", str(k), *common], env) for k in range(a.senders)]
     for proc in [receiver, *senders]:
-        assert proc.stdout.readline().startswith("ready"), "a node did not connect"
+        assert first_line(proc).startswith("ready"), "a node did not connect"
     time.sleep(max(0.0, start - time.time()))
     cpu0, wall0 = cpu_seconds(server.pid), time.monotonic()
     for proc in senders:
