@@ -64,14 +64,23 @@ def hold_for_run(setting: IdleLatencySetting, pace: float = 1.0) -> tuple["IdleL
         try:
             hold = IdleLatencyHold(AUTO_LIMIT_US).open()
         except IdleLatencyRefused as exc:
-            return None, f"CPU wake-up latency: the host's (auto: {exc})"
+            return None, f"CPU wake-up latency: the host's (auto could not hold {AUTO_LIMIT_US} µs: {exc.why})"
         return hold, f"{hold.describe()} (auto: idle CPUs poll; --idle-latency-us host leaves the host's)"
     hold = IdleLatencyHold(setting).open()
     return hold, hold.describe()
 
 
 class IdleLatencyRefused(RigDidNotStart):
-    """``--idle-latency-us`` on a host that does not let this user hold the limit."""
+    """``--idle-latency-us N`` on a host that does not let this user hold the limit; ``why`` names the file and the
+    OS's words (the message alone, so the exception pickles as any other)."""
+
+    why: str = ""
+
+    @classmethod
+    def of(cls, limit_us: int, why: str) -> "IdleLatencyRefused":
+        exc = cls(f"--idle-latency-us {limit_us}: {why}")
+        exc.why = why
+        return exc
 
 
 class IdleLatencyHold:
@@ -89,14 +98,13 @@ class IdleLatencyHold:
         try:
             fd = os.open(self.path, os.O_WRONLY | os.O_CLOEXEC)
         except OSError as exc:
-            raise IdleLatencyRefused(f"--idle-latency-us {self.limit_us}: cannot open {self.path} ({exc.strerror}); "
-                                     "it needs root (or write access to that file) on a Linux host") from None
+            raise IdleLatencyRefused.of(self.limit_us, f"cannot open {self.path} ({exc.strerror}); it needs root "
+                                        "(or write access to that file) on a Linux host") from None
         try:
             os.write(fd, self.limit_us.to_bytes(4, "little", signed=True))
         except OSError as exc:
             os.close(fd)
-            raise IdleLatencyRefused(f"--idle-latency-us {self.limit_us}: {self.path} refused it "
-                                     f"({exc.strerror})") from None
+            raise IdleLatencyRefused.of(self.limit_us, f"{self.path} refused it ({exc.strerror})") from None
         self._fd = fd
         return self
 
