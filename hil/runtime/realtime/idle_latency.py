@@ -48,8 +48,12 @@ def latency_us(text: str) -> IdleLatencySetting:
 
 def check_setting(setting: IdleLatencySetting) -> None:
     """ValueError naming ``idle_latency_us`` unless it is auto, host or a limit the kernel takes."""
-    if setting not in ("auto", "host"):
+    if setting in ("auto", "host"):
+        return
+    try:
         IdleLatencyHold(setting)  # type: ignore[arg-type]  # validates the number
+    except ValueError as exc:
+        raise ValueError(f"{exc}, or 'auto' or 'host'") from None
 
 
 def hold_for_run(setting: IdleLatencySetting, pace: float = 1.0) -> tuple["IdleLatencyHold | None", str]:
@@ -59,7 +63,7 @@ def hold_for_run(setting: IdleLatencySetting, pace: float = 1.0) -> tuple["IdleL
     if setting == "host":
         return None, "CPU wake-up latency: the host's (--idle-latency-us host)"
     if setting == "auto" and pace > 1.0:
-        return None, "CPU wake-up latency: the host's (auto, faster than real time: nodes wake about every ms)"
+        return None, "CPU wake-up latency: the host's (auto, faster than real time, where holding it measured worse)"
     if setting == "auto":
         try:
             hold = IdleLatencyHold(AUTO_LIMIT_US).open()
