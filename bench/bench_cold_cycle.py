@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import sys
 import time
 from collections.abc import Callable
@@ -36,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil.runtime.realtime.idle_latency import CPU_LATENCY_FILE, IdleLatencyHold  # noqa: E402
+from hil.runtime.realtime.idle_latency import CPU_LATENCY_FILE, IdleLatencyHold, may_hold  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 
@@ -118,7 +117,7 @@ def main() -> None:
         f"after a {GAP_S * 1e3:g} ms busy wait": lambda: busy_wait(GAP_S),
         f"L2 evicted ({2 * l2 >> 20} MiB touched)": lambda: touch(l2_buffer),
         f"all caches evicted ({2 * llc >> 20} MiB touched)": lambda: touch(llc_buffer)}
-    if not os.access(CPU_LATENCY_FILE, os.W_OK):
+    if not may_hold():
         print(f"(not permitted to hold {CPU_LATENCY_FILE}: the held mode is left out)")
         del modes[held]
     rigs = {name: TimedRig(sc, prepare) for name, prepare in modes.items()}

@@ -4,7 +4,6 @@ named where a number was asked and the host does not permit it, and never withou
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,14 +11,10 @@ from pathlib import Path
 import pytest
 
 from hil.runtime.realtime import idle_latency
-from hil.runtime.realtime.idle_latency import IdleLatencyHold, IdleLatencyRefused, current_limit_us, latency_us
+from hil.runtime.realtime.idle_latency import (IdleLatencyHold, IdleLatencyRefused, current_limit_us, latency_us,
+                                               may_hold)
 
-
-def _may_hold() -> bool:
-    return os.access(idle_latency.CPU_LATENCY_FILE, os.W_OK)
-
-
-needs_pm_qos = pytest.mark.skipif(not _may_hold(), reason="this host does not let us hold /dev/cpu_dma_latency")
+needs_pm_qos = pytest.mark.skipif(not may_hold(), reason="this host does not let us hold /dev/cpu_dma_latency")
 
 
 def test_the_limit_is_written_as_the_kernel_takes_it_and_let_go_on_close(tmp_path: Path) -> None:
@@ -88,7 +83,8 @@ def test_a_run_the_host_refuses_the_limit_fails_before_any_node_starts(tmp_path:
 @pytest.mark.parametrize("argv, message", [
     (["--idle-latency-us", "0"], "--idle-latency-us only applies with --realtime"),
     (["--idle-latency-us", "host"], "--idle-latency-us only applies with --realtime"),
-    (["--realtime", "--idle-latency-us", "-5"], "argument --idle-latency-us: -5 must be from 0 to 2147483647 (µs), auto or host"),
+    (["--realtime", "--idle-latency-us", "-5"],
+     "argument --idle-latency-us: -5 must be from 0 to 2147483647 (µs), auto or host"),
     (["--realtime", "--idle-latency-us", "low"],
      "argument --idle-latency-us: 'low' is not auto, host or a whole number of microseconds"),
 ])
@@ -134,7 +130,8 @@ def test_auto_where_the_host_refuses_runs_with_the_hosts_limit_and_names_why(tmp
     monkeypatch.setattr(idle_latency, "CPU_LATENCY_FILE", tmp_path / "no_pm_qos")
     held, _during, said = _run_seed000(tmp_path, monkeypatch, read_limit=False, idle_latency_us="auto")
     assert held is None
-    assert len(said) == 1 and said[0].startswith("CPU wake-up latency: the host's (auto could not hold 0 µs: cannot open")
+    assert len(said) == 1
+    assert said[0].startswith("CPU wake-up latency: the host's (auto could not hold 0 µs: cannot open")
     assert "no_pm_qos" in said[0]
 
 

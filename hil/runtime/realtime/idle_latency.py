@@ -128,6 +128,11 @@ class IdleLatencyHold:
         return f"CPU wake-up latency held at {self.limit_us} µs ({self.path})"
 
 
+def may_hold(path: Path | None = None) -> bool:
+    """Whether this user may write the limit's file (root, or write access to it)."""
+    return os.access(CPU_LATENCY_FILE if path is None else path, os.W_OK)
+
+
 def current_limit_us(path: Path | None = None) -> int:
     """The limit the kernel applies now (the smallest one held; 2000000000 when none is)."""
     fd = os.open(CPU_LATENCY_FILE if path is None else path, os.O_RDONLY | os.O_CLOEXEC)
