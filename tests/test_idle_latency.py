@@ -126,13 +126,17 @@ def test_host_leaves_the_hosts_limit(tmp_path: Path, monkeypatch) -> None:
     assert said == ["CPU wake-up latency: the host's (--idle-latency-us host)"]
 
 
-def test_auto_where_the_host_refuses_runs_with_the_hosts_limit_and_names_why(tmp_path: Path, monkeypatch) -> None:
+def test_auto_where_the_host_refuses_runs_with_the_hosts_limit_and_names_why(tmp_path: Path, monkeypatch,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """As for a user who is not root: the run goes on, and its events and the line it starts with say why."""
     monkeypatch.setattr(idle_latency, "CPU_LATENCY_FILE", tmp_path / "no_pm_qos")
-    held, _during, said = _run_seed000(tmp_path, monkeypatch, read_limit=False, idle_latency_us="auto")
+    held, _during, said = _run_seed000(tmp_path, monkeypatch, read_limit=False, idle_latency_us="auto", progress=True)
     assert held is None
     assert len(said) == 1
     assert said[0].startswith("CPU wake-up latency: the host's (auto could not hold 0 µs: cannot open")
     assert "no_pm_qos" in said[0]
+    started = [line for line in capsys.readouterr().err.splitlines() if "node processes, pace 1" in line]
+    assert len(started) == 1 and said[0] in started[0]
 
 
 @pytest.mark.parametrize("text, value", [("auto", "auto"), ("host", "host"), ("0", 0), ("2147483647", 2**31 - 1)])

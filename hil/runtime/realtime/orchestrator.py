@@ -332,7 +332,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
-                say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}" + (
+                say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}; {said}" + (
                     f"; waiting up to {scenario.ecu.join_timeout_s:g} s for external unit(s) "
                     f"{', '.join(scenario.ecu.external)}" if external else ""))
             _wait_ready(nodes, stop)
