@@ -216,15 +216,16 @@ def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_tr
     1), no process hosts units of two trains (``units_per_train``): their units share their deadlines, and with a
     tenth of the wall time per cycle the processes' parallelism matters more than sharing wake-ups.
 
-    Measured on 2 cores under SCHED_FIFO with the CPUs' idle latency held, alternated
-    (``bench/bench_realtime_scale.py --ecus N --per-process ...``): seed000's 12 units in one process cost
-    0.13-0.16 CPU-s per simulated second against 0.18-0.19 for one process per train, ECU p99 0.51-0.68 ms against
-    0.65-0.74; 32 and 48 ECUs (30 s) p99 0.28-0.38 ms in one process against 0.27-0.59 in two, at less CPU; 64 ECUs
-    (5 min) p99 0.48 (with 64 misses in a machine stall), 0.61, 0.66, 0.79, 0.99 and 1.38 ms in one process against
-    0.76 to 0.82 in two of 32 (four runs); 128 ECUs (30 s) 2.59 and 2.95 ms in one, 1.49 to 2.33 in two of 64, 2.30
-    and 2.47 in four of 32; but 96 ECUs (30 s) 1.85 and 1.13 in one against 2.02 and 1.72 in two. At pace 10 (``hil run seed000
-    --realtime --pace 10 --duration 300``, three pairs) one process missed more: 32-41 late plant publications of
-    30,000 against 23-35, ECU misses 35-159 against 1-52."""
+    Measured on 2 cores under SCHED_FIFO, alternated (``bench/bench_realtime_scale.py --ecus N --per-process ...``;
+    README, "The default process layout"). Before the CPUs' idle latency was held: seed000's 12 units in one
+    process cost 0.13-0.16 CPU-s per simulated second against 0.18-0.19 for one process per train, ECU p99
+    0.51-0.68 ms against 0.65-0.74. With it held: 32 and 48 ECUs (30 s) p99 0.28-0.38 ms in one process against
+    0.27-0.59 in two, at less CPU; 64 ECUs (5 min) p99 0.48 (with 64 misses in a machine stall), 0.61, 0.66, 0.79,
+    0.99 and 1.38 ms in one process against 0.76 to 0.82 in two of 32 (four runs); 128 ECUs (30 s) 2.59 and 2.95
+    ms in one, 1.49 to 2.33 in two of 64, 2.30 and 2.47 in four of 32; but 96 ECUs (30 s) 1.85 and 1.13 ms in one
+    against 2.02 and 1.72 in two. At pace 10 (``hil run seed000 --realtime --pace 10 --duration 300``, three
+    pairs) one process missed more: 32-41 late plant publications of 30,000 against 23-35, ECU misses 35-159
+    against 1-52."""
     cores = usable_cores() if cores is None else cores
     ecu_processes = max(1, cores - 1)
     if n_ecus > ONE_PROCESS_MAX_ECUS:
