@@ -140,8 +140,7 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: simulated seconds per wall second (default 1.0 = wall clock; 0.5 slower, 10 faster)")
     g.add_argument("--ecus-per-process", type=int, default=None, metavar="N",
                    help="with --realtime: host N ECUs per process (default: one ECU process per core left after "
-                        "the bus servers, plant and radio, above 48 ECUs at least two where there are two cores; "
-                        "faster than real time one train's units at most in each)")
+                        "the bus servers, plant and radio; faster than real time one train's units at most in each)")
     g.add_argument("--scheduling", choices=SCHEDULING_MODES, default=None,
                    help="with --realtime: auto (the default) runs the bus servers, plant and ECU processes under "
                         "SCHED_FIFO where the host permits it, else under the normal scheduler; fifo: SCHED_FIFO or "

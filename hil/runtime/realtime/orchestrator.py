@@ -12,7 +12,7 @@ real-time rig. Steps:
    on its bus to the next train's server itself, with no process or Python per frame.
 2. Node processes (same Python): the plant + wayside, the ECUs (``ecus_per_process``
    units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
-   leaves, above ``ONE_PROCESS_MAX_ECUS`` at least two, and faster than real time one train's units at most in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
+   leaves, and faster than real time one train's units at most in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
    node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
@@ -203,33 +203,24 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-ONE_PROCESS_MAX_ECUS = 48  # above this many ECUs they never all share one process (measured on 2 cores: README)
-
-
 def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_train: int | None = None,
                              pace: float = 1.0) -> int:
     """ECUs per process when the user does not say: one ECU process per core left after the bus servers (with
     the radio in them) and the plant take one, so the ECUs of a process share its wake-ups and no more Python
-    processes start than the cores can run. Above ONE_PROCESS_MAX_ECUS ECUs, at least two processes where there
-    are two cores: a process runs the cycles due together one after another, and with that many they outgrow the
-    stagger between them, where a second process runs them on the other core. Faster than real time (``pace`` >
-    1), no process hosts units of two trains (``units_per_train``): their units share their deadlines, and with a
-    tenth of the wall time per cycle the processes' parallelism matters more than sharing wake-ups.
+    processes start than the cores can run. Faster than real time (``pace`` > 1), no process hosts units of two
+    trains (``units_per_train``): their units share their deadlines, and with a tenth of the wall time per cycle
+    the processes' parallelism matters more than sharing wake-ups.
 
     Measured on 2 cores under SCHED_FIFO, alternated (``bench/bench_realtime_scale.py --ecus N --per-process ...``;
     README, "The default process layout"). Before the CPUs' idle latency was held: seed000's 12 units in one
     process cost 0.13-0.16 CPU-s per simulated second against 0.18-0.19 for one process per train, ECU p99
-    0.51-0.68 ms against 0.65-0.74. With it held: 32 and 48 ECUs (30 s) p99 0.28-0.38 ms in one process against
-    0.27-0.59 in two, at less CPU; 64 ECUs (5 min) p99 0.48 (with 64 misses in a machine stall), 0.61, 0.66, 0.79,
-    0.99 and 1.38 ms in one process against 0.76 to 0.82 in two of 32 (four runs); 128 ECUs (30 s) 2.59 and 2.95
-    ms in one, 1.49 to 2.33 in two of 64, 2.30 and 2.47 in four of 32; but 96 ECUs (30 s) 1.85 and 1.13 ms in one
-    against 2.02 and 1.72 in two. At pace 10 (``hil run seed000 --realtime --pace 10 --duration 300``, three
-    pairs) one process missed more: 32-41 late plant publications of 30,000 against 23-35, ECU misses 35-159
-    against 1-52."""
-    cores = usable_cores() if cores is None else cores
-    ecu_processes = max(1, cores - 1)
-    if n_ecus > ONE_PROCESS_MAX_ECUS:
-        ecu_processes = max(ecu_processes, min(cores, 2))
+    0.51-0.68 ms against 0.65-0.74. With it held, one process against two: 32 and 48 ECUs (30 s) p99 0.28-0.38 ms
+    against 0.27-0.59, at less CPU; 64 ECUs (5 min) 0.48 (with 64 misses in a machine stall) to 1.38 ms, median
+    0.79, in seven runs against 0.76 to 1.15, median 0.79, in five, at 0.32-0.37 CPU-s against 0.42-0.46; 96 ECUs
+    (30 s) 1.85 and 1.13 against 2.02 and 1.72; only 128 ECUs (30 s) did better in two (1.49 to 2.33 ms against
+    2.59 and 2.95). At pace 10 (``hil run seed000 --realtime --pace 10 --duration 300``, three pairs) one process
+    missed more: 32-41 late plant publications of 30,000 against 23-35, ECU misses 35-159 against 1-52."""
+    ecu_processes = max(1, (usable_cores() if cores is None else cores) - 1)
     per_process = max(1, math.ceil(n_ecus / ecu_processes))
     if pace <= 1.0 or units_per_train is None:
         return per_process
