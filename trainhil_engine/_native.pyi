@@ -73,6 +73,26 @@ class CommandDecoder:
     def decode(self, frame_id: int, data: bytes) -> tuple[int, float, int, int] | None:
         """(unit, force, mode, alive counter); None for a frame not in the table or one to be rejected."""
 
+class CommandInbox:
+    """One train bus's command inbox for a real-time plant: its TractionCmd frames checked (length, E2E CRC, a mode
+    in ``valid_modes``) and decoded on receipt, as ``Network.attach_commands`` does on delivery, and the
+    sensor-to-actuator latency closed by its AgentState frames (the arrival of the unit's last valid command minus
+    the publication of the Sensor sample the AgentState is numbered with). Fed by ``FrameLink.route_commands`` or
+    ``put``."""
+
+    ids: list[int]
+    def __init__(self, commands: Sequence[tuple[int, MessageCodec, int]], valid_modes: Sequence[int],
+                 states: Sequence[tuple[int, int]], units: int) -> None:
+        """``commands``: (frame_id, codec with signals (Mode, Force), unit); ``states``: (AgentState frame_id, unit);
+        every unit in 0..units-1 (IndexError otherwise)."""
+    def put(self, frame_id: int, data: bytes, t: float) -> bool:
+        """A frame received at ``t`` (simulated s); whether it was one of ``ids``."""
+    def published(self, t: float, samples: Sequence[tuple[int, int]]) -> None:
+        """The Sensor samples published at ``t``: (unit, alive counter) each."""
+    def take(self) -> tuple[list[tuple[int, float, int, float, int]], list[tuple[int, bytes, float]], list[tuple[float, float]]]:
+        """Since the last call, in arrival order: the valid commands (unit, force, mode, t, alive counter), the
+        refused frames (frame_id, data, t), and the latencies (command arrival t, latency s)."""
+
 class Mailbox:
     """An ECU's input mailboxes: delivery keeps the latest frame of each stream, ``refresh`` checks it once per cycle."""
 
@@ -189,7 +209,7 @@ class Network:
     def gateway_ids(self, bus: int) -> list[int]: ...
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
-           "receive_wire", "MessageCodec", "CommandDecoder", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
+           "receive_wire", "MessageCodec", "CommandDecoder", "CommandInbox", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
            "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
@@ -290,6 +310,8 @@ class FrameLink:
         """Hand over every frame that ended by read time ``t`` (epoch s), waiting up to ``timeout_s`` (wall) for the
         server's SYNC of it; whether it came."""
     def route(self, frame_id: int, mailbox: Mailbox) -> None: ...
+    def route_commands(self, inbox: CommandInbox) -> None:
+        """Deliver the frames of ``inbox.ids`` into ``inbox`` (an ID routed to mailboxes goes only to them)."""
     def set_packing(self, packing: Packing) -> None:
         """Pack each ``send`` batch into containers; unpack the containers received into their parts."""
     def pump(self) -> int: ...

@@ -3,7 +3,8 @@
 //! * `frame`: exact frame length from the actual bits (stuffing, CRC-15), durations from two bit rates;
 //! * `e2e`: CRC-8 SAE J1850 and the alive-counter check;
 //! * `codec`: the DBC message layouts compiled from cantools (saturate and count, never wrap);
-//! * `mailbox`: an ECU's input mailboxes, read once per cycle;
+//! * `mailbox`: an ECU's input mailboxes, read once per cycle; `command_inbox`: a real-time plant's commands and
+//!   sensor-to-actuator latency, taken on receipt;
 //! * `bus`: the CAN bus model (TX queues, arbitration, filters, statistics);
 //! * `errors`: CAN error confinement and the error model's state, the bus fault injectors' selections;
 //!   `wire`: a frame's bits and the bit-level receiver; `bus/error_path`: error frames and retransmission;
@@ -19,6 +20,7 @@
 
 pub mod bus;
 pub mod codec;
+pub mod command_inbox;
 pub mod e2e;
 pub mod errors;
 pub mod frame;

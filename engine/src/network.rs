@@ -297,7 +297,7 @@ impl Network {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::bus::Policy;
     use crate::frame::BitTiming;
@@ -306,7 +306,8 @@ mod tests {
         Ok(Draws::default())
     }
 
-    fn command_table() -> CommandTable {
+    /// TractionCmd_U01 (ID 0x80, signals Mode and Force) driving unit 3.
+    pub(crate) fn command_table() -> CommandTable {
         let layout = crate::codec::MessageLayout {
             name: "TractionCmd_U01".into(), frame_id: 0x80, dlc: 8, data_id: 0x10,
             signals: vec![
@@ -319,7 +320,7 @@ mod tests {
         table
     }
 
-    fn command_frame(table: &CommandTable, mode: f64, force: f64, counter: i64) -> Vec<u8> {
+    pub(crate) fn command_frame(table: &CommandTable, mode: f64, force: f64, counter: i64) -> Vec<u8> {
         let (mut sat, mut out) = ([0u64; 2], [0u8; frame::MAX_DATA]);
         let n = table.by_id[&0x80].1.encode(&[mode, force], counter, &mut sat, &mut out).unwrap();
         out[..n].to_vec()

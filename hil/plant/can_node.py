@@ -44,16 +44,22 @@ class PlantCanNode:
         Checked (length, CRC, mode) and decoded in one engine call, as the virtual network does on delivery."""
         checked = self._decoders[train].decode(frame_id, data)
         if checked is None:
-            self._reject(train, frame_id, data, t)
+            self.refuse(train, frame_id, data, t)
             return None
         u, force, mode, counter = checked
-        if not self.in_sequence(u, counter, t):
-            return None
-        self.plant.command(u, force, mode, t)
-        return u
+        return u if self.apply(u, force, mode, t, counter) else None
 
-    def _reject(self, train: int, frame_id: int, data: bytes, t: float) -> None:
-        """Count and log why a TractionCmd was refused: its length, its CRC or its Mode."""
+    def apply(self, u: int, force: float, mode: int, t: float, counter: int) -> bool:
+        """A TractionCmd already checked and decoded (here, or by the engine on receipt), received at t: applied to
+        the plant if it continues unit u's command stream. Whether it was applied."""
+        if not self.in_sequence(u, counter, t):
+            return False
+        self.plant.command(u, force, mode, t)
+        return True
+
+    def refuse(self, train: int, frame_id: int, data: bytes, t: float) -> None:
+        """Count and log why a TractionCmd was refused (here, or by the engine on receipt): its length, its CRC or its
+        Mode."""
         if frame_id not in self.cmd_unit[train]:
             raise KeyError(f"frame 0x{frame_id:X} is not a TractionCmd of train {train + 1}")
         codec, source = self.db.by_id[frame_id], f"bus{train + 1}/plant"

@@ -168,15 +168,13 @@ class VirtualRig:
 
     def _apply_commands(self) -> None:
         """The TractionCmd frames the engine delivered to the plant since the last step, in arrival order: checked
-        and decoded in the engine; the rejected ones go through the plant node, which logs why."""
+        and decoded in the engine; the plant node applies them, and logs why the rejected ones were."""
         commands, rejected = self.net.drain_commands()
-        if commands:
-            command, in_sequence = self.plant.command, self.plant_io.in_sequence
-            for u, force, mode, t, counter in commands:
-                if in_sequence(u, counter, t):
-                    command(u, force, mode, t)
+        apply = self.plant_io.apply
+        for command in commands:
+            apply(*command)
         for table, frame_id, data, t_ns in rejected:
-            self.plant_io.command(self._command_train[table], frame_id, data, t_ns * 1e-9)
+            self.plant_io.refuse(self._command_train[table], frame_id, data, t_ns * 1e-9)
 
     def _publish_sensors(self) -> None:
         per_train: list[list[tuple[int, bytes]]] = [[] for _ in self.buses]

@@ -1,7 +1,9 @@
 //! `FrameLink`: a node's connection to its bus server, its frames routed straight into ECU mailboxes.
 
 use super::*;
+use super::command_inbox::CommandInbox;
 use crate::bus::Payload;
+use crate::command_inbox::CommandInbox as CoreInbox;
 use crate::link::{Link, LinkError};
 use crate::protocol::{format_flags, FLAG_EXTENDED};
 
@@ -26,6 +28,8 @@ pub struct FrameLink {
     t0: f64,
     pace: f64,
     routes: std::collections::HashMap<u32, Vec<Arc<Mutex<core_mailbox::Mailbox>>>>,
+    /// A plant's command inbox by frame ID (`route_commands`).
+    inboxes: std::collections::HashMap<u32, Arc<Mutex<CoreInbox>>>,
     received: u64,
     /// Keep the frames that have no route for `take` (a node that handles its frames itself).
     keep: bool,
@@ -68,6 +72,9 @@ impl FrameLink {
                 mb.lock().unwrap().put(id, data, t);
             }
             self.received += 1;
+        } else if let Some(inbox) = self.inboxes.get(&id) {
+            inbox.lock().unwrap().put(id, data, t);
+            self.received += 1;
         } else if self.keep {
             self.kept.push((id, Payload::new(data), t));
             self.received += 1;
@@ -94,7 +101,7 @@ impl FrameLink {
             (false, None) => Link::new(fd),
             (false, Some(_)) => return Err(PyValueError::new_err("a bell is for a lazy link")),
         };
-        Ok(FrameLink { link, t0, pace, routes: Default::default(), received: 0, keep, kept: Vec::new(), packing: None,
+        Ok(FrameLink { link, t0, pace, routes: Default::default(), inboxes: Default::default(), received: 0, keep, kept: Vec::new(), packing: None,
                        lazy, acts_at: f64::NEG_INFINITY })
     }
 
@@ -158,6 +165,14 @@ impl FrameLink {
     /// Deliver frames of `frame_id` into `mailbox` (several mailboxes may take one ID).
     fn route(&mut self, frame_id: u32, mailbox: &Mailbox) {
         self.routes.entry(frame_id).or_default().push(mailbox.inner.clone());
+    }
+
+    /// Deliver the frames of `inbox`'s IDs into it (a plant's TractionCmd and AgentState frames).
+    fn route_commands(&mut self, inbox: &CommandInbox) {
+        let shared = inbox.inner.clone();
+        for id in shared.lock().unwrap().ids() {
+            self.inboxes.insert(id, shared.clone());
+        }
     }
 
     /// Read every record waiting on the socket; returns how many frames went into mailboxes.

@@ -38,6 +38,7 @@ impl From<FrameError> for EngineError {
 
 mod bus_events;
 mod codec;
+mod command_inbox;
 mod frames;
 mod link;
 mod mailbox;
@@ -46,6 +47,7 @@ mod radio_hub;
 mod server;
 
 use self::bus_events::{errors_summary, event_fields};
+use self::command_inbox::CommandInbox;
 use self::codec::{command_table, encode_outputs, CommandDecoder, MessageCodec, Output, Packing};
 use self::frames::*;
 use self::link::{wait_readable, FrameLink};
@@ -85,6 +87,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(filters_accept, m)?)?;
     m.add_class::<MessageCodec>()?;
     m.add_class::<CommandDecoder>()?;
+    m.add_class::<CommandInbox>()?;
     m.add_class::<Mailbox>()?;
     m.add_class::<Network>()?;
     m.add_class::<Packing>()?;
@@ -92,7 +95,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<ServingThread>()?;
     m.add_class::<RadioHub>()?;
     m.add_class::<FrameLink>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "CommandDecoder", "Mailbox", "Network", "Packing",
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "CommandDecoder", "CommandInbox", "Mailbox", "Network", "Packing",
                           "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"])?;
     Ok(())
 }

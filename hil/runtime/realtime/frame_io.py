@@ -3,7 +3,7 @@ SocketCAN. Both have one interface, so the node loops do not care which:
 
 * ``wait(sim_t, on_frame, stop, spin_s=0)``: receive until simulated time ``sim_t`` (sleeping; the last ``spin_s``
   wall seconds polled), handing every frame to ``on_frame(bus, frame_id, data, t_sim)`` or, for ECU mailboxes
-  routed with ``route``, straight into the mailbox;
+  routed with ``route`` and a plant's command inboxes routed with ``route_commands``, straight into them;
 * ``drain(on_frame)``: whatever waits now; ``wait_any(wall_s, on_frame)``: the first frames within ``wall_s``;
 * ``send(bus, frames, sender=0)``: queue ``[(frame_id, data)]`` on bus ``bus``; ``send_outputs(bus, outputs,
   sender=0)``: an ECU cycle's unencoded outputs ``[(codec, values, counter)]``, encoded and sent by the engine in
@@ -66,6 +66,10 @@ class EngineFrames:
     def route(self, bus: int, frame_id: int, mailbox: engine.Mailbox) -> None:
         """Frames of ``frame_id`` on ``bus`` go into ``mailbox`` in the engine (never to ``on_frame``)."""
         self.links[bus].route(frame_id, mailbox)
+
+    def route_commands(self, bus: int, inbox: engine.CommandInbox) -> None:
+        """Frames of ``inbox.ids`` on ``bus`` go into the plant's ``inbox`` in the engine (never to ``on_frame``)."""
+        self.links[bus].route_commands(inbox)
 
     def drain(self, on_frame: FrameHandler | None = None, synced: Collection[int] = ()) -> None:
         """Everything waiting on every bus; ``on_frame`` sees the frames in time order across the buses. The
@@ -177,11 +181,15 @@ class PythonCanFrames:
                  packing: engine.Packing | None = None) -> None:
         self.clock, self.buses, self.extended, self.fd, self.brs = clock, buses, extended, fd, brs
         self.packing = packing
-        self._routes: list[dict[int, list[engine.Mailbox]]] = [{} for _ in buses]
+        self._routes: list[dict[int, list[engine.Mailbox | engine.CommandInbox]]] = [{} for _ in buses]
         self._handler: FrameHandler | None = None
 
     def route(self, bus: int, frame_id: int, mailbox: engine.Mailbox) -> None:
         self._routes[bus].setdefault(frame_id, []).append(mailbox)
+
+    def route_commands(self, bus: int, inbox: engine.CommandInbox) -> None:
+        for frame_id in inbox.ids:
+            self._routes[bus].setdefault(frame_id, []).append(inbox)
 
     def read_every(self, first: float, period: float, buses: list[int] | None = None) -> None:
         """Nothing: python-can delivers every frame at its end."""

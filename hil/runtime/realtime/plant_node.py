@@ -15,9 +15,13 @@ arrival (the plant was late) is applied at once and counted (``late_commands``).
 If commands stop, the Plant's own fail-safe acts and logs it. The commands of external units (``ecu.external``)
 are watched (hil/runtime/realtime/external.py): the node prints ``joined <unit> <t>`` on stdout at the first valid one.
 
+No frame reaches Python one by one: each train bus's TractionCmd and AgentState frames go into an engine
+``CommandInbox`` on receipt, which checks and decodes the commands (length, E2E CRC, Mode: the virtual network's
+check on delivery) and closes the latencies; every kernel event first takes what came (``take_commands``).
+
 Sensor-to-actuator latency (``e2e``): the ECU sends its AgentState numbered with the Sensor sample k it used,
 in the same cycle as its TractionCmd (which has the lower ID, so it is on the bus first). When AgentState k of
-unit u arrives, the latency is the arrival time of u's last TractionCmd minus the publication time of Sensor
+unit u arrives, the latency is the arrival time of u's last valid TractionCmd minus the publication time of Sensor
 sample k: sensor sampled -> command at the plant (applied at the next plant step, within ``plant.step_s``).
 
 Every ``STREAM_EVERY_WALL_S`` of wall time the new signal rows are appended to ``DIR/signals.bin`` and let go (the
@@ -35,6 +39,8 @@ from pathlib import Path
 from typing import Callable
 
 
+import trainhil_engine as engine
+
 from ecu_sim.codec import TrainDb
 from hil.record.integrity import write_json_atomic
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
@@ -46,7 +52,7 @@ from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.streamed_series import StreamedSeries
 from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
-from hil.plant.can_node import PlantCanNode
+from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
 from hil.runtime.plant_step import plant_step
@@ -71,9 +77,9 @@ class PlantNode:
         L = self.layout
         self.state_unit = [{db.agent_state(L.train_unit(u)[1]).frame_id: u for u in self.train_units(i)}
                            for i in range(L.n_trains)]
-        # publication time by unit and sample counter; each unit's last command's arrival (lists: read per frame)
-        self.sensor_pub = [[-math.inf] * 16 for _ in range(L.n_units)]
-        self.last_cmd_t = [-math.inf] * L.n_units
+        # per train bus: its commands decoded and its sensor-to-actuator latencies closed in the engine, on receipt
+        self.inboxes = [engine.CommandInbox(self.io.command_table(i), VALID_MODES, list(self.state_unit[i].items()),
+                                            L.n_units) for i in range(L.n_trains)]
         self.out = out
         # sensor-to-actuator latencies (s), by the command arrival time they end at
         self.e2e = StreamedSeries(None if out is None else out / "timing_e2e.bin")
@@ -109,21 +115,26 @@ class PlantNode:
         return set(self.io.cmd_unit[i]) | set(self.state_unit[i])
 
     # ---- receiving
-    def on_frame(self, i: int, fid: int, data: bytes, t: float) -> None:
-        """A frame heard on train i's bus at simulated time t (a TractionCmd, or an AgentState for the latency)."""
-        if i >= len(self.state_unit):
-            return  # the wayside's connections hear nothing
-        if fid in self.io.cmd_unit[i]:
-            self.on_command(i, fid, data, t)
-            return
-        u = self.state_unit[i].get(fid)
-        if u is not None and (last := self.last_cmd_t[u]) >= (pub := self.sensor_pub[u][data[1] & 0xF]):
-            self.e2e.add(last, last - pub)
+    def take_commands(self) -> None:
+        """What the buses brought since the last event (every kernel event starts with it): the refused commands
+        logged, the valid ones applied in arrival order across the buses, and the latencies they closed kept."""
+        taken = [inbox.take() for inbox in self.inboxes]
+        for train, (_, refused, _) in enumerate(taken):
+            for frame_id, data, t in refused:
+                self.io.refuse(train, frame_id, data, t)
+        commands = [command for valid, _, _ in taken for command in valid]
+        if len(taken) > 1:
+            commands.sort(key=arrival)
+        for command in commands:
+            self.on_command(*command)
+        for _, _, latencies in taken:
+            for t, latency in latencies:
+                self.e2e.add(t, latency)
 
-    def on_command(self, i: int, fid: int, data: bytes, t: float) -> None:
-        """A TractionCmd heard at t: the plant integrated up to the first step starting at or after t (never past a
-        pending publication: its sample must be taken at its own time; only a lagging plant receives commands
-        stamped beyond it), then the command applied."""
+    def on_command(self, u: int, force: float, mode: int, t: float, counter: int) -> None:
+        """A valid TractionCmd of unit u that arrived at t: the plant integrated up to the first step starting at or
+        after t (never past a pending publication: its sample must be taken at its own time; only a lagging plant
+        receives commands stamped beyond it), then the command applied if it continues u's command stream."""
         step = self.sc.plant.step_s
         k = min(math.ceil(t / step - 1e-9), self.target)
         if k < self.tick:
@@ -131,19 +142,18 @@ class PlantNode:
             self.late_command_max_s = max(self.late_command_max_s, (self.tick - k) * step)
         elif k > self.tick:
             self.advance_to(k)
-        u = self.io.command(i, fid, data, t)
-        if u is not None:
-            self.last_cmd_t[u] = t
-            if self.external is not None and self.external.command(u, t):
-                print(f"{JOIN_LINE} {u} {t!r}", flush=True)  # the orchestrator waits for it (JoinWait)
+        if self.io.apply(u, force, mode, t, counter) and self.external is not None and self.external.command(u, t):
+            print(f"{JOIN_LINE} {u} {t!r}", flush=True)  # the orchestrator waits for it (JoinWait)
 
     # ---- sending
     def publish_sensors(self, t: float) -> None:
         per_train: list[list[tuple[int, bytes]]] = [[] for _ in self.buses]
+        samples: list[list[tuple[int, int]]] = [[] for _ in self.buses]  # (unit, sample counter): for the latency
         for train, u, frame_id, data in self.io.sensor_frames():
-            self.sensor_pub[u][data[1] & 0xF] = t
+            samples[train].append((u, data[1] & 0xF))
             per_train[train].append((frame_id, data))
         for train, frames in enumerate(per_train):
+            self.inboxes[train].published(t, samples[train])
             self.frames.send(train, frames)
 
     def publish_reference(self, t: float) -> None:
@@ -182,7 +192,9 @@ class PlantNode:
         """The node's paced kernel, with the first publication and the end of the run on it."""
         self.clock = clock
         self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can, self.packing, lazy=True)
-        self.kernel = PacedKernel(clock, self.frames, stop, self.on_frame, spin_s,
+        for train, inbox in enumerate(self.inboxes):
+            self.frames.route_commands(train, inbox)
+        self.kernel = PacedKernel(clock, self.frames, stop, None, spin_s,
                                   heartbeat=Heartbeat())  # silent when a step never returns: hung
         step = self.sc.plant.step_s
         self.publish_every = publication_steps(self.every)
@@ -202,6 +214,7 @@ class PlantNode:
         step, stats = self.sc.plant.step_s, self.stats
         assert stats is not None  # set by _schedule
         t = target * step
+        self.take_commands()
         self.advance_to(target)
         stats.add(max(self.clock.now() - t, 0.0), t)  # synced early, it publishes as at t
         if self.faults is not None:
@@ -225,6 +238,7 @@ class PlantNode:
 
     def finish(self, _=None) -> None:
         """The end of the run (kernel event): the commands that arrived until then applied, the last steps done."""
+        self.take_commands()
         self.advance_to(self.n_steps)
 
     def advance_to(self, k: int) -> None:
@@ -267,6 +281,11 @@ class SignalStream:
 
     def close(self) -> None:
         os.close(self.fd)
+
+
+def arrival(command: tuple[int, float, int, float, int]) -> float:
+    """A decoded command's arrival time (``CommandInbox.take``), to merge the buses' commands in arrival order."""
+    return command[3]
 
 
 def tick_periods(sc) -> dict[str, int]:
