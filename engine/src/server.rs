@@ -572,10 +572,10 @@ impl Server {
             }
         }
         let n_clients = self.clients.len();
+        let lazy_ready = self.lazy_readable();
         for (k, pfd) in fds.iter().enumerate().skip(FIRST_CLIENT_FD).take(n_clients) {
             let i = k - FIRST_CLIENT_FD;
-            // a lazy reader's frames carry their time: read what came since the poll too, so fewer are late
-            let readable = pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 || self.clients[i].lazy;
+            let readable = pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 || lazy_ready[i];
             if readable && !self.clients[i].closed {
                 self.receive(shared, i);
             }
@@ -588,6 +588,27 @@ impl Server {
         }
         self.take_radio();
         now
+    }
+
+    /// Which clients are lazy readers with something to read now. Their frames carry their time, so what came since
+    /// the turn's poll is read too (fewer are late); a quiet reader is not in that poll at all. One poll of their
+    /// sockets without waiting, rather than a read of each: most turns, most of them sent nothing.
+    fn lazy_readable(&self) -> Vec<bool> {
+        let mut ready = vec![false; self.clients.len()];
+        let lazy: Vec<usize> = (0..self.clients.len()).filter(|&i| self.clients[i].lazy && !self.clients[i].closed).collect();
+        if lazy.is_empty() {
+            return ready;
+        }
+        let mut pfds: Vec<libc::pollfd> = lazy.iter()
+            .map(|&i| libc::pollfd { fd: self.clients[i].stream.fd(), events: libc::POLLIN, revents: 0 })
+            .collect();
+        let now = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+        // SAFETY: pfds is a valid array of pollfd for the duration of the call.
+        let polled = unsafe { libc::ppoll(pfds.as_mut_ptr(), pfds.len() as libc::nfds_t, &now, std::ptr::null()) };
+        for (&i, pfd) in lazy.iter().zip(&pfds) {
+            ready[i] = polled < 0 || pfd.revents != 0; // the poll failed (interrupted): read each, as without it
+        }
+        ready
     }
 
     /// The last part of a turn, after the bus has run to `now`: the SYNCs it settles, write what is due, close
