@@ -60,3 +60,15 @@ def test_the_plant_applies_the_commands_of_all_its_buses_in_arrival_order_and_lo
     assert node.io.malformed_frames == 1
     assert [e.text for e in node.log.events if e.source == "bus3/plant"] == [
         f"{cmd.name}: {cmd.dlc - 1} bytes, DLC is {cmd.dlc}: frame ignored"]
+
+
+def test_python_can_receivers_put_a_plants_frames_into_its_inbox(node):
+    """On SocketCAN the frames come through python-can: ``route_commands`` puts them into the same inbox."""
+    from hil.runtime.realtime.frame_io import PythonCanFrames
+
+    frames = PythonCanFrames(None, [object()], extended=False)  # type: ignore[arg-type]
+    inbox = engine.CommandInbox(node.io.command_table(0), VALID_MODES, [], node.layout.n_units)
+    frames.route_commands(0, inbox)
+    cmd = node.db.traction_cmd(1)
+    frames._hand_over(0, cmd.frame_id, cmd.encode((NORMAL, -5_000.0), 2), 0.25)
+    assert inbox.take()[0] == [(node.layout.index(0, 1), pytest.approx(-5_000.0, abs=1.0), NORMAL, 0.25, 2)]
