@@ -1,12 +1,14 @@
-"""The plant's TractionCmd checks (hil/plant/can_node.py), shared by both runtimes: length, E2E CRC and Mode are
-checked and the command decoded in one engine call (``trainhil_engine.CommandDecoder``, the virtual network's
-check on delivery); a refused frame is counted and logged with its reason, and never reaches the plant."""
+"""The plant's TractionCmd checks, shared by both runtimes: length, E2E CRC and Mode are checked and the command
+decoded by the engine on receipt (``Network.attach_commands`` in virtual time, ``trainhil_engine.CommandInbox`` in
+real time, both from ``PlantCanNode.command_table``); the plant node applies a valid one (``apply``), and counts and
+logs a refused one with its reason (``refuse``), which never reaches the plant."""
 from __future__ import annotations
 
 import pytest
 import trainhil_engine as engine
 
 from ecu_sim.view import BrakeMode
+from hil.plant.can_node import VALID_MODES
 from hil.runtime.virtual import VirtualRig
 from hil.scenario import load_scenario
 
@@ -16,18 +18,29 @@ def rig() -> VirtualRig:
     return VirtualRig(load_scenario("seed000"))
 
 
+def _receive(rig: VirtualRig, train: int, frame_id: int, data: bytes, t: float) -> int | None:
+    """A frame on a train's bus through the engine's check and the plant node, as the real-time plant takes it: the
+    unit it drove, or None when refused or out of sequence."""
+    inbox = engine.CommandInbox(rig.plant_io.command_table(train), VALID_MODES, [], rig.layout.n_units)
+    assert inbox.put(frame_id, data, t)
+    valid, refused, _ = inbox.take()
+    for frame in refused:
+        rig.plant_io.refuse(train, *frame)
+    return next((u for u, *rest in valid if rig.plant_io.apply(u, *rest)), None)
+
+
 def test_a_good_command_drives_its_unit(rig):
     codec, u = rig.db.traction_cmd(1), rig.layout.index(1, 1)  # train 2, unit 2
-    assert rig.plant_io.command(1, codec.frame_id, codec.encode((int(BrakeMode.NORMAL), -20_000.0), 1), 0.5) == u
+    assert _receive(rig, 1, codec.frame_id, codec.encode((int(BrakeMode.NORMAL), -20_000.0), 1), 0.5) == u
     assert rig.plant._act.force_cmd[u] == pytest.approx(-20_000.0, abs=1.0)
-    assert rig.plant_io.command(1, codec.frame_id, codec.encode((int(BrakeMode.SERVICE), 0.0), 2), 0.51) == u
+    assert _receive(rig, 1, codec.frame_id, codec.encode((int(BrakeMode.SERVICE), 0.0), 2), 0.51) == u
 
 
 def _refused(rig: VirtualRig, data: bytes) -> list[str]:
     """Hand ``data`` as train 1's TractionCmd_U01; assert it is refused and unapplied; the plant's warnings."""
     codec = rig.db.traction_cmd(0)
     before = rig.plant._act.force_cmd.copy()
-    assert rig.plant_io.command(0, codec.frame_id, data, 0.5) is None
+    assert _receive(rig, 0, codec.frame_id, data, 0.5) is None
     assert (rig.plant._act.force_cmd == before).all()
     return [e.text for e in rig.log.events if e.source == "bus1/plant"]
 
@@ -58,4 +71,4 @@ def test_a_crc_valid_command_with_an_unknown_mode_is_refused(rig):
 def test_a_frame_that_is_not_a_command_of_the_train_is_a_programming_error(rig):
     codec = rig.db.agent_state(0)
     with pytest.raises(KeyError, match="not a TractionCmd of train 1"):
-        rig.plant_io.command(0, codec.frame_id, codec.encode((0.0, 0.0), 1), 0.5)
+        rig.plant_io.refuse(0, codec.frame_id, codec.encode((0.0, 0.0), 1), 0.5)

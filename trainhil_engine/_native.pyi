@@ -64,15 +64,6 @@ class MessageCodec:
     def index(self, signal: str) -> int: ...
     def reset_saturations(self) -> None: ...
 
-class CommandDecoder:
-    """The plant's TractionCmd check (length, E2E CRC, a mode in ``valid_modes``) and decoding in one call, as
-    ``Network.attach_commands`` does on delivery: for a plant that receives its frames itself (real time)."""
-
-    def __init__(self, commands: Sequence[tuple[int, MessageCodec, int]], valid_modes: Sequence[int]) -> None:
-        """``commands``: (frame_id, codec with the signals (Mode, Force), unit index)."""
-    def decode(self, frame_id: int, data: bytes) -> tuple[int, float, int, int] | None:
-        """(unit, force, mode, alive counter); None for a frame not in the table or one to be rejected."""
-
 class CommandInbox:
     """One train bus's command inbox for a real-time plant: its TractionCmd frames checked (length, E2E CRC, a mode
     in ``valid_modes``) and decoded on receipt, as ``Network.attach_commands`` does on delivery, and the
@@ -209,7 +200,7 @@ class Network:
     def gateway_ids(self, bus: int) -> list[int]: ...
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
-           "receive_wire", "MessageCodec", "CommandDecoder", "CommandInbox", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
+           "receive_wire", "MessageCodec", "CommandInbox", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
            "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:

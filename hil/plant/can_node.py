@@ -1,8 +1,10 @@
 """The plant's and the wayside's side of the train buses, shared by the virtual and the real-time runtime.
 
-Sensor frames out (one per unit, numbered by sample), Reference/ReferenceAux frames out, TractionCmd
-frames in (CRC, Mode and the stream's alive-counter sequence checked, then applied to the plant as a zero-order hold). It has no transport:
-callers send the frames it returns and hand it the frames they receive, as the ECU runtime does.
+Sensor frames out (one per unit, numbered by sample), Reference/ReferenceAux frames out, TractionCmd frames in: the
+engine checks (length, CRC, Mode) and decodes them on receipt (``Network.attach_commands`` in virtual time, a
+``CommandInbox`` in real time, both with ``command_table``); here each valid one has its stream's alive-counter
+sequence checked and is applied to the plant as a zero-order hold (``apply``), and each refused one is counted and
+logged (``refuse``). It has no transport: callers send the frames it returns.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ VALID_MODES = sorted(int(m) for m in BrakeMode)  # a TractionCmd's Mode must be 
 
 
 class PlantCanNode:
-    """Encodes what the plant and the wayside publish; decodes and applies the commands they receive."""
+    """Encodes what the plant and the wayside publish; applies the commands they receive (decoded by the engine)."""
 
     def __init__(self, db: TrainDb, layout: TrainLayout, plant: Plant, reference: ReferenceProfile, log: RunLog) -> None:
         self.db, self.layout, self.plant, self.reference, self.log = db, layout, plant, reference, log
@@ -33,24 +35,13 @@ class PlantCanNode:
         self.e2e_errors = 0
         self.malformed_frames = 0  # TractionCmd frames of the wrong length
         self.streams = CommandStreams(layout.n_units)  # each unit's command stream in sequence (hil/plant/command_streams.py)
-        self._decoders = [engine.CommandDecoder(self.command_table(i), VALID_MODES) for i in range(layout.n_trains)]
 
     def command_table(self, train: int) -> list[tuple[int, engine.MessageCodec, int]]:
         """(frame id, codec, unit) of a train's TractionCmd frames: what the engine checks and decodes."""
         return [(fid, self.db.by_id[fid], u) for fid, u in self.cmd_unit[train].items()]
 
-    def command(self, train: int, frame_id: int, data: bytes, t: float) -> int | None:
-        """Apply a TractionCmd received on a train's bus at time t; the unit it drove, or None if rejected (logged).
-        Checked (length, CRC, mode) and decoded in one engine call, as the virtual network does on delivery."""
-        checked = self._decoders[train].decode(frame_id, data)
-        if checked is None:
-            self.refuse(train, frame_id, data, t)
-            return None
-        u, force, mode, counter = checked
-        return u if self.apply(u, force, mode, t, counter) else None
-
     def apply(self, u: int, force: float, mode: int, t: float, counter: int) -> bool:
-        """A TractionCmd already checked and decoded (here, or by the engine on receipt), received at t: applied to
+        """A TractionCmd the engine checked and decoded on receipt, received at t: applied to
         the plant if it continues unit u's command stream. Whether it was applied."""
         if not self.in_sequence(u, counter, t):
             return False
@@ -58,8 +49,7 @@ class PlantCanNode:
         return True
 
     def refuse(self, train: int, frame_id: int, data: bytes, t: float) -> None:
-        """Count and log why a TractionCmd was refused (here, or by the engine on receipt): its length, its CRC or its
-        Mode."""
+        """Count and log why the engine refused a TractionCmd on receipt: its length, its CRC or its Mode."""
         if frame_id not in self.cmd_unit[train]:
             raise KeyError(f"frame 0x{frame_id:X} is not a TractionCmd of train {train + 1}")
         codec, source = self.db.by_id[frame_id], f"bus{train + 1}/plant"

@@ -207,23 +207,3 @@ pub(super) fn command_table(commands: Vec<(u32, PyRef<'_, MessageCodec>, usize)>
     }
     Ok(table)
 }
-
-/// The plant's check of a TractionCmd (length, E2E CRC, a mode in `valid_modes`) and its decoding in one call:
-/// what `Network.attach_commands` does on delivery, for a plant that receives its frames itself (real time).
-#[pyclass(module = "trainhil_engine._native", frozen)]
-pub struct CommandDecoder {
-    table: CommandTable,
-}
-
-#[pymethods]
-impl CommandDecoder {
-    #[new]
-    fn new(commands: Vec<(u32, PyRef<'_, MessageCodec>, usize)>, valid_modes: Vec<i64>) -> PyResult<Self> {
-        Ok(CommandDecoder { table: command_table(commands, valid_modes)? })
-    }
-
-    /// (unit, force, mode, alive counter), or None for a frame not of the table or to be rejected.
-    fn decode(&self, frame_id: u32, data: &[u8]) -> Option<(usize, f64, i64, u8)> {
-        self.table.check(frame_id, data, &mut Vec::with_capacity(2))
-    }
-}

@@ -48,7 +48,7 @@ mod server;
 
 use self::bus_events::{errors_summary, event_fields};
 use self::command_inbox::CommandInbox;
-use self::codec::{command_table, encode_outputs, CommandDecoder, MessageCodec, Output, Packing};
+use self::codec::{command_table, encode_outputs, MessageCodec, Output, Packing};
 use self::frames::*;
 use self::link::{wait_readable, FrameLink};
 use self::mailbox::Mailbox;
@@ -86,7 +86,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(frame_error, m)?)?;
     m.add_function(wrap_pyfunction!(filters_accept, m)?)?;
     m.add_class::<MessageCodec>()?;
-    m.add_class::<CommandDecoder>()?;
     m.add_class::<CommandInbox>()?;
     m.add_class::<Mailbox>()?;
     m.add_class::<Network>()?;
@@ -95,7 +94,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<ServingThread>()?;
     m.add_class::<RadioHub>()?;
     m.add_class::<FrameLink>()?;
-    m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "CommandDecoder", "CommandInbox", "Mailbox", "Network", "Packing",
+    m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "CommandInbox", "Mailbox", "Network", "Packing",
                           "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"])?;
     Ok(())
 }
