@@ -7,6 +7,9 @@ tests run scenarios through both rigs and compare frames, signals, events and co
 """
 from __future__ import annotations
 
+import trainhil_engine as engine
+
+from hil.plant.can_node import VALID_MODES
 from hil.runtime.virtual_faults import VirtualFaults
 from hil.radio.gateway import RadioGateway, build_gateway
 from hil.record.runlog import BusLog
@@ -33,10 +36,17 @@ class PythonNetworkRig(VirtualRig):
         return PythonNetworkFaults(self)
 
     def _attach_plant(self, i: int) -> CanNode:
-        command = self.plant_io.command
+        """The plant applies each TractionCmd at its end (the engine's check and decoding, then the plant node)."""
+        io = self.plant_io
+        inbox = engine.CommandInbox(io.command_table(i), VALID_MODES, [], self.layout.n_units)
 
         def on_rx(frame_id: int, data: bytes, t_ns: int) -> None:
-            command(i, frame_id, data, t_ns * 1e-9)
+            inbox.put(frame_id, data, t_ns * 1e-9)
+            valid, refused, _ = inbox.take()
+            for command in valid:
+                io.apply(*command)
+            for frame in refused:
+                io.refuse(i, *frame)
 
         return self.buses[i].attach("Plant", on_rx, set(self.plant_io.cmd_unit[i]))
 
