@@ -85,37 +85,58 @@ def test_a_read_time_nobody_foresaw_is_asked_for_once(server):
         reader_bus.shutdown()
 
 
-class FakeLink:
-    """A lazy FrameLink whose server syncs every read asked for at once; it counts the reads asked for."""
-
-    def __init__(self) -> None:
-        self.asked: list[float] = []
-        self.synced = float("-inf")
-        self.fd = -1
-
-    def read_every(self, first: float, period: float) -> None:
-        self.asked.append(first)
-
-    def sync_to(self, t: float, timeout_s: float) -> bool:
-        if t in self.asked:
-            self.synced = max(self.synced, t)
-        return self.synced >= t
-
-
-def test_a_node_on_several_buses_asks_each_bus_once_for_a_read_several_events_share():
-    """Units of two trains due at one unforeseen instant: the first event asks both buses and waits for both SYNCs,
-    the second finds them synced and asks nothing."""
+def test_a_node_on_several_buses_waits_for_each_buss_sync_and_a_second_event_there_waits_for_nothing(rt):
+    """Units of two trains due at one instant nobody foresaw, in one ECU host: the first event asks both buses
+    (``LinkGroup.begin_wait``) and sleeps until both SYNCs came; then each bus's frame that ended by that instant is
+    handed over with its bus; a second event at the same instant finds both synced and waits for nothing."""
     from hil.runtime.realtime.frame_io import EngineFrames
     from hil.runtime.realtime.pacing import SimClock
 
-    frames = EngineFrames.__new__(EngineFrames)  # the engine links replaced by fakes
-    frames.clock, frames.lazy, frames._schedules = SimClock(time.time(), 1.0), True, []
-    frames.links = [FakeLink(), FakeLink()]
-    sim_t = frames.clock.now()
-    for _ in range(2):
-        frames._wait_synced(sim_t, stop=False)
-    assert [len(link.asked) for link in frames.links] == [1, 1]
-    assert all(link.synced == frames._epoch(sim_t) for link in frames.links)
+    with NativeBusServer("lz", "bus1", BITRATE, log=BusLog("bus1", BITRATE)), \
+            NativeBusServer("lz", "bus2", BITRATE, log=BusLog("bus2", BITRATE)):
+        senders = [TrainhilBus(f"lz/bus{i}", node_name=f"S{i}") for i in (1, 2)]
+        readers = [TrainhilBus(f"lz/bus{i}", node_name=f"R{i}", lazy_reader=True) for i in (1, 2)]
+        frames = EngineFrames(SimClock(time.time(), 1.0), readers, extended=False, lazy=True)
+        try:
+            for i, sender in enumerate(senders):
+                sender.send(can.Message(arbitration_id=0x100 + i, data=bytes(8), is_extended_id=False))
+            sim_t = frames.clock.now() + 0.01  # both frames end by then (about 1 ms each)
+            got: list[tuple[int, int, float]] = []
+            frames.wait(sim_t, lambda bus, fid, data, t: got.append((bus, fid, t)), stop=False)
+            t = frames.clock.t0 + sim_t
+            assert [link.synced for link in frames.links] == [pytest.approx(t, abs=2e-6)] * 2
+            assert [(bus, fid) for bus, fid, _ in got] == [(0, 0x100), (1, 0x101)]
+            assert all(stamp <= sim_t for _, _, stamp in got)
+            t_second = time.perf_counter()
+            assert frames.group.begin_wait(sim_t) == []  # synced already: nothing asked, nothing to wait for
+            assert frames.group.finish(sim_t) == []
+            assert time.perf_counter() - t_second < 0.005
+        finally:
+            for b in senders + readers:
+                b.shutdown()
+
+
+def test_a_wait_at_a_read_time_one_bus_foresaw_waits_for_that_bus_only(rt):
+    """Read times given on bus 1 only (a unit of train 1 in a host of two trains): a wait at one of them waits for
+    bus 1's SYNC and does not ask bus 2, which gives nothing then."""
+    from hil.runtime.realtime.frame_io import EngineFrames
+    from hil.runtime.realtime.pacing import SimClock
+
+    with NativeBusServer("lz", "bus1", BITRATE, log=BusLog("bus1", BITRATE)), \
+            NativeBusServer("lz", "bus2", BITRATE, log=BusLog("bus2", BITRATE)):
+        readers = [TrainhilBus(f"lz/bus{i}", node_name=f"R{i}", lazy_reader=True) for i in (1, 2)]
+        frames = EngineFrames(SimClock(time.time(), 1.0), readers, extended=False, lazy=True)
+        try:
+            first = frames.clock.now() + 0.02
+            frames.read_every(first, PERIOD_S, [0])
+            assert frames.group.begin_wait(first - 0.005) == [0, 1]  # not a read time: both asked
+            frames.group.finish(first - 0.005)
+            frames.wait(first + PERIOD_S, None, stop=False)
+            assert frames.links[0].synced == pytest.approx(frames.clock.t0 + first + PERIOD_S, abs=2e-6)
+            assert frames.links[1].synced < frames.clock.t0 + first  # never asked for that read time
+        finally:
+            for b in readers:
+                b.shutdown()
 
 
 def quiet_link(name: str) -> tuple[TrainhilBus, engine.FrameLink]:

@@ -201,7 +201,7 @@ class Network:
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
            "receive_wire", "MessageCodec", "CommandInbox", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
-           "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"]
+           "RadioHub", "FrameLink", "LinkGroup", "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
     """Sleep until one of ``fds`` is readable or ``timeout_s`` (wall) passed, the GIL released (no fds: a sleep)."""
@@ -317,3 +317,19 @@ class FrameLink:
     def send_encoded(self, outputs: Sequence[tuple[MessageCodec, Sequence[float], int]], extended: bool = False,
                      fd: bool = False, brs: bool = True, sender: int = 0) -> None:
         """One ECU cycle's outputs (message, values, alive counter), encoded and sent as ``send`` does, in one call."""
+
+
+class LinkGroup:
+    """A lazy reader's links, one per bus: its wait for a read time on all of them in a few calls."""
+
+    def __init__(self, links: Sequence[FrameLink]) -> None: ...
+    def read_every(self, bus: int, first: float, period: float) -> None:
+        """Read times ``first + k * period`` (simulated s) on ``bus``, told to its server (0: a single read)."""
+    def begin_wait(self, sim_t: float) -> list[int]:
+        """Start waiting for read time ``sim_t`` (simulated s) on the buses that have it among their read times, or,
+        at an instant none foresaw, on every bus not yet synced to it, asked once. The buses still without a SYNC."""
+    def wait_more(self, sim_t: float, timeout_s: float) -> list[int]:
+        """Sleep up to ``timeout_s`` (wall) for a bus still waited for, take what came; the buses still without a SYNC."""
+    def finish(self, sim_t: float) -> list[tuple[int, list[tuple[int, bytes, float]]]]:
+        """Every link acts at ``sim_t``; the frames each kept, read off its socket first unless it was just synced:
+        [(bus, [(frame_id, data, t_sim)])], only buses with some."""

@@ -26,7 +26,7 @@ pub(super) fn wait_readable(py: Python<'_>, fds: Vec<i32>, timeout_s: f64) -> bo
 pub struct FrameLink {
     link: Link,
     t0: f64,
-    pace: f64,
+    pub(super) pace: f64,
     routes: std::collections::HashMap<u32, Vec<Arc<Mutex<core_mailbox::Mailbox>>>>,
     /// A plant's command inbox by frame ID (`route_commands`).
     inboxes: std::collections::HashMap<u32, Arc<Mutex<CoreInbox>>>,
@@ -64,6 +64,39 @@ impl FrameLink {
             Some(parts) => parts.for_each(|(part, bytes)| self.hand_over_one(part, bytes, t)),
             None => self.hand_over_one(id, data, t),
         }
+    }
+
+    /// Frames read off the socket (id, epoch stamp, data), handed over in order.
+    fn hand_over_all(&mut self, frames: Vec<(u32, f64, Payload)>) {
+        for (id, stamp, data) in frames {
+            self.hand_over(id, data.as_slice(), stamp);
+        }
+    }
+
+    /// `sync_to` without waiting: the SYNC of read time `t` (epoch s) is already here or not. Nothing blocks, so the
+    /// interpreter lock is kept.
+    pub(super) fn sync_now(&mut self, t: f64) -> PyResult<bool> {
+        let mut frames = Vec::new();
+        let result = self.link.wait_synced(t, 0.0, |id, _, stamp, data| frames.push((id, stamp, Payload::new(data))));
+        self.hand_over_all(frames);
+        result.map_err(link_err)
+    }
+
+    /// The epoch second of simulated time `sim_t` (this link's clock).
+    pub(super) fn epoch(&self, sim_t: f64) -> f64 {
+        self.t0 + sim_t / self.pace
+    }
+
+    /// The kept frames since the last take, as Python tuples (frame_id, data, t_sim); `pump`: read the socket first.
+    pub(super) fn take_kept<'py>(&mut self, py: Python<'py>, pump: bool) -> PyResult<Bound<'py, PyList>> {
+        if pump {
+            self.pump()?;
+        }
+        let kept = std::mem::take(&mut self.kept);
+        let items: Vec<Bound<'py, PyTuple>> = kept.iter()
+            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        PyList::new(py, items)
     }
 
     fn hand_over_one(&mut self, id: u32, data: &[u8], t: f64) {
@@ -106,7 +139,7 @@ impl FrameLink {
     }
 
     /// A lazy link's read times: `first` (epoch s), then every `period` s (0: once).
-    fn read_every(&self, first: f64, period: f64) -> PyResult<()> {
+    pub(super) fn read_every(&self, first: f64, period: f64) -> PyResult<()> {
         if !self.lazy {
             return Err(PyValueError::new_err("read_every is for a lazy link"));
         }
@@ -115,19 +148,20 @@ impl FrameLink {
 
     /// The node acts at read time `t` (epoch s), synced to it perhaps before it comes: the frames it sends from
     /// now on carry `t` while that is still ahead (the server queues them then), else the instant they are sent.
-    fn act_at(&mut self, t: f64) {
+    pub(super) fn act_at(&mut self, t: f64) {
         self.acts_at = t;
     }
 
     /// Hand over every frame that ended by read time `t` (epoch s): wait up to `timeout_s` (wall, the interpreter
     /// lock released) for the server's SYNC of it. Whether it came; frames that came before are handed over anyway.
     fn sync_to(&mut self, py: Python<'_>, t: f64, timeout_s: f64) -> PyResult<bool> {
+        if timeout_s <= 0.0 {
+            return self.sync_now(t);
+        }
         let mut frames = Vec::new();
         let link = &mut self.link;
         let result = py.allow_threads(|| link.wait_synced(t, timeout_s, |id, _, stamp, data| frames.push((id, stamp, Payload::new(data)))));
-        for (id, stamp, data) in frames {
-            self.hand_over(id, data.as_slice(), stamp);
-        }
+        self.hand_over_all(frames);
         result.map_err(link_err)
     }
 
@@ -144,7 +178,7 @@ impl FrameLink {
 
     /// The socket's file descriptor (for `wait_readable`).
     #[getter]
-    fn fd(&self) -> i32 {
+    pub(super) fn fd(&self) -> i32 {
         self.link.fd()
     }
 
@@ -152,14 +186,7 @@ impl FrameLink {
     /// the socket first (a lazy link just synced has read what its read time needs: no system call then).
     #[pyo3(signature = (pump = true))]
     fn take<'py>(&mut self, py: Python<'py>, pump: bool) -> PyResult<Bound<'py, PyList>> {
-        if pump {
-            self.pump()?;
-        }
-        let kept = std::mem::take(&mut self.kept);
-        let items: Vec<Bound<'py, PyTuple>> = kept.iter()
-            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
-            .collect::<PyResult<_>>()?;
-        PyList::new(py, items)
+        self.take_kept(py, pump)
     }
 
     /// Deliver frames of `frame_id` into `mailbox` (several mailboxes may take one ID).
@@ -180,9 +207,7 @@ impl FrameLink {
         let before = self.received;
         let mut frames = Vec::new();
         let result = self.link.pump(|id, _, stamp, data| frames.push((id, stamp, Payload::new(data))));
-        for (id, stamp, data) in frames {
-            self.hand_over(id, data.as_slice(), stamp);
-        }
+        self.hand_over_all(frames);
         result.map_err(link_err)?;
         Ok(self.received - before)
     }

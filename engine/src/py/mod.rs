@@ -41,6 +41,7 @@ mod codec;
 mod command_inbox;
 mod frames;
 mod link;
+mod link_group;
 mod mailbox;
 mod network;
 mod radio_hub;
@@ -51,6 +52,7 @@ use self::command_inbox::CommandInbox;
 use self::codec::{command_table, encode_outputs, MessageCodec, Output, Packing};
 use self::frames::*;
 use self::link::{wait_readable, FrameLink};
+use self::link_group::LinkGroup;
 use self::mailbox::Mailbox;
 use self::network::{add_bus_fault, check_window, policy, Network};
 use self::radio_hub::RadioHub;
@@ -94,8 +96,9 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<ServingThread>()?;
     m.add_class::<RadioHub>()?;
     m.add_class::<FrameLink>()?;
+    m.add_class::<LinkGroup>()?;
     m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "CommandInbox", "Mailbox", "Network", "Packing",
-                          "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "wait_readable", "frame_error", "filters_accept"])?;
+                          "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "LinkGroup", "wait_readable", "frame_error", "filters_accept"])?;
     Ok(())
 }
 

@@ -27,9 +27,7 @@ frame. Frame times are the bus's end-of-transmission stamps in simulated seconds
 """
 from __future__ import annotations
 
-import heapq
 import time
-from collections.abc import Collection
 from typing import Callable
 
 import can
@@ -57,7 +55,7 @@ class EngineFrames:
         self.clock, self.extended, self.fd, self.brs, self.lazy = clock, extended, fd, brs, lazy
         self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True, lazy=lazy, bell=_bell(bus))
                       for bus in buses]
-        self._schedules: list[tuple[int, int, int]] = []  # a lazy reader's (next read, period, bus), µs: a heap
+        self.group = engine.LinkGroup(self.links)  # a lazy reader's waits, on every bus at once
         if packing is not None:
             for link in self.links:
                 link.set_packing(packing)
@@ -71,21 +69,11 @@ class EngineFrames:
         """Frames of ``inbox.ids`` on ``bus`` go into the plant's ``inbox`` in the engine (never to ``on_frame``)."""
         self.links[bus].route_commands(inbox)
 
-    def drain(self, on_frame: FrameHandler | None = None, synced: Collection[int] = ()) -> None:
-        """Everything waiting on every bus; ``on_frame`` sees the frames in time order across the buses. The
-        ``synced`` buses were just synced to a read time: what is on their sockets is for later reads (not read)."""
-        taken = [(i, link.take(i not in synced)) for i, link in enumerate(self.links)]
-        if on_frame is None:
-            return
-        batches = [(i, frames) for i, frames in taken if frames]
-        if len(batches) == 1:
-            i, frames = batches[0]
-            for frame_id, data, t in frames:
-                on_frame(i, frame_id, data, t)
-        elif batches:
-            merged = sorted(((t, i, k, fid, data) for i, frames in batches for k, (fid, data, t) in enumerate(frames)))
-            for t, i, _, frame_id, data in merged:
-                on_frame(i, frame_id, data, t)
+    def drain(self, on_frame: FrameHandler | None = None) -> None:
+        """Everything waiting on every bus; ``on_frame`` sees the frames in time order across the buses."""
+        taken = [(i, link.take()) for i, link in enumerate(self.links)]
+        if on_frame is not None:
+            _hand_over(on_frame, [(i, frames) for i, frames in taken if frames])
 
     def wait_any(self, wall_s: float, on_frame: FrameHandler | None) -> None:
         """Sleep until a frame arrives or ``wall_s`` passed, then hand over what waits."""
@@ -97,26 +85,7 @@ class EngineFrames:
         nothing for an eager one. A wait at such a time waits for those buses' SYNCs only."""
         if self.lazy:
             for i in range(len(self.links)) if buses is None else buses:
-                self.links[i].read_every(self._epoch(first), period / self.clock.pace)
-                if period > 0:  # a single read is asked for at its wait
-                    heapq.heappush(self._schedules, (round(first * 1e6), round(period * 1e6), i))
-
-    def _epoch(self, sim_t: float) -> float:
-        return self.clock.t0 + sim_t / self.clock.pace
-
-    def _foreseen(self, sim_t: float) -> set[int]:
-        """The buses that have ``sim_t`` among the read times given to their servers (to within 1 µs); the
-        schedules move on past it (a heap of (next read, period, bus) in µs: one look per wait)."""
-        now_us, due, heap = round(sim_t * 1e6), set(), self._schedules
-        while heap and heap[0][0] <= now_us + 1:
-            next_us, period_us, bus = heapq.heappop(heap)
-            if next_us < now_us - 1:  # read times passed without a wait (skipped cycles): catch up
-                next_us += -(-(now_us - 1 - next_us) // period_us) * period_us
-            if next_us <= now_us + 1:
-                due.add(bus)
-                next_us += period_us
-            heapq.heappush(heap, (next_us, period_us, bus))
-        return due
+                self.group.read_every(i, first, period)
 
     def wait(self, sim_t: float, on_frame: FrameHandler | None, stop, spin_s: float = 0.0) -> None:
         """Sleep to ``sim_t`` (the last ``spin_s`` polled), then hand over every frame that arrived meanwhile.
@@ -130,15 +99,14 @@ class EngineFrames:
         as at ``sim_t``. Its frames sent from then on carry ``sim_t`` while that is still ahead
         (``FrameLink.act_at``), and the server queues them at that instant. One wake-up per read, on the SYNC,
         rather than a timer's and then the SYNC's."""
-        synced: set[int] = set()
-        if self.lazy:
-            synced = self._wait_synced(sim_t, stop)
-            t = self._epoch(sim_t)
-            for link in self.links:
-                link.act_at(t)
-        else:
+        if not self.lazy:
             self._sleep_until(sim_t, stop, spin_s)
-        self.drain(on_frame, synced)
+            self.drain(on_frame)
+            return
+        self._wait_synced(sim_t, stop)
+        taken = self.group.finish(sim_t)
+        if on_frame is not None and taken:
+            _hand_over(on_frame, taken)
 
     def _sleep_until(self, sim_t: float, stop, spin_s: float = 0.0) -> None:
         """Sleep to ``sim_t``, noticing a stop request every MAX_SLEEP_S; the last ``spin_s`` wall seconds polled."""
@@ -147,31 +115,35 @@ class EngineFrames:
         while not stop and self.clock.wall_until(sim_t) > 0:
             pass
 
-    def _wait_synced(self, sim_t: float, stop) -> set[int]:
+    def _wait_synced(self, sim_t: float, stop) -> None:
         """Until every bus server has synced us to ``sim_t`` (asking once if it is not a foreseen read time), or
         SYNC_GRACE_S past it (a server that does not answer: go on with what came). The buses are waited for
-        together (one sleep for whichever SYNC comes next), so a node on several buses does not wake once per bus.
-        Returns the buses that were synced."""
-        t = self._epoch(sim_t)
-        buses = self._foreseen(sim_t)
-        if not buses:  # asked once, on the buses not yet synced to it (another event at this time was)
-            buses = {i for i, link in enumerate(self.links) if not link.sync_to(t, 0.0)}
-            for i in buses:
-                self.links[i].read_every(t, 0.0)
-        waiting = sorted(buses)
-        while not stop:
-            waiting = [i for i in waiting if not self.links[i].sync_to(t, 0.0)]
+        together (one sleep for whichever SYNC comes next), so a node on several buses does not wake once per bus;
+        the engine's ``LinkGroup`` does the bookkeeping, so a wait whose SYNCs are here is one call."""
+        waiting = self.group.begin_wait(sim_t)
+        while waiting and not stop:
             left = self.clock.wall_until(sim_t)
-            if not waiting or left < -SYNC_GRACE_S:
+            if left < -SYNC_GRACE_S:
                 break
-            engine.wait_readable([self.links[i].fd for i in waiting], min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S))
-        return buses.difference(waiting)
+            waiting = self.group.wait_more(sim_t, min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S))
 
     def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0) -> None:
         self.links[bus].send(frames, self.extended, self.fd, self.brs, sender)
 
     def send_outputs(self, bus: int, outputs: list[Output], sender: int = 0) -> None:
         self.links[bus].send_encoded(outputs, self.extended, self.fd, self.brs, sender)
+
+
+def _hand_over(on_frame: FrameHandler, batches: list[tuple[int, list[tuple[int, bytes, float]]]]) -> None:
+    """Each bus's frames [(bus, [(frame_id, data, t)])] to ``on_frame``, in time order across the buses."""
+    if len(batches) == 1:
+        i, frames = batches[0]
+        for frame_id, data, t in frames:
+            on_frame(i, frame_id, data, t)
+        return
+    merged = sorted(((t, i, k, fid, data) for i, frames in batches for k, (fid, data, t) in enumerate(frames)))
+    for t, i, _, frame_id, data in merged:
+        on_frame(i, frame_id, data, t)
 
 
 class PythonCanFrames:
