@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hil.runtime.realtime.pacing import LatenessStats
-from hil.runtime.realtime.streamed_series import FLUSH_ROWS, StreamedSeries, read_series
+from hil.runtime.realtime.streamed_series import FLUSH_ROWS, StreamedSeries, read_series, series_table
 from hil.sample_table import row_chunks
 
 
@@ -17,13 +17,13 @@ def test_rows_go_to_the_file_and_only_the_unwritten_ones_stay(tmp_path):
     values = rng.gamma(2.0, 2e-4, size=3 * FLUSH_ROWS + 17)
     for k, v in enumerate(values):
         s.add(k * 0.01, float(v))
-    assert len(s._rows) == 2 * 17  # the rest is on disk
+    assert len(s.pending_bytes()) == 2 * 17 * 8  # the rest is on disk
     s.close()
     rows = read_series(path)
     assert rows.shape == (len(values), 2) and np.array_equal(rows[:, 1], values)
     assert [len(c) for c in row_chunks(path, 2, rows=1000)] == [1000, 1000, 1000, 89]
     with pytest.raises(ValueError, match="read_series"):
-        s.table()
+        series_table(s)
 
 
 def test_percentiles_are_numpys_to_the_microsecond_and_the_maximum_exact():
@@ -35,6 +35,15 @@ def test_percentiles_are_numpys_to_the_microsecond_and_the_maximum_exact():
         assert s.percentile(q) == pytest.approx(np.percentile(values, q), abs=1e-6)
     assert s.max == values.max() and s.n == len(values)
     assert StreamedSeries().percentile(50) is None
+
+
+def test_a_series_without_a_file_keeps_its_rows_non_finite_ones_included():
+    s = StreamedSeries()
+    s.add(0.5, 2e-4)
+    s.add(1.5, float("nan"))  # a row, not a value of the distribution
+    table = series_table(s)
+    assert table.shape == (2, 2) and table[0].tolist() == [0.5, 2e-4] and np.isnan(table[1, 1])
+    assert s.n == 1 and s.max == 2e-4 and s.percentile(99) == pytest.approx(2e-4)
 
 
 def test_a_row_cut_by_a_killed_writer_is_left_out(tmp_path):

@@ -1,5 +1,7 @@
 """Typed surface of the compiled frame engine (engine/src/py.rs). Times are integer ns unless named ``_s``."""
 from collections.abc import Callable, Sequence
+from os import PathLike
+from pathlib import Path
 
 VERSION: str
 MAX_DATA: int  # bytes a frame can carry (CAN FD); classical frames carry at most 8
@@ -201,7 +203,7 @@ class Network:
 
 __all__ = ["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits",
            "receive_wire", "MessageCodec", "CommandInbox", "Mailbox", "Network", "Packing", "BusServerCore", "ServingThread",
-           "RadioHub", "FrameLink", "LinkGroup", "wait_readable", "frame_error", "filters_accept"]
+           "RadioHub", "FrameLink", "LinkGroup", "Series", "SERIES_FLUSH_ROWS", "wait_readable", "frame_error", "filters_accept"]
 
 def wait_readable(fds: Sequence[int], timeout_s: float) -> bool:
     """Sleep until one of ``fds`` is readable or ``timeout_s`` (wall) passed, the GIL released (no fds: a sleep)."""
@@ -317,6 +319,31 @@ class FrameLink:
     def send_encoded(self, outputs: Sequence[tuple[MessageCodec, Sequence[float], int]], extended: bool = False,
                      fd: bool = False, brs: bool = True, sender: int = 0) -> None:
         """One ECU cycle's outputs (message, values, alive counter), encoded and sent as ``send`` does, in one call."""
+
+
+class Series:
+    """A real-time node's (t, value) rows: appended to ``path`` as native float64 pairs every SERIES_FLUSH_ROWS rows
+    and at ``flush`` (created 0600; None: kept in memory), the values counted in 1 µs bins."""
+
+    path: Path | None
+    n: int  # finite values added
+    max: float  # the largest finite value (-inf before any)
+
+    def __init__(self, path: str | PathLike[str] | None = None) -> None: ...
+    def add(self, t: float, value: float) -> None:
+        """One row; a non-finite value is recorded but not counted. OSError when the file cannot take the rows."""
+    def extend(self, rows: Sequence[tuple[float, float]]) -> None:
+        """Rows [(t, value)] in order, as ``add`` each."""
+    def flush(self) -> None: ...
+    def close(self) -> None:
+        """Flush and close the file; rows added later stay in memory."""
+    def percentile(self, q: float) -> float | None:
+        """As ``np.percentile(values, q)`` over the values rounded to the microsecond; None without values."""
+    def pending_bytes(self) -> bytes:
+        """The rows not written yet (all without a path), t and value interleaved, native float64."""
+
+
+SERIES_FLUSH_ROWS: int
 
 
 class LinkGroup:

@@ -14,7 +14,8 @@
 //! * `kernel` and `network`: the virtual-time event queue and the network it drives;
 //! * `protocol`: the wire protocol between a bus server and its nodes (constants, record codec);
 //! * `server`: the real-time bus server, one OS thread per bus (`histogram`: its delay figures); `link`: a node's
-//!   end of its connection; `read_schedule`: a lazy reader's read times, which buses a wait was foreseen on.
+//!   end of its connection; `read_schedule`: a lazy reader's read times, which buses a wait was foreseen on;
+//!   `series`: a node's per-cycle series (lateness, latency), streamed to a file, percentiles from 1 µs bins.
 //!
 //! `py` (feature `python`) is the Python surface, `trainhil_engine._native`.
 
@@ -37,6 +38,7 @@ pub mod radio_hub;
 pub mod read_schedule;
 pub mod rng;
 pub mod server;
+pub mod series;
 pub mod serving_thread;
 pub mod wire;
 

@@ -45,6 +45,7 @@ mod link_group;
 mod mailbox;
 mod network;
 mod radio_hub;
+mod series;
 mod server;
 
 use self::bus_events::{errors_summary, event_fields};
@@ -56,6 +57,7 @@ use self::link_group::LinkGroup;
 use self::mailbox::Mailbox;
 use self::network::{add_bus_fault, check_window, policy, Network};
 use self::radio_hub::RadioHub;
+use self::series::Series;
 use self::server::{BusServerCore, ServingThread};
 
 fn timing(nominal: u64, data: u64) -> PyResult<BitTiming> {
@@ -97,8 +99,10 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RadioHub>()?;
     m.add_class::<FrameLink>()?;
     m.add_class::<LinkGroup>()?;
+    m.add_class::<Series>()?;
+    m.add("SERIES_FLUSH_ROWS", crate::series::FLUSH_ROWS)?;
     m.add("__all__", vec!["VERSION", "MAX_DATA", "PROTOCOL", "frame_bits", "frame_duration_ns", "fd_frame_bits", "e2e_crc", "wire_bits", "receive_wire", "MessageCodec", "CommandInbox", "Mailbox", "Network", "Packing",
-                          "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "LinkGroup", "wait_readable", "frame_error", "filters_accept"])?;
+                          "BusServerCore", "ServingThread", "RadioHub", "FrameLink", "LinkGroup", "Series", "SERIES_FLUSH_ROWS", "wait_readable", "frame_error", "filters_accept"])?;
     Ok(())
 }
 

@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from hil.runtime.realtime.streamed_series import StreamedSeries
+from hil.runtime.realtime.streamed_series import StreamedSeries, series_table
 
 __all__ = ["SimClock", "LatenessStats", "StopFlag", "Heartbeat", "drain", "freeze_setup_heap", "handshake", "linger",
            "wait_until", "set_timer_slack"]
@@ -85,7 +85,7 @@ class LatenessStats:
 
     def table(self) -> np.ndarray:
         """(n, 2): deadline (simulated s), lateness (wall s) per cycle, for a task without a file."""
-        return self.series.table()
+        return series_table(self.series)
 
     def summary(self) -> dict[str, float | int | None]:
         s = self.series

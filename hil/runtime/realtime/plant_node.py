@@ -128,8 +128,7 @@ class PlantNode:
         for command in commands:
             self.on_command(*command)
         for _, _, latencies in taken:
-            for t, latency in latencies:
-                self.e2e.add(t, latency)
+            self.e2e.extend(latencies)
 
     def on_command(self, u: int, force: float, mode: int, t: float, counter: int) -> None:
         """A valid TractionCmd of unit u that arrived at t: the plant integrated up to the first step starting at or
