@@ -8,7 +8,7 @@ the rig used per simulated second once every node was ready (all processes; psut
 p99 lateness is below a tenth of the 10 ms cycle and fewer than 0.1 % of cycles miss.
 
     python bench/bench_realtime_scale.py [--ecus 12 24 48 64] [--per-process 0 1 8] [--duration 10] [--pace 1]
-                                         [--plant-spin-us 0 200] [--scheduling auto normal]
+                                         [--plant-spin-us 0 200] [--scheduling auto normal] [--cpu-layout auto none]
 
 Each configuration also prints the CPU per simulated second by role (ECU, plant and radio processes, the bus
 servers' threads, the orchestrator), the profile the real-time cost is read from, and the host's steal time during
@@ -20,6 +20,8 @@ runs each configuration as the host idles and with idle CPUs kept polling (``hil
 default, auto, polls where permitted), side by side. ``--scheduling auto normal``
 runs each configuration under SCHED_FIFO where permitted and under the normal scheduler, side by side (the stall
 watch sleeps under SCHED_FIFO above the rig where permitted, so the rig's own bursts are not counted as stalls).
+``--cpu-layout auto none`` runs each configuration with the ECU processes on cores of their own (the default) and
+with the kernel placing everything, side by side (``hil run --cpu-layout``).
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # n
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # noqa: E402
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
+from hil.runtime.realtime.cpu_layout import CPU_LAYOUT_MODES, CpuLayoutMode  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
 from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
 
@@ -198,7 +201,7 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
         radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto",
-        idle_latency_us: IdleLatencySetting = "auto") -> dict:
+        idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto") -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -217,7 +220,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
         try:
             res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
                                plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
-                               on_start=started, scheduling=scheduling, idle_latency_us=idle_latency_us)
+                               on_start=started, scheduling=scheduling, idle_latency_us=idle_latency_us,
+                               cpu_layout=cpu_layout)
         finally:
             for w in watcher:
                 with contextlib.suppress(psutil.Error):
@@ -248,7 +252,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "plant_misses": m["plant_deadline_misses"], "publications": m["realtime"]["plant"]["cycles"],
             "misses_in_stalls": ecu_in_stalls, "plant_misses_in_stalls": plant_in_stalls,
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())},
-            "scheduling": m["realtime"]["scheduling"]["policy"], "idle_latency_us": m["realtime"]["idle_latency_us"]}
+            "scheduling": m["realtime"]["scheduling"]["policy"], "idle_latency_us": m["realtime"]["idle_latency_us"],
+            "cpu_layout": m["realtime"]["cpu_layout"]}
 
 
 def held_text(limit_us: int | None) -> str:
@@ -282,6 +287,9 @@ def main() -> None:
     ap.add_argument("--idle-latency-us", type=latency_us, nargs="+", default=["auto"], metavar="US",
                     help="the CPUs' wake-up latency limit for each run (hil run --idle-latency-us): auto (the "
                          "default: 0 where permitted), host, or µs; several: side by side, alternated")
+    ap.add_argument("--cpu-layout", nargs="+", choices=CPU_LAYOUT_MODES, default=["auto"],
+                    help="the rig's CPU layout (hil run --cpu-layout): auto (ECU processes on cores of their own) "
+                         "or none; several: side by side, alternated")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
@@ -296,14 +304,15 @@ def main() -> None:
     print(head)
     best = 0
     for n in args.ecus:
-        for k, spin, radio, mode, idle in [(k, spin, radio, mode, idle) for k in args.per_process
-                                           for spin in args.plant_spin_us for radio in args.radio
-                                           for mode in args.scheduling for idle in args.idle_latency_us]:
+        for k, spin, radio, mode, idle, cpus in [(k, spin, radio, mode, idle, cpus) for k in args.per_process
+                                                 for spin in args.plant_spin_us for radio in args.radio
+                                                 for mode in args.scheduling for idle in args.idle_latency_us
+                                                 for cpus in args.cpu_layout]:
             t = time.monotonic()
             sc = scenario_for(n, args.scenario)
-            keep = (args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}"
+            keep = (args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}-cpus{cpus}"
                     if args.keep is not None else None)
-            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle)
+            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle, cpus)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units, pace=args.pace)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
@@ -313,6 +322,7 @@ def main() -> None:
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
                   f"  ({r['scheduling']})"
                   f"  ({held_text(r['idle_latency_us'])})"
+                  f"  (cpu layout: {'none' if r['cpu_layout'] is None else 'ECUs on ' + str(r['cpu_layout']['ecus'])})"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))

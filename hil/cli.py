@@ -107,7 +107,7 @@ def _check_run_options(args: argparse.Namespace) -> None:
     if not args.realtime:
         given = [name for name, value in (("--pace", args.pace), ("--ecus-per-process", args.ecus_per_process),
                                           ("--run", args.run_name), ("--scheduling", args.scheduling),
-                                          ("--idle-latency-us", args.idle_latency_us))
+                                          ("--idle-latency-us", args.idle_latency_us), ("--cpu-layout", args.cpu_layout))
                  if value is not None]
         if given:
             verb = "applies" if len(given) == 1 else "apply"
@@ -159,9 +159,9 @@ def _silkit_options(args: argparse.Namespace):
     if args.ideal:
         raise ScenarioError("--silkit runs the rig, not the ideal loop: not with --ideal")
     if args.realtime and any(v is not None for v in (args.ecus_per_process, args.run_name, args.scheduling,
-                                                     args.idle_latency_us)):
+                                                     args.idle_latency_us, args.cpu_layout)):
         raise ScenarioError("--realtime --silkit runs the virtual rig paced by SIL Kit: --ecus-per-process, --run, "
-                            "--scheduling and --idle-latency-us are for the process rig (without --silkit)")
+                            "--scheduling, --idle-latency-us and --cpu-layout are for the process rig (without --silkit)")
     from hil.silkit.options import SilKitOptions
 
     try:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from hil.cli_values import positive_int, positive_number, positive_seconds
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US
+from hil.runtime.realtime.cpu_layout import CPU_LAYOUT_MODES
 from hil.runtime.realtime.idle_latency import latency_us
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.scheduling import PRIORITIES, SCHEDULING_MODES, SchedulingRefused, choose_server_scheduling
@@ -150,6 +151,10 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                         "cyclictest holds it). auto (the default) holds 0 at pace 1 or slower where the host permits it "
                         "(root), so idle CPUs poll instead of halting: wake-ups cost less, but the CPUs never rest; "
                         "host leaves the host's; a number of microseconds holds that or exits 1")
+    g.add_argument("--cpu-layout", choices=CPU_LAYOUT_MODES, default=None,
+                   help="with --realtime: auto (the default) keeps the bus servers and the plant on the first core the "
+                        "rig may use and the ECU processes on the others (where it may use two or more); none: the "
+                        "kernel places every process")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")
@@ -190,7 +195,8 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
                         record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
                         run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
                         source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto",
-                        idle_latency_us="auto" if args.idle_latency_us is None else args.idle_latency_us)
+                        idle_latency_us="auto" if args.idle_latency_us is None else args.idle_latency_us,
+                        cpu_layout=args.cpu_layout or "auto")
 
 
 def print_channels(channels) -> None:

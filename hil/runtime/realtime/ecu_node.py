@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
-    scheduling = enter_role("ecu", args.fifo)
+    scheduling = enter_role("ecu", args.fifo, args.cpus)
     sc = load_scenario_json(args.scenario_json)
     parts = assemble(sc, args.seed)
     layout, db = parts.layout, load_train_db(sc)

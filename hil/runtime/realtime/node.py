@@ -13,6 +13,7 @@ from typing import Iterable
 import can
 import trainhil_engine as engine
 
+from hil.runtime.realtime.cpu_layout import parse_cores
 from hil.scenario.model import CanConfig, Scenario
 
 
@@ -26,6 +27,8 @@ def node_parser(prog: str, description: str) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="directory for this node's results")
     p.add_argument("--fifo", action="store_true",
                    help="run under SCHED_FIFO at the node's priority (hil/runtime/realtime/scheduling.py)")
+    p.add_argument("--cpus", type=parse_cores, default=None, metavar="LIST",
+                   help="run on these cores, e.g. 1 or 1,2 (hil/runtime/realtime/cpu_layout.py; default: anywhere)")
     return p
 
 

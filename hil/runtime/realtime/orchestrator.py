@@ -57,6 +57,8 @@ from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, check_setting, hold_for_run
+from hil.runtime.realtime.cpu_layout import (CPU_LAYOUT_MODES, CpuLayout, CpuLayoutMode, choose_cpu_layout, format_cores,
+                                             pin)
 from hil.runtime.realtime.scheduling import SchedulingMode, choose_scheduling
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.engine_radio import EngineRadio
@@ -234,7 +236,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
                  keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto",
-                 idle_latency_us: IdleLatencySetting = "auto"):
+                 idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto"):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -251,12 +253,17 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     "fifo" insists (SchedulingRefused otherwise), "normal" never does (hil/runtime/realtime/scheduling.py).
     ``idle_latency_us``: "auto" holds the CPUs' wake-up latency limit at 0 µs for a run at pace <= 1 where the host
     permits it (else the host's stays, said in the events), "host" leaves it, a number holds that many µs
-    (IdleLatencyRefused where the host does not permit it; hil/runtime/realtime/idle_latency.py)."""
+    (IdleLatencyRefused where the host does not permit it; hil/runtime/realtime/idle_latency.py).
+    ``cpu_layout``: "auto" keeps the serving thread and the plant on the first core the rig may use and the ECU
+    processes on the others, where it may use two or more; "none" leaves placement to the kernel
+    (hil/runtime/realtime/cpu_layout.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
         raise ValueError(f"ecus_per_process={ecus_per_process!r} must be >= 1")
     check_setting(idle_latency_us)  # a bad value: before anything runs
+    if cpu_layout not in CPU_LAYOUT_MODES:
+        raise ValueError(f"cpu_layout={cpu_layout!r} must be one of {', '.join(CPU_LAYOUT_MODES)}")
     idle = None  # IdleLatencyHold, while the run holds the CPUs' wake-up latency limit
     socketcan = scenario.can.transport == "socketcan"
     fmt = log_format(can_log)
@@ -285,6 +292,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     radio = None  # EngineRadio: the radio in the bus servers (emulated buses, two trains or more)
     radio_stats = None  # its links' counters at the end
     sched = None  # Scheduling: what the serving thread and the nodes run under
+    cpus = None  # CpuLayout: which cores the serving thread, the plant and the ECU processes run on (None: any)
     nodes: list[Node] = []
     events: list[Event] = []
     wall0 = time.perf_counter()
@@ -303,6 +311,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             serving = None if socketcan else engine.ServingThread()  # every bus on one thread: shared wake-ups
             sched = choose_scheduling(scheduling, None if serving is None else serving.native_id)
             events.append(Event(0.0, "INFO", "rig", f"scheduling: {sched.describe()}"))
+            cpus = place_serving_thread(choose_cpu_layout(cpu_layout), serving, events)
             idle, said = hold_for_run(idle_latency_us, pace)
             events.append(Event(0.0, "INFO", "rig", said))
             for i in range(0 if socketcan else layout.n_trains):
@@ -322,10 +331,11 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                                                                         units_per_train=scenario.trains.units, pace=pace)
             node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo")
             nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
-                                 faults.solo_units if faults else (), external, env, radio_node=radio is None)
+                                 faults.solo_units if faults else (), external, env, radio_node=radio is None, cpus=cpus)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
-                say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}; {said}" + (
+                say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}; {said}; "
+                    f"{cpus.describe() if cpus is not None else 'CPU layout: none'}" + (
                     f"; waiting up to {scenario.ecu.join_timeout_s:g} s for external unit(s) "
                     f"{', '.join(scenario.ecu.external)}" if external else ""))
             _wait_ready(nodes, stop)
@@ -341,7 +351,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 if on_start is not None:
                     on_start(t0)
                 if faults is not None:
-                    faults.go(t0, pace, nodes, _respawn(nodes_dir, node_args, layout, env))
+                    faults.go(t0, pace, nodes, _respawn(nodes_dir, node_args, layout, env, cpus))
                 if live is not None:
                     tail = LiveTail(live, scenario, layout, nodes_dir, (t0, pace), run)
                     if say is not None:
@@ -401,6 +411,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     if sched is not None:
         extra["realtime"]["scheduling"] = sched.as_dict()
     extra["realtime"]["idle_latency_us"] = None if idle is None else idle.limit_us  # None: the host's
+    extra["realtime"]["cpu_layout"] = None if cpus is None else cpus.as_dict()  # None: the kernel placed everything
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
@@ -518,21 +529,42 @@ def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace:
             "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir), *(["--fifo"] if fifo else [])]
 
 
-def _respawn(nodes_dir: Path, common: list[str], layout: TrainLayout, env: dict[str, str]):
+def _respawn(nodes_dir: Path, common: list[str], layout: TrainLayout, env: dict[str, str], cpus: CpuLayout | None):
     """spawn(unit): a late-joining ECU process for a restarted unit, started as every node is (``launch_node``)."""
     serial = iter(range(1, 1 << 30))
 
     def spawn(u: int) -> Node:
-        argv = ["hil.runtime.realtime.ecu_node", *common, "--unit", str(u), "--join-late"]
+        argv = ["hil.runtime.realtime.ecu_node", *common, *_cpu_arguments(cpus, "ecu"), "--unit", str(u), "--join-late"]
         return launch_node(layout.unit_name(u), "ecu", argv, nodes_dir / f"ecu_restart_{next(serial)}.stderr", env)
 
     return spawn
 
 
+def place_serving_thread(cpus: CpuLayout | None, serving, events: list[Event]) -> CpuLayout | None:
+    """Put the serving thread (None on SocketCAN) on the layout's rig cores and say the layout in the run's events;
+    the layout the nodes follow (None when there is none, or the serving thread could not be placed)."""
+    if cpus is None:
+        events.append(Event(0.0, "INFO", "rig", "CPU layout: none (the kernel places every process)"))
+        return None
+    if serving is not None and (why := pin(cpus.rig, serving.native_id)) is not None:
+        events.append(Event(0.0, "WARN", "rig", f"CPU layout not applied: the serving thread cannot run on "
+                                                f"{format_cores(cpus.rig)} ({why})"))
+        return None
+    events.append(Event(0.0, "INFO", "rig", cpus.describe()))
+    return cpus
+
+
+def _cpu_arguments(cpus: CpuLayout | None, kind: str) -> list[str]:
+    """A node's ``--cpus`` for its kind in the run's CPU layout (none without one)."""
+    return [] if cpus is None else ["--cpus", format_cores(cpus.cores_for(kind))]
+
+
 def _start_nodes(layout: TrainLayout, nodes_dir: Path, common: list[str], per_process: int, spin_us: float,
-                 solo=(), external=(), env: dict[str, str] | None = None, radio_node: bool = False) -> list[Node]:
+                 solo=(), external=(), env: dict[str, str] | None = None, radio_node: bool = False,
+                 cpus: CpuLayout | None = None) -> list[Node]:
     """The plant first (``nodes[0]``), the radio (``radio_node``: on SocketCAN; on the emulated buses the radio is
-    in the bus servers), then the ECU processes; none for ``external`` units. ``common``: ``_node_arguments``."""
+    in the bus servers), then the ECU processes; none for ``external`` units. ``common``: ``_node_arguments``;
+    ``cpus``: the run's CPU layout (each node is told its cores)."""
     specs = [("plant", "plant", ["hil.runtime.realtime.plant_node", "--spin-us", repr(spin_us)])]
     if radio_node and layout.n_trains > 1:
         specs.append(("radio", "radio", ["hil.runtime.realtime.radio_node"]))
@@ -541,7 +573,8 @@ def _start_nodes(layout: TrainLayout, nodes_dir: Path, common: list[str], per_pr
     for group in groups:
         names = ",".join(layout.unit_name(u) for u in group)
         specs.append((names, "ecu", ["hil.runtime.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
-    return [launch_node(name, kind, [argv[0], *common, *argv[1:]], nodes_dir / f"{kind}_{i}.stderr", env)
+    return [launch_node(name, kind, [argv[0], *common, *_cpu_arguments(cpus, kind), *argv[1:]],
+                        nodes_dir / f"{kind}_{i}.stderr", env)
             for i, (name, kind, argv) in enumerate(specs)]
 
 

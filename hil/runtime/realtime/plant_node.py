@@ -306,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
-    scheduling = enter_role("plant", args.fifo)
+    scheduling = enter_role("plant", args.fifo, args.cpus)
     sc = load_scenario_json(args.scenario_json)
     db = load_train_db(sc)
     n = sc.trains.count

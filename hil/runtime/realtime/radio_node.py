@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     stop = StopFlag()
     set_timer_slack(1)
-    scheduling = enter_role("radio", args.fifo)
+    scheduling = enter_role("radio", args.fifo, args.cpus)
     sc = load_scenario_json(args.scenario_json)
     db = load_train_db(sc)
     gateway = build_gateway(sc, db, random_streams(args.seed)["radio"])

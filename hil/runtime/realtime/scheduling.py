@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 from hil.runtime.errors import RigDidNotStart
+from hil.runtime.realtime.cpu_layout import format_cores, pin
 
 SchedulingMode = Literal["auto", "fifo", "normal"]  # fifo where permitted / fifo or fail / never
 SCHEDULING_MODES: tuple[SchedulingMode, ...] = ("auto", "fifo", "normal")
@@ -116,11 +117,14 @@ def _probe(priority: int) -> str | None:
     return outcome[0] if outcome else "the probe thread failed"
 
 
-def enter_role(role: str, fifo: bool) -> Literal["fifo", "normal"]:
-    """A node's first step: under SCHED_FIFO at its role's priority when the orchestrator says so (``fifo``).
-    Returns the policy it runs under; a refusal is said on stderr and the node goes on under the normal one."""
+def enter_role(role: str, fifo: bool, cpus: tuple[int, ...] | None = None) -> Literal["fifo", "normal"]:
+    """A node's first step: under SCHED_FIFO at its role's priority when the orchestrator says so (``fifo``), on
+    the cores it names (``cpus``, hil/runtime/realtime/cpu_layout.py). Returns the policy it runs under; a refusal
+    is said on stderr and the node goes on under the normal scheduler, or anywhere."""
     if fifo and (why := set_fifo_priority(PRIORITIES[role])) is not None:
         print(f"{role} node: SCHED_FIFO refused ({why}); running under the normal scheduler", file=sys.stderr)
+    if cpus is not None and (why := pin(cpus)) is not None:
+        print(f"{role} node: cannot run on cores {format_cores(cpus)} ({why}); running anywhere", file=sys.stderr)
     return current_policy()
 
 
