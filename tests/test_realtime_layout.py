@@ -85,6 +85,28 @@ def test_under_sched_fifo_every_node_is_told_so_restarted_ones_too(tmp_path, mon
     assert started[-1][-3:] == ["--unit", "5", "--join-late"]
 
 
+def test_each_node_is_told_the_cores_of_its_kind_restarted_ones_too(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The CPU layout (hil/runtime/realtime/cpu_layout.py): the plant and the radio on the rig's cores, every ECU
+    process, a restarted one too, on the ECUs'; without a layout no node is told any."""
+    from hil.runtime.realtime.cpu_layout import CpuLayout
+    from hil.scenario import load_scenario
+    from hil.scenario.layout import TrainLayout
+
+    started: list[tuple[str, list[str]]] = []
+    monkeypatch.setattr(orchestrator, "launch_node",
+                        lambda name, kind, argv, stderr_path, env: started.append((kind, argv)))
+    layout = TrainLayout.from_config(load_scenario("seed000").trains)
+    common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, fifo=False)
+    cpus = CpuLayout(rig=(0,), ecus=(1, 2))
+    orchestrator._start_nodes(layout, tmp_path, common, 6, 0.0, radio_node=True, cpus=cpus)
+    orchestrator._respawn(tmp_path, common, layout, {}, cpus)(5)
+    told = [(kind, argv[argv.index("--cpus") + 1]) for kind, argv in started]
+    assert told == [("plant", "0"), ("radio", "0"), ("ecu", "1,2"), ("ecu", "1,2"), ("ecu", "1,2")]
+    started.clear()
+    orchestrator._start_nodes(layout, tmp_path, common, 6, 0.0)
+    assert started and not any("--cpus" in argv for _, argv in started)
+
+
 def test_the_progress_bar_redraws_rarely_into_a_file(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Redirected to a file, the real-time progress bar wrote a line a hundred times a second; now every 5 s."""
     with open(tmp_path / "err.log", "w") as fh:

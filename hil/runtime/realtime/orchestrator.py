@@ -529,7 +529,8 @@ def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace:
             "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir), *(["--fifo"] if fifo else [])]
 
 
-def _respawn(nodes_dir: Path, common: list[str], layout: TrainLayout, env: dict[str, str], cpus: CpuLayout | None):
+def _respawn(nodes_dir: Path, common: list[str], layout: TrainLayout, env: dict[str, str],
+             cpus: CpuLayout | None = None):
     """spawn(unit): a late-joining ECU process for a restarted unit, started as every node is (``launch_node``)."""
     serial = iter(range(1, 1 << 30))
 
