@@ -19,6 +19,8 @@ def test_auto_keeps_the_first_allowed_core_for_the_rig_and_gives_the_ecus_the_ot
     assert choose_cpu_layout("auto", {7, 2, 5}) == CpuLayout(rig=(2,), ecus=(5, 7))  # a taskset mask is kept
     assert choose_cpu_layout("auto", {3}) is None  # one core: nothing to separate
     assert choose_cpu_layout("none", {0, 1}) is None
+    assert choose_cpu_layout("auto", {0, 1}, pace=10.0) is None  # faster than real time: the ECU processes queued
+    assert choose_cpu_layout("auto", {0, 1}, pace=0.5) == CpuLayout(rig=(0,), ecus=(1,))
     with pytest.raises(ValueError, match="cpu_layout='spread' must be one of auto, none"):
         choose_cpu_layout("spread", {0, 1})  # type: ignore[arg-type]
     layout = CpuLayout(rig=(0,), ecus=(1, 2))

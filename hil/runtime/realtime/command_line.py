@@ -153,8 +153,8 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                         "host leaves the host's; a number of microseconds holds that or exits 1")
     g.add_argument("--cpu-layout", choices=CPU_LAYOUT_MODES, default=None,
                    help="with --realtime: auto (the default) keeps the bus servers and the plant on the first core the "
-                        "rig may use and the ECU processes on the others (where it may use two or more); none: the "
-                        "kernel places every process")
+                        "rig may use and the ECU processes on the others (at pace 1 or slower, where it may use two "
+                        "or more); none: the kernel places every process")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")

@@ -5,8 +5,10 @@ bus serving thread, the plant's integration) has pushed its interpreter and its 
 core of their own, the ECU processes find more of it still there. The bus serving thread and the plant, which work
 with each other at every publication, share the first core the rig may use; the ECU processes get the others.
 
-"auto" (the default) does this where the rig may use two cores or more (the orchestrator's affinity mask, so a
-container's or ``taskset``'s limits are kept); "none" leaves every placement to the kernel. The orchestrator's own
+"auto" (the default) does this at pace 1 or slower where the rig may use two cores or more (the orchestrator's
+affinity mask, so a container's or ``taskset``'s limits are kept); "none" leaves every placement to the kernel.
+Faster than real time it does not: at pace 10 seed000's three ECU processes (one per train) queued behind each other
+on their one core (ECU misses 72 and 49 against 41 and 4 in two alternated pairs, README "CPU layout"). The orchestrator's own
 Python (supervision, spooling, recording) is not pinned. Each node pins itself as its first step (``pin``, from
 the cores the orchestrator names in its arguments), so the threads it starts after follow it.
 """
@@ -40,13 +42,13 @@ class CpuLayout:
         return {"rig": list(self.rig), "ecus": list(self.ecus)}
 
 
-def choose_cpu_layout(mode: CpuLayoutMode, allowed: set[int] | None = None) -> CpuLayout | None:
-    """The layout ``mode`` gives on the cores the rig may use (``allowed``, default this process's affinity mask);
-    None where the kernel places everything ("none", or fewer than two cores)."""
+def choose_cpu_layout(mode: CpuLayoutMode, allowed: set[int] | None = None, pace: float = 1.0) -> CpuLayout | None:
+    """The layout ``mode`` gives on the cores the rig may use (``allowed``, default this process's affinity mask) at
+    ``pace``; None where the kernel places everything ("none", fewer than two cores, or faster than real time)."""
     if mode not in CPU_LAYOUT_MODES:
         raise ValueError(f"cpu_layout={mode!r} must be one of {', '.join(CPU_LAYOUT_MODES)}")
     cores = sorted(allowed if allowed is not None else os.sched_getaffinity(0))
-    if mode == "none" or len(cores) < 2:
+    if mode == "none" or len(cores) < 2 or pace > 1.0:
         return None
     return CpuLayout(rig=(cores[0],), ecus=tuple(cores[1:]))
 

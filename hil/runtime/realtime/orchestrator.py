@@ -255,7 +255,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     permits it (else the host's stays, said in the events), "host" leaves it, a number holds that many µs
     (IdleLatencyRefused where the host does not permit it; hil/runtime/realtime/idle_latency.py).
     ``cpu_layout``: "auto" keeps the serving thread and the plant on the first core the rig may use and the ECU
-    processes on the others, where it may use two or more; "none" leaves placement to the kernel
+    processes on the others, at pace 1 or slower where it may use two or more; "none" leaves placement to the kernel
     (hil/runtime/realtime/cpu_layout.py)."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
@@ -311,7 +311,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             serving = None if socketcan else engine.ServingThread()  # every bus on one thread: shared wake-ups
             sched = choose_scheduling(scheduling, None if serving is None else serving.native_id)
             events.append(Event(0.0, "INFO", "rig", f"scheduling: {sched.describe()}"))
-            cpus = place_serving_thread(choose_cpu_layout(cpu_layout), serving, events)
+            cpus = place_serving_thread(choose_cpu_layout(cpu_layout, pace=pace), serving, events)
             idle, said = hold_for_run(idle_latency_us, pace)
             events.append(Event(0.0, "INFO", "rig", said))
             for i in range(0 if socketcan else layout.n_trains):
