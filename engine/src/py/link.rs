@@ -87,18 +87,6 @@ impl FrameLink {
         self.t0 + sim_t / self.pace
     }
 
-    /// The kept frames since the last take, as Python tuples (frame_id, data, t_sim); `pump`: read the socket first.
-    pub(super) fn take_kept<'py>(&mut self, py: Python<'py>, pump: bool) -> PyResult<Bound<'py, PyList>> {
-        if pump {
-            self.pump()?;
-        }
-        let kept = std::mem::take(&mut self.kept);
-        let items: Vec<Bound<'py, PyTuple>> = kept.iter()
-            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
-            .collect::<PyResult<_>>()?;
-        PyList::new(py, items)
-    }
-
     fn hand_over_one(&mut self, id: u32, data: &[u8], t: f64) {
         if let Some(boxes) = self.routes.get(&id) {
             for mb in boxes {
@@ -185,8 +173,15 @@ impl FrameLink {
     /// The kept frames received since the last call, in arrival order: [(frame_id, data, t_sim)]. `pump`: read
     /// the socket first (a lazy link just synced has read what its read time needs: no system call then).
     #[pyo3(signature = (pump = true))]
-    fn take<'py>(&mut self, py: Python<'py>, pump: bool) -> PyResult<Bound<'py, PyList>> {
-        self.take_kept(py, pump)
+    pub(super) fn take<'py>(&mut self, py: Python<'py>, pump: bool) -> PyResult<Bound<'py, PyList>> {
+        if pump {
+            self.pump()?;
+        }
+        let kept = std::mem::take(&mut self.kept);
+        let items: Vec<Bound<'py, PyTuple>> = kept.iter()
+            .map(|(id, data, t)| (id, PyBytes::new(py, data.as_slice()), t).into_pyobject(py))
+            .collect::<PyResult<_>>()?;
+        PyList::new(py, items)
     }
 
     /// Deliver frames of `frame_id` into `mailbox` (several mailboxes may take one ID).

@@ -100,7 +100,7 @@ impl LinkGroup {
             let synced = self.asked.contains(&bus) && !self.waiting.contains(&bus);
             let mut link = self.link(py, bus)?;
             link.act_at(t);
-            let kept = link.take_kept(py, !synced)?;
+            let kept = link.take(py, !synced)?;
             if !kept.is_empty() {
                 out.push((bus, kept));
             }
