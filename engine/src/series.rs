@@ -60,8 +60,7 @@ impl Series {
     pub fn flush(&mut self) -> io::Result<()> {
         if let Some(file) = self.file.as_mut() {
             if !self.rows.is_empty() {
-                let bytes: Vec<u8> = self.rows.iter().flat_map(|x| x.to_ne_bytes()).collect();
-                file.write_all(&bytes)?;
+                file.write_all(&pending_bytes(&self.rows))?;
                 self.rows.clear();
             }
         }
@@ -78,6 +77,11 @@ impl Series {
     /// The rows not written yet, t and value interleaved.
     pub fn pending(&self) -> &[f64] {
         &self.rows
+    }
+
+    /// The rows not written yet as the file holds them: native float64, t and value interleaved.
+    pub fn pending_bytes(&self) -> Vec<u8> {
+        pending_bytes(&self.rows)
     }
 
     /// As `np.percentile(values, q)` over the finite values rounded to the microsecond; None without values.
@@ -102,6 +106,11 @@ impl Series {
         }
         self.bins.keys().next_back().map_or(f64::NAN, |&key| key as f64 * RESOLUTION_S)
     }
+}
+
+/// Floats as native float64 bytes (the series file's format).
+fn pending_bytes(rows: &[f64]) -> Vec<u8> {
+    rows.iter().flat_map(|x| x.to_ne_bytes()).collect()
 }
 
 #[cfg(test)]

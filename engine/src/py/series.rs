@@ -51,8 +51,7 @@ impl Series {
 
     /// The rows not written yet (all of them without a file), t and value interleaved, native float64.
     fn pending_bytes<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
-        let bytes: Vec<u8> = self.inner.pending().iter().flat_map(|x| x.to_ne_bytes()).collect();
-        PyBytes::new(py, &bytes)
+        PyBytes::new(py, &self.inner.pending_bytes())
     }
 
     /// The file the rows go to (None: kept in memory).
