@@ -18,6 +18,8 @@ import os
 from dataclasses import dataclass
 from typing import Literal
 
+from hil.runtime.errors import os_words
+
 CpuLayoutMode = Literal["auto", "none"]
 CPU_LAYOUT_MODES: tuple[CpuLayoutMode, ...] = ("auto", "none")
 
@@ -59,7 +61,7 @@ def pin(cores: tuple[int, ...], tid: int = 0) -> str | None:
     try:
         os.sched_setaffinity(tid, cores)
     except (AttributeError, OSError, ValueError) as exc:
-        return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        return os_words(exc)
     return None
 
 

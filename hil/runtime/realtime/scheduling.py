@@ -21,7 +21,7 @@ import threading
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
-from hil.runtime.errors import RigDidNotStart
+from hil.runtime.errors import RigDidNotStart, os_words
 from hil.runtime.realtime.cpu_layout import format_cores, pin
 
 SchedulingMode = Literal["auto", "fifo", "normal"]  # fifo where permitted / fifo or fail / never
@@ -41,7 +41,7 @@ def set_fifo_priority(priority: int, tid: int = 0, reset_on_fork: bool = True) -
         policy = os.SCHED_FIFO | (os.SCHED_RESET_ON_FORK if reset_on_fork else 0)
         os.sched_setscheduler(tid, policy, os.sched_param(priority))
     except (AttributeError, OSError, ValueError) as exc:
-        return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        return os_words(exc)
     return None
 
 
