@@ -21,7 +21,10 @@ default, auto, polls where permitted), side by side. ``--scheduling auto normal`
 runs each configuration under SCHED_FIFO where permitted and under the normal scheduler, side by side (the stall
 watch sleeps under SCHED_FIFO above the rig where permitted, so the rig's own bursts are not counted as stalls).
 ``--cpu-layout auto none`` runs each configuration with the ECU processes on cores of their own (the default) and
-with the kernel placing everything, side by side (``hil run --cpu-layout``).
+with the kernel placing everything, side by side (``hil run --cpu-layout``). ``--turns on off`` runs each with the
+nodes' turns (the default: their frames at their instants, the bus waiting for them) and without, side by side
+(``hil run --turns``); each run also prints its loop (sensor-to-actuator p50, speed overshoot, coupler maximum),
+to be read beside virtual time's (``hil run <scenario> --duration S``).
 """
 from __future__ import annotations
 
@@ -201,7 +204,7 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
         radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto",
-        idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto") -> dict:
+        idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto", turns: bool = True) -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -221,7 +224,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             res = run_realtime(sc, out, pace=pace, duration_s=duration, ecus_per_process=per_process, record=False,
                                plant_spin_us=plant_spin_us, radio_in_servers=radio == "servers",
                                on_start=started, scheduling=scheduling, idle_latency_us=idle_latency_us,
-                               cpu_layout=cpu_layout)
+                               cpu_layout=cpu_layout, turns=turns)
         finally:
             for w in watcher:
                 with contextlib.suppress(psutil.Error):
@@ -253,7 +256,11 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "misses_in_stalls": ecu_in_stalls, "plant_misses_in_stalls": plant_in_stalls,
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())},
             "scheduling": m["realtime"]["scheduling"]["policy"], "idle_latency_us": m["realtime"]["idle_latency_us"],
-            "cpu_layout": m["realtime"]["cpu_layout"]}
+            "cpu_layout": m["realtime"]["cpu_layout"], "turns": m["realtime"]["turns"],
+            "e2e_p50_ms": 1e3 * (m["e2e_latency_p50_s"] or 0), "overshoot_mps": m["speed_overshoot_max_mps"],
+            "coupler_max_m": m["coupler_max_abs_m"],
+            "turns_held": sum(b["turns_held"] for b in m["realtime"]["bus_servers"].values()),
+            "turn_overruns": sum(b["turn_overruns"] for b in m["realtime"]["bus_servers"].values())}
 
 
 def held_text(limit_us: int | None) -> str:
@@ -290,6 +297,9 @@ def main() -> None:
     ap.add_argument("--cpu-layout", nargs="+", choices=CPU_LAYOUT_MODES, default=["auto"],
                     help="the rig's CPU layout (hil run --cpu-layout): auto (ECU processes on cores of their own) "
                          "or none; several: side by side, alternated")
+    ap.add_argument("--turns", nargs="+", choices=("on", "off"), default=["on"],
+                    help="the nodes' turns (hil run --turns): on (frames at their instants, the bus waiting for them) "
+                         "or off; several: side by side, alternated")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
@@ -304,15 +314,15 @@ def main() -> None:
     print(head)
     best = 0
     for n in args.ecus:
-        for k, spin, radio, mode, idle, cpus in [(k, spin, radio, mode, idle, cpus) for k in args.per_process
-                                                 for spin in args.plant_spin_us for radio in args.radio
-                                                 for mode in args.scheduling for idle in args.idle_latency_us
-                                                 for cpus in args.cpu_layout]:
+        for k, spin, radio, mode, idle, cpus, turns in [
+                (k, spin, radio, mode, idle, cpus, turns) for k in args.per_process for spin in args.plant_spin_us
+                for radio in args.radio for mode in args.scheduling for idle in args.idle_latency_us
+                for cpus in args.cpu_layout for turns in args.turns]:
             t = time.monotonic()
             sc = scenario_for(n, args.scenario)
-            keep = (args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}-cpus{cpus}"
+            keep = (args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}-cpus{cpus}-turns{turns}"
                     if args.keep is not None else None)
-            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle, cpus)
+            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle, cpus, turns == "on")
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units, pace=args.pace)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
@@ -323,6 +333,7 @@ def main() -> None:
                   f"  ({r['scheduling']})"
                   f"  ({held_text(r['idle_latency_us'])})"
                   f"  (cpu layout: {'none' if r['cpu_layout'] is None else 'ECUs on ' + str(r['cpu_layout']['ecus'])})"
+                  f"  (turns {'on' if r['turns'] else 'off'}: {r['turns_held']} held, {r['turn_overruns']} let go)"
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))
@@ -333,6 +344,8 @@ def main() -> None:
             print(f"      host steal time during the run: {r['steal_s']:.2f} s"
                   f"{f'; files in {keep}' if keep is not None else ''}")
             print(f"      plant: {r['plant_misses']} of {r['publications']} publications missed their deadline")
+            print(f"      the loop: sensor-to-actuator p50 {r['e2e_p50_ms']:.2f} ms, speed overshoot "
+                  f"{r['overshoot_mps']:.2f} m/s, coupler max {r['coupler_max_m']:.3f} m")
             print("      " + stall_line(r["stalls"], r["misses_in_stalls"], r["plant_misses_in_stalls"]))
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")

@@ -107,7 +107,8 @@ def _check_run_options(args: argparse.Namespace) -> None:
     if not args.realtime:
         given = [name for name, value in (("--pace", args.pace), ("--ecus-per-process", args.ecus_per_process),
                                           ("--run", args.run_name), ("--scheduling", args.scheduling),
-                                          ("--idle-latency-us", args.idle_latency_us), ("--cpu-layout", args.cpu_layout))
+                                          ("--idle-latency-us", args.idle_latency_us), ("--cpu-layout", args.cpu_layout),
+                                          ("--turns", args.turns))
                  if value is not None]
         if given:
             verb = "applies" if len(given) == 1 else "apply"
@@ -159,9 +160,10 @@ def _silkit_options(args: argparse.Namespace):
     if args.ideal:
         raise ScenarioError("--silkit runs the rig, not the ideal loop: not with --ideal")
     if args.realtime and any(v is not None for v in (args.ecus_per_process, args.run_name, args.scheduling,
-                                                     args.idle_latency_us, args.cpu_layout)):
+                                                     args.idle_latency_us, args.cpu_layout, args.turns)):
         raise ScenarioError("--realtime --silkit runs the virtual rig paced by SIL Kit: --ecus-per-process, --run, "
-                            "--scheduling, --idle-latency-us and --cpu-layout are for the process rig (without --silkit)")
+                            "--scheduling, --idle-latency-us, --cpu-layout and --turns are for the process rig "
+                            "(without --silkit)")
     from hil.silkit.options import SilKitOptions
 
     try:

@@ -288,17 +288,22 @@ class FrameLink:
     fd: int
     received: int
     synced: float
+    in_turn: bool  # a turn is open (``act_at`` on a link of turns, not ended yet)
 
     def __init__(self, fd: int, t0: float, pace: float, keep: bool = False, lazy: bool = False,
                  bell: int | None = None) -> None:
         """``lazy``: the connection said OPTION_LAZY; frames come in at ``sync_to``, sent frames carry their time.
         ``bell``: it also said OPTION_QUIET; the write end of the server's bell FIFO (kept open by the caller), rung
         when the server must see a record now (a read request, a frame its BELL records name)."""
-    def read_every(self, first: float, period: float) -> None:
-        """A lazy link's read times: ``first`` (epoch s), then every ``period`` s (0: once)."""
+    def read_every(self, first: float, period: float, turns: bool = False) -> None:
+        """A lazy link's read times: ``first`` (epoch s), then every ``period`` s (0: once); ``turns``: from now on
+        each of its read times is a turn (protocol READ_TURNS)."""
     def act_at(self, t: float) -> None:
         """The node acts at read time ``t`` (epoch s), perhaps synced to it before it comes: frames sent from now
-        on carry ``t`` while it is still ahead (the server queues them then), else the instant they are sent."""
+        on carry ``t`` while it is still ahead (the server queues them then), else the instant they are sent; on a
+        link of turns, ``t`` until ``end_turn``, however late (the server holds its bus for the turn)."""
+    def end_turn(self) -> None:
+        """End the open turn (a DONE record); nothing without one."""
     def sync_to(self, t: float, timeout_s: float) -> bool:
         """Hand over every frame that ended by read time ``t`` (epoch s), waiting up to ``timeout_s`` (wall) for the
         server's SYNC of it; whether it came."""
@@ -312,12 +317,13 @@ class FrameLink:
         """The kept frames received since the last call: [(frame_id, data, t_sim)]; ``pump``: read the socket first
         (not needed by a lazy link just synced)."""
     def send(self, frames: Sequence[tuple[int, bytes]], extended: bool = False, fd: bool = False,
-             brs: bool = True, sender: int = 0) -> None:
+             brs: bool = True, sender: int = 0, end_turn: bool = False) -> None:
         """FRAME records of [(frame_id, data)]: 29-bit IDs with ``extended``, CAN FD frames with ``fd`` (and BRS);
         ``sender``: which of the connection's senders (0..MAX_SENDERS-1) sends them: each has its own TX queue on
-        the bus, as a separate CAN controller (a process hosting several ECUs sends each as its own)."""
+        the bus, as a separate CAN controller (a process hosting several ECUs sends each as its own).
+        ``end_turn``: they end the open turn (``end_turn`` after them, in the same write)."""
     def send_encoded(self, outputs: Sequence[tuple[MessageCodec, Sequence[float], int]], extended: bool = False,
-                     fd: bool = False, brs: bool = True, sender: int = 0) -> None:
+                     fd: bool = False, brs: bool = True, sender: int = 0, end_turn: bool = False) -> None:
         """One ECU cycle's outputs (message, values, alive counter), encoded and sent as ``send`` does, in one call."""
 
 
@@ -350,8 +356,11 @@ class LinkGroup:
     """A lazy reader's links, one per bus: its wait for a read time on all of them in a few calls."""
 
     def __init__(self, links: Sequence[FrameLink]) -> None: ...
-    def read_every(self, bus: int, first: float, period: float) -> None:
-        """Read times ``first + k * period`` (simulated s) on ``bus``, told to its server (0: a single read)."""
+    def read_every(self, bus: int, first: float, period: float, turns: bool = False) -> None:
+        """Read times ``first + k * period`` (simulated s) on ``bus``, told to its server (0: a single read);
+        ``turns``: they are the node's turns (``FrameLink.read_every``)."""
+    def end_turn(self) -> None:
+        """End every link's open turn (``FrameLink.end_turn``)."""
     def begin_wait(self, sim_t: float) -> list[int]:
         """Start waiting for read time ``sim_t`` (simulated s) on the buses that have it among their read times, or,
         at an instant none foresaw, on every bus not yet synced to it, asked once. The buses still without a SYNC."""

@@ -11,7 +11,7 @@
 
 use std::os::fd::RawFd;
 
-use crate::protocol::{pack_frame_records_from, pack_read_every, read_frames, BellSet, MAX_SENDERS, RECORD_SIZE};
+use crate::protocol::{pack_done, pack_frame_records_from, pack_read_every, read_frames, BellSet, MAX_SENDERS, RECORD_SIZE};
 
 /// Why the link cannot go on.
 #[derive(Debug)]
@@ -90,11 +90,18 @@ impl Link {
         self.synced
     }
 
-    /// Ask for read times: `first` (epoch s), then every `period` s (0: once).
-    pub fn read_every(&self, first: f64, period: f64) -> Result<(), LinkError> {
-        self.write_all(&pack_read_every(first, period))?;
+    /// Ask for read times: `first` (epoch s), then every `period` s (0: once); `turns`: each is a turn, which the
+    /// node ends with `end_turn` (protocol READ_TURNS).
+    pub fn read_every(&self, first: f64, period: f64, turns: bool) -> Result<(), LinkError> {
+        self.write_all(&pack_read_every(first, period, turns))?;
         self.ring();
         Ok(())
+    }
+
+    /// End the node's turn at read time `stamp` (epoch s): a DONE record. The server listens for it while the turn
+    /// holds its bus, so a quiet link need not ring.
+    pub fn end_turn(&self, stamp: f64) -> Result<(), LinkError> {
+        self.write_all(&pack_done(stamp))
     }
 
     /// Hand over every frame that ended by read time `t` (epoch s), waiting up to `timeout_s` (wall) for the
@@ -161,7 +168,8 @@ impl Link {
     /// link's server queues them at; 0: when the server reads them); an FD frame's payload is padded to a CAN FD
     /// length. Waits while the socket is full. A quiet link rings the bell if one of them must be seen now.
     /// `sender`: which of the connection's senders they are from (its own TX queue on the bus; see MAX_SENDERS).
-    pub fn send(&self, frames: &[(u32, &[u8])], flags: u8, stamp: f64, sender: usize) -> Result<(), LinkError> {
+    /// `end_turn`: the read time of the node's turn these frames end (a DONE record after them, in the same write).
+    pub fn send(&self, frames: &[(u32, &[u8])], flags: u8, stamp: f64, sender: usize, end_turn: Option<f64>) -> Result<(), LinkError> {
         if sender >= MAX_SENDERS {
             return Err(LinkError::Sender(sender));
         }
@@ -176,6 +184,9 @@ impl Link {
             let mut payload = data.to_vec();
             payload.resize(padded, 0);
             pack_frame_records_from(id, &payload, flags, stamp, sender as u8, &mut out);
+        }
+        if let Some(t) = end_turn {
+            out.extend_from_slice(&pack_done(t));
         }
         self.write_all(&out)?;
         if frames.iter().any(|&(id, _)| self.rings_for(id)) {
@@ -218,14 +229,14 @@ mod tests {
         a.set_nonblocking(true).unwrap();
         b.set_nonblocking(true).unwrap();
         let (tx, mut rx) = (Link::new(a.as_raw_fd()), Link::new(b.as_raw_fd()));
-        tx.send(&[(0x10, &[1, 2]), (0x11, &[3; 8])], 0, 0.0, 0).unwrap();
-        tx.send(&[(0x12, &[7; 13])], FLAG_FD | FLAG_BRS, 0.0, 0).unwrap(); // padded to 16
+        tx.send(&[(0x10, &[1, 2]), (0x11, &[3; 8])], 0, 0.0, 0, None).unwrap();
+        tx.send(&[(0x12, &[7; 13])], FLAG_FD | FLAG_BRS, 0.0, 0, None).unwrap(); // padded to 16
         let mut got = Vec::new();
         rx.pump(|id, flags, _, d| got.push((id, flags, d.to_vec()))).unwrap();
         let mut long = vec![7; 13];
         long.resize(16, 0);
         assert_eq!(got, vec![(0x10, 0, vec![1, 2]), (0x11, 0, vec![3; 8]), (0x12, FLAG_FD | FLAG_BRS, long)]);
-        assert!(matches!(tx.send(&[(0x13, &[0; 9])], 0, 0.0, 0), Err(LinkError::TooLong(0x13, 9, 8))));
+        assert!(matches!(tx.send(&[(0x13, &[0; 9])], 0, 0.0, 0, None), Err(LinkError::TooLong(0x13, 9, 8))));
         drop(a);
         assert!(matches!(rx.pump(|_, _, _, _| {}), Err(LinkError::Closed)));
     }
@@ -306,17 +317,17 @@ mod tests {
             s.set_nonblocking(true).unwrap();
         }
         let mut link = Link::quiet(node.as_raw_fd(), bell_w.as_raw_fd());
-        link.send(&[(0x10, &[1])], 0, 1.0, 0).unwrap();
+        link.send(&[(0x10, &[1])], 0, 1.0, 0, None).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 1); // no BELL record yet: every frame rings
         use std::io::Write;
         (&server).write_all(&crate::protocol::pack_bell(false, &[0x20])).unwrap();
         (&server).write_all(&crate::protocol::pack_sync(1.5)).unwrap(); // read in stream order, at a read time
         assert!(link.wait_synced(1.5, 1.0, |_, _, _, _| {}).unwrap());
-        link.send(&[(0x10, &[1]), (0x11, &[2])], 0, 1.0, 0).unwrap();
+        link.send(&[(0x10, &[1]), (0x11, &[2])], 0, 1.0, 0, None).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 0); // the server does not need these now
-        link.send(&[(0x10, &[1]), (0x20, &[2])], 0, 1.0, 0).unwrap();
+        link.send(&[(0x10, &[1]), (0x20, &[2])], 0, 1.0, 0, None).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 1);
-        link.read_every(2.0, 0.01).unwrap();
+        link.read_every(2.0, 0.01, false).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 1);
         assert_eq!(waiting(server.as_raw_fd()), 6 * RECORD_SIZE); // every record was written all the same
         assert!(!Link::lazy(node.as_raw_fd()).rings_for(0x20)); // no bell: nothing to ring
@@ -339,7 +350,7 @@ mod tests {
         let mut seen = 0;
         link.pump(|_, _, _, _| seen += 1).unwrap(); // never synced: its horizon is before everything
         assert_eq!((seen, link.synced()), (0, f64::NEG_INFINITY)); // the frame and the SYNC wait for a read time
-        link.send(&[(0x10, &[1])], 0, 1.0, 0).unwrap();
+        link.send(&[(0x10, &[1])], 0, 1.0, 0, None).unwrap();
         assert_eq!(waiting(bell_r.as_raw_fd()), 0); // the BELL record was taken in: 0x10 need not ring
         assert!(link.wait_synced(1.5, 1.0, |id, _, _, _| assert_eq!(id, 0x30)).unwrap()); // handed over in order
     }

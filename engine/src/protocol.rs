@@ -80,6 +80,17 @@ pub const KIND_BELL: u8 = 12;
 pub const BELL_EVERY: u8 = 0x01;
 pub const BELL_RESET: u8 = 0x02;
 pub const BELL_IDS_PER_RECORD: usize = 5;
+/// READ_EVERY byte 1: its read times are the node's turns. After the SYNC of such a read time the node acts as at
+/// that instant (its FRAME records carry it, however late it sends) and ends its turn with DONE; meanwhile the
+/// server runs its bus (and the buses of its radio) no further than just before that read time, so the frames of
+/// the turn compete at their instant as in virtual time. A turn not ended within TURN_HOLD_MAX_S of wall time
+/// after its read time is let go (counted: `turn_overruns`) and the bus goes on.
+pub const READ_TURNS: u8 = 0x01;
+/// Node to server, after its turn: it sends nothing more stamped before its next read time (bytes 8..16: the read
+/// time of the turn, epoch s).
+pub const KIND_DONE: u8 = 13;
+/// The longest a turn holds the bus, in wall seconds after its read time.
+pub const TURN_HOLD_MAX_S: f64 = 0.002;
 /// A FILTER's format match: any, standard IDs only, extended IDs only.
 pub const MATCH_ANY: u8 = 0;
 pub const MATCH_STANDARD: u8 = 1;
@@ -108,6 +119,7 @@ pub fn constants() -> Vec<(&'static str, f64)> {
         ("MAX_READ_SCHEDULES", MAX_READ_SCHEDULES as f64), ("OPTION_QUIET", OPTION_QUIET as f64),
         ("KIND_BELL", KIND_BELL as f64), ("BELL_EVERY", BELL_EVERY as f64), ("BELL_RESET", BELL_RESET as f64),
         ("BELL_IDS_PER_RECORD", BELL_IDS_PER_RECORD as f64), ("MAX_SENDERS", MAX_SENDERS as f64),
+        ("READ_TURNS", READ_TURNS as f64), ("KIND_DONE", KIND_DONE as f64), ("TURN_HOLD_MAX_S", TURN_HOLD_MAX_S),
     ]
 }
 
@@ -239,12 +251,22 @@ pub fn u32_at(r: &[u8], at: usize) -> u32 {
     u32::from_le_bytes(r[at..at + 4].try_into().unwrap())
 }
 
-/// A lazy reader's READ_EVERY record: read at `first` (epoch s), then every `period` s (0: once).
-pub fn pack_read_every(first: f64, period: f64) -> [u8; RECORD_SIZE] {
+/// A lazy reader's READ_EVERY record: read at `first` (epoch s), then every `period` s (0: once); `turns`: each
+/// read time is a turn (READ_TURNS).
+pub fn pack_read_every(first: f64, period: f64, turns: bool) -> [u8; RECORD_SIZE] {
     let mut r = [0u8; RECORD_SIZE];
     r[0] = KIND_READ_EVERY;
+    r[1] = if turns { READ_TURNS } else { 0 };
     r[8..16].copy_from_slice(&first.to_le_bytes());
     r[16..24].copy_from_slice(&period.to_le_bytes());
+    r
+}
+
+/// The DONE record that ends a node's turn at read time `stamp` (epoch s).
+pub fn pack_done(stamp: f64) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_DONE;
+    r[8..16].copy_from_slice(&stamp.to_le_bytes());
     r
 }
 
@@ -372,14 +394,14 @@ mod tests {
     #[test]
     fn kinds_and_flags_are_distinct() {
         let kinds = [KIND_FRAME, KIND_HELLO, KIND_WELCOME, KIND_FILTERS, KIND_FILTER, KIND_FILTERS_ACK, KIND_AUTH,
-                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC, KIND_BELL];
+                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC, KIND_BELL, KIND_DONE];
         let mut sorted = kinds.to_vec();
         sorted.sort();
         sorted.dedup();
         assert_eq!(sorted.len(), kinds.len());
         let flags = [FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_ECHO, FLAG_FD, FLAG_BRS];
         assert_eq!(flags.iter().fold(0u8, |acc, f| { assert_eq!(acc & f, 0); acc | f }), KNOWN_FLAGS);
-        assert_eq!(constants().len(), 43);
+        assert_eq!(constants().len(), 46);
     }
 
     #[test]

@@ -53,6 +53,16 @@ impl ReadSchedule {
         buses
     }
 
+    /// The buses (ascending, each once) with a read time before `now_us` that no wait took (skipped cycles). A
+    /// node whose read times are turns ends those on its way to `now_us` (`LinkGroup.begin_wait`); call it before
+    /// `due`, which catches them up.
+    pub fn skipped(&self, now_us: i64) -> Vec<usize> {
+        let mut buses: Vec<usize> = self.entries.iter().filter(|e| e.next_us < now_us - 1).map(|e| e.bus).collect();
+        buses.sort_unstable();
+        buses.dedup();
+        buses
+    }
+
     /// Whether no periodic read time was given.
     pub fn is_empty(&self) -> bool {
         self.entries.is_empty()
@@ -94,7 +104,10 @@ mod tests {
         let mut s = ReadSchedule::new();
         s.add(0, 10_000, 0);
         assert_eq!(s.due(0), vec![0]);
+        assert!(s.skipped(10_000).is_empty(), "10 ms is the next read, not a skipped one");
+        assert_eq!(s.skipped(40_000), vec![0]);
         assert_eq!(s.due(40_000), vec![0]); // 10, 20 and 30 ms were skipped
+        assert!(s.skipped(45_000).is_empty(), "caught up");
         assert!(s.due(45_000).is_empty());
         assert_eq!(s.due(50_000), vec![0]);
         assert!(s.due(55_000).is_empty()); // skipped past a read time that is not one: nothing due, moved on

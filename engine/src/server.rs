@@ -104,6 +104,10 @@ pub struct Shared {
     pub now_ns: u64,
     /// Turns of the serving loop so far (each one a wake-up of its thread).
     pub turns: u64,
+    /// Nodes' turns (READ_TURNS) the bus waited for: their read time came before their DONE.
+    pub turns_held: u64,
+    /// Turns let go after TURN_HOLD_MAX_S without their DONE (the bus went on without the rest of the turn).
+    pub turn_overruns: u64,
     /// Log lines for the owner to report (bad input, joins and leaves).
     pub messages: Vec<(String, String)>,
 }
@@ -157,8 +161,12 @@ struct Client {
     flush_to: usize,
     /// A lazy reader (`OPTION_LAZY`): its frames go out at its read times, its FRAME records carry their times.
     lazy: bool,
-    /// Its read times: (next, period) in bus ns, period 0 for a single read.
-    reads: Vec<(u64, u64)>,
+    /// Its read times: (next, period, turn) in bus ns, period 0 for a single read; `turn`: each is a turn
+    /// (READ_TURNS).
+    reads: Vec<(u64, u64, bool)>,
+    /// Its open turns: the read times (bus ns) it was synced to and has not ended with DONE (a DONE ends every
+    /// turn up to its stamp), and whether the bus has waited for each yet (counted once in `turns_held`).
+    turns: Vec<(u64, bool)>,
     /// A quiet lazy reader (`OPTION_QUIET`): its records do not wake the loop (it rings the bell when they must).
     quiet: bool,
     /// The bus nodes of its senders 1, 2, ... (FRAME byte 3; sender 0 is `node`), attached at their first frame.
@@ -181,7 +189,15 @@ impl Client {
         if self.closed || self.node.is_none() {
             return None;
         }
-        self.reads.iter().map(|&(next, _)| next).min()
+        self.reads.iter().map(|&(next, _, _)| next).min()
+    }
+
+    /// The latest turn it ended (DONE's stamp, epoch s) among the whole records it sent that the server has not
+    /// taken yet: a turn ends when its DONE comes, though the records before it take effect at their instants.
+    fn done_waiting(&self) -> Option<f64> {
+        let whole = (self.rx.len() - self.rx_off) / RECORD_SIZE * RECORD_SIZE;
+        self.rx[self.rx_off..self.rx_off + whole].chunks_exact(RECORD_SIZE)
+            .filter(|rec| rec[0] == KIND_DONE).map(stamp_of).reduce(f64::max)
     }
 }
 
@@ -223,6 +239,11 @@ pub struct Server {
     bell_routes: bool,
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
+    /// The earliest open turn (READ_TURNS) whose read time this turn's now has reached (bus ns), if any.
+    turn_hold: Option<u64>,
+    /// Whether this turn's now was held back for a node's turn (on this bus or another of its radio): eager nodes'
+    /// records then wait, and the loop wakes for the turn's DONE or its end (TURN_HOLD_MAX_S).
+    held: bool,
     /// Set once the server has finished (its nodes disconnected, its log closed): its handle's `shutdown` waits.
     done: Arc<AtomicBool>,
 }
@@ -359,7 +380,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     };
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
-        bad: BadInput::default(), clients: 0, now_ns: 0, turns: 0, messages: Vec::new(),
+        bad: BadInput::default(), clients: 0, now_ns: 0, turns: 0, turns_held: 0, turn_overruns: 0, messages: Vec::new(),
     }));
     let stop = Arc::new(AtomicBool::new(false));
     let pace = cfg.pace;
@@ -368,7 +389,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
         floor: 0, arbitrate_at: None, shortest_frame_ns, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
-        more_waiting: false,
+        more_waiting: false, turn_hold: None, held: false,
         done: done.clone(),
     };
     thread.add(server);
@@ -412,6 +433,13 @@ impl Server {
             return 0;
         }
         let now = self.now();
+        if self.held { // nothing can run until the turn ends: its DONE wakes the loop (poll_set), or its time is up
+            let end = match self.turn_hold { // its own turn's end, or (held for another bus's) at most the longest
+                Some(r) => (r + self.turn_hold_ns()).max(now + 1),
+                None => now + self.turn_hold_ns(),
+            };
+            return ((end - now) as f64 / self.cfg.pace) as i64;
+        }
         let mut wake = self.next_window.max(now); // not now + a window: each earlier wake-up would push it on
         if let Some(end) = self.frame_end_wake(shared) {
             wake = wake.min(end.saturating_sub(self.cfg.spin_ns));
@@ -449,7 +477,7 @@ impl Server {
 
     /// The earliest time a record already read waits for (a FRAME sent ahead of its time), if any.
     fn next_pending_record(&self, now: u64) -> Option<u64> {
-        (0..self.clients.len()).filter_map(|i| self.next_record_time(i, now)).filter(|&t| t > now).min()
+        (0..self.clients.len()).filter_map(|i| self.due_record_time(i, now)).filter(|&t| t > now).min()
     }
 
     /// When the loop can give the SYNC of read time `r` (see `anticipate`): one shortest frame before it, or when
@@ -550,8 +578,10 @@ impl Server {
         fds.push(libc::pollfd { fd: self.tcp.as_ref().map_or(-1, |l| l.as_raw_fd()), events: libc::POLLIN, revents: 0 });
         fds.push(libc::pollfd { fd: self.bell.as_ref().map_or(-1, |b| b.as_raw_fd()), events: libc::POLLIN, revents: 0 });
         for c in &self.clients {
-            // a quiet reader's records wait for the next wake-up (a hang-up or error is reported all the same)
-            let events = if c.quiet { 0 } else { libc::POLLIN } | if c.flush_to == 0 { 0 } else { libc::POLLOUT };
+            // a quiet reader's records wait for the next wake-up (a hang-up or error is reported all the same),
+            // unless the bus is held for its turn: its DONE must wake the loop
+            let listen = !c.quiet || (self.held && !c.turns.is_empty());
+            let events = if listen { libc::POLLIN } else { 0 } | if c.flush_to == 0 { 0 } else { libc::POLLOUT };
             fds.push(libc::pollfd { fd: c.stream.fd(), events, revents: 0 });
         }
         timeout
@@ -587,7 +617,52 @@ impl Server {
             self.accept(shared, true);
         }
         self.take_radio();
+        self.turn_hold = self.open_turn(shared, now);
         now
+    }
+
+    /// Whether a node's turn opened at read time `t` (its SYNC just went out).
+    fn turn_opened_at(&self, t: u64) -> bool {
+        self.clients.iter().any(|c| c.turns.contains(&(t, false)))
+    }
+
+    /// The longest a turn holds the bus (bus ns): TURN_HOLD_MAX_S of wall time.
+    fn turn_hold_ns(&self) -> u64 {
+        (TURN_HOLD_MAX_S * 1e9 * self.cfg.pace) as u64
+    }
+
+    /// The earliest open turn whose read time `now` has reached, if any: the bus must not run past it until the
+    /// node's DONE. The turns a DONE that came ends are closed; one held longer than TURN_HOLD_MAX_S is let go and
+    /// counted.
+    fn open_turn(&mut self, shared: &mut Shared, now: u64) -> Option<u64> {
+        let limit = self.turn_hold_ns();
+        let mut earliest: Option<u64> = None;
+        for i in 0..self.clients.len() {
+            if self.clients[i].turns.is_empty() {
+                continue;
+            }
+            let ended = self.clients[i].done_waiting().and_then(|done| self.bus_ns(done + SYNC_TOLERANCE_S));
+            let c = &mut self.clients[i];
+            let closed = c.closed;
+            c.turns.retain_mut(|(r, waited)| {
+                if closed || ended.is_some_and(|t| t >= *r) {
+                    return false;
+                }
+                if now > *r + limit {
+                    shared.turn_overruns += 1;
+                    return false;
+                }
+                if *r <= now {
+                    if !*waited {
+                        shared.turns_held += 1;
+                        *waited = true;
+                    }
+                    earliest = Some(earliest.map_or(*r, |e| e.min(*r)));
+                }
+                true
+            });
+        }
+        earliest
     }
 
     /// Which clients are lazy readers with something to read now. Their frames carry their time, so what came since
@@ -727,7 +802,7 @@ impl Server {
     /// The time of the earliest record or radio delivery due by `now`: a lazy reader's FRAME at the time it
     /// carries (not before the bus's floor; one sent ahead of its time waits for it), anyone else's when read.
     fn next_input_time(&self, now: u64) -> Option<u64> {
-        let record = (0..self.clients.len()).filter_map(|i| self.next_record_time(i, now)).min();
+        let record = (0..self.clients.len()).filter_map(|i| self.due_record_time(i, now)).min();
         self.next_delivery_time(now).into_iter().chain(record).filter(|&t| t <= now).min()
     }
 
@@ -741,7 +816,7 @@ impl Server {
     fn take_one_input(&mut self, shared: &mut Shared, now: u64, t: u64) {
         let mut record: Option<(u64, usize)> = None;
         for i in 0..self.clients.len() {
-            if let Some(ti) = self.next_record_time(i, now).filter(|&ti| ti <= now && record.is_none_or(|(b, _)| ti < b)) {
+            if let Some(ti) = self.due_record_time(i, now).filter(|&ti| ti <= now && record.is_none_or(|(b, _)| ti < b)) {
                 record = Some((ti, i));
             }
         }
@@ -796,7 +871,10 @@ impl Server {
         let stamp = self.epoch_s(r);
         for c in self.clients.iter_mut().filter(|c| c.next_read() == Some(r)) {
             c.push_now(&pack_sync(stamp));
-            c.reads.retain_mut(|(next, period)| {
+            if c.reads.iter().any(|&(next, _, turn)| turn && next <= r) {
+                c.turns.push((r, false));
+            }
+            c.reads.retain_mut(|(next, period, _)| {
                 if *next > r {
                     return true;
                 }
@@ -811,7 +889,7 @@ impl Server {
 
     /// READ_EVERY from a lazy reader: its read times from `first` (epoch s) every `period` s (0: once).
     fn read_every(&mut self, i: usize, r: &[u8], now: u64) -> Result<(), Fault> {
-        let (first, period) = (stamp_of(r), f64::from_le_bytes(r[16..24].try_into().unwrap()));
+        let (first, period, turns) = (stamp_of(r), f64::from_le_bytes(r[16..24].try_into().unwrap()), r[1] & READ_TURNS != 0);
         let c = &self.clients[i];
         if !(first.is_finite() && period.is_finite() && period >= 0.0) {
             return Err(Fault::Protocol(format!("READ_EVERY: first {first}, period {period} s from node {}", c.name)));
@@ -827,7 +905,7 @@ impl Server {
         if period_ns > 0 && next < now {
             next += (now - next).div_ceil(period_ns) * period_ns; // the first read time still to come
         }
-        self.clients[i].reads.push((next.max(self.floor), period_ns));
+        self.clients[i].reads.push((next.max(self.floor), period_ns, turns));
         Ok(())
     }
 
@@ -990,7 +1068,7 @@ impl Server {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
                 authed: !tcp, t_open: Instant::now(), long: None, rx_off: 0, flush_to: 0, lazy: false, reads: Vec::new(),
-                quiet: false, senders: Vec::new(),
+                turns: Vec::new(), quiet: false, senders: Vec::new(),
             });
         }
     }
@@ -1078,6 +1156,15 @@ impl Server {
             c.rx.clear();
             c.rx_off = 0;
         }
+    }
+
+    /// `next_record_time`, but none for an eager node while the bus is held for a turn: its records wait for the
+    /// turn's end and are queued when taken, never before they came.
+    fn due_record_time(&self, i: usize, now: u64) -> Option<u64> {
+        if self.held && !self.clients[i].lazy {
+            return None;
+        }
+        self.next_record_time(i, now)
     }
 
     /// When node `i`'s next whole record takes effect (None: it has none, or it is closed).
@@ -1180,6 +1267,7 @@ impl Server {
             }
             KIND_HELLO if !has_node => self.hello(shared, i, r),
             KIND_READ_EVERY if has_node && self.clients[i].lazy => self.read_every(i, r, now),
+            KIND_DONE if has_node && self.clients[i].lazy => Ok(()), // its turns ended when it came (`open_turn`)
             KIND_FILTERS if has_node && self.clients[i].pending.is_none() => {
                 let count = u16::from_le_bytes([r[2], r[3]]) as usize;
                 if count > MAX_FILTERS {
@@ -1303,17 +1391,31 @@ enum Step {
 pub(crate) fn turn_together(turns: &mut [(&mut Server, &[libc::pollfd])]) {
     let arcs: Vec<Arc<Mutex<Shared>>> = turns.iter().map(|(s, _)| s.shared.clone()).collect();
     let mut shared: Vec<_> = arcs.iter().map(|a| a.lock().unwrap()).collect();
-    let nows: Vec<u64> = turns.iter_mut().zip(shared.iter_mut()).map(|((s, fds), sh)| s.take_input(sh, fds)).collect();
-    settle(turns, &mut shared, &nows);
+    let walls: Vec<u64> = turns.iter_mut().zip(shared.iter_mut()).map(|((s, fds), sh)| s.take_input(sh, fds)).collect();
+    let nows = hold_for_turns(turns, &walls);
+    let nows = settle(turns, &mut shared, &nows);
     for (((s, _), sh), &now) in turns.iter_mut().zip(shared.iter_mut()).zip(&nows) {
         s.end_turn(sh, now);
     }
 }
 
+/// The servers' nows (`walls`: their wall-clock bus times) held back to just before the earliest open turn among
+/// them, in the radio's time (their buses run together, so one node's turn holds them all); each is told whether
+/// it is held.
+fn hold_for_turns(turns: &mut [(&mut Server, &[libc::pollfd])], walls: &[u64]) -> Vec<u64> {
+    let hold = turns.iter().filter_map(|(s, _)| s.turn_hold.map(|r| r as i64 + s.origin_ns())).min();
+    turns.iter_mut().zip(walls).map(|((s, _), &wall)| {
+        let now = hold.map_or(wall, |h| wall.min((h - s.origin_ns() - 1).max(0) as u64));
+        s.held = now < wall;
+        now
+    }).collect()
+}
+
 /// Run the servers' events up to their nows, the earliest first across them (in the radio hub's time; see
 /// `Step` for one instant's order). A routed frame's end hands it to the hub, and the other servers take its
 /// deliveries before their next event.
-fn settle(turns: &mut [(&mut Server, &[libc::pollfd])], shared: &mut [std::sync::MutexGuard<'_, Shared>], nows: &[u64]) {
+fn settle(turns: &mut [(&mut Server, &[libc::pollfd])], shared: &mut [std::sync::MutexGuard<'_, Shared>], nows: &[u64]) -> Vec<u64> {
+    let mut nows = nows.to_vec();
     loop {
         let mut best: Option<((i64, Step), usize, u64)> = None;
         for (k, (s, _)) in turns.iter().enumerate() {
@@ -1330,9 +1432,24 @@ fn settle(turns: &mut [(&mut Server, &[libc::pollfd])], shared: &mut [std::sync:
                 s.take_radio();
             }
         }
+        if kind == Step::Read && turns[k].0.turn_opened_at(t) {
+            hold_from(turns, &mut nows, t as i64 + turns[k].0.origin_ns());
+        }
     }
     for (k, (s, _)) in turns.iter_mut().enumerate() {
         s.settled(&shared[k], nows[k]);
+    }
+    nows
+}
+
+/// A turn begins at `h` (the radio's time) while the servers run: none of them runs past it before its DONE.
+fn hold_from(turns: &mut [(&mut Server, &[libc::pollfd])], nows: &mut [u64], h: i64) {
+    for ((s, _), now) in turns.iter_mut().zip(nows.iter_mut()) {
+        let cap = (h - s.origin_ns()).max(0) as u64;
+        if cap < *now {
+            *now = cap;
+            s.held = true;
+        }
     }
 }
 
@@ -1432,7 +1549,7 @@ mod tests {
         let now = || epoch0 + a.now_ns() as f64 * 1e-9;
         let (on_a, on_b) = routed_frame_times();
         let t_read = now() + 0.01 + on_a + on_b + 0.01;
-        reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
+        reader.write_all(&pack_read_every(t_read, 0.0, false)).unwrap();
         std::thread::sleep(Duration::from_millis(10));
         let turns_before = turns(a);
         let t_send = now();
@@ -1572,7 +1689,7 @@ mod tests {
         let epoch0 = handle.epoch0_ns as f64 * 1e-9;
         let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
         let t_read = now() + 0.03;
-        reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
+        reader.write_all(&pack_read_every(t_read, 0.0, false)).unwrap();
         std::thread::sleep(Duration::from_millis(5));
         let before = turns(&handle);
         let t_send = now();
@@ -1643,7 +1760,7 @@ mod tests {
         let one_frame = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
         let shortest = timing.frame_ns(0, &[], false, false, false).unwrap() as f64 * 1e-9;
         let t_read = now() + 0.005 + one_frame - 0.0005; // while the frame sent in 5 ms is on the wire
-        reader.write_all(&pack_read_every(t_read, 0.0)).unwrap();
+        reader.write_all(&pack_read_every(t_read, 0.0, false)).unwrap();
         std::thread::sleep(Duration::from_millis(5));
         sender.write_all(&pack_frame(0x100, &[1; 8], 0, now())).unwrap(); // queued when the server reads it
         let mut rec = [0u8; RECORD_SIZE];
@@ -1695,7 +1812,7 @@ mod tests {
         }).collect();
         let epoch0 = handle.epoch0_ns as f64 * 1e-9;
         let t_send = epoch0 + handle.now_ns() as f64 * 1e-9 + 0.005;
-        socks[2].write_all(&pack_read_every(t_send + 0.02, 0.0)).unwrap();
+        socks[2].write_all(&pack_read_every(t_send + 0.02, 0.0, false)).unwrap();
         std::thread::sleep(Duration::from_millis(10));
         {
             let _hold = handle.shared.lock().unwrap(); // the loop reads both before it runs the bus
@@ -1717,6 +1834,54 @@ mod tests {
         assert!((got[2].2 - (t_send + 0.02)).abs() < 2e-6, "{got:?}");
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A node's turn (READ_TURNS) that takes longer than the read after it: its frame, sent late but stamped with
+    /// its read time, still goes on the bus at that instant, and the later reader's SYNC waits for the turn's DONE,
+    /// so that reader has the frame as in virtual time. Without DONE the turn is let go after TURN_HOLD_MAX_S.
+    #[test]
+    fn a_turn_holds_the_bus_at_its_read_time_until_the_node_ends_it() {
+        for ends in [true, false] {
+            let (mut handle, path, dir) = serve(if ends { "turn" } else { "turnx" }, 500_000, 500_000, Format::Classical);
+            let (mut node, mut reader) = (connect_node(&path, "P", OPTION_LAZY), connect_node(&path, "R", OPTION_LAZY));
+            let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+            let t_turn = epoch0 + handle.now_ns() as f64 * 1e-9 + 0.01;
+            let t_read = t_turn + 0.0004; // after one frame's end, long before the node's turn is over
+            node.write_all(&pack_read_every(t_turn, 0.0, true)).unwrap();
+            reader.write_all(&pack_read_every(t_read, 0.0, false)).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            node.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_SYNC);
+            std::thread::sleep(Duration::from_millis(1)); // the node's work: past the reader's read time
+            let mut out = pack_frame(0x100, &[1; 8], 0, t_turn).to_vec();
+            if ends {
+                out.extend_from_slice(&pack_done(t_turn));
+            }
+            node.write_all(&out).unwrap();
+            let mut got = Vec::new();
+            while got.last().is_none_or(|&(kind, _)| kind != KIND_SYNC) {
+                reader.read_exact(&mut rec).unwrap();
+                got.push((rec[0], stamp_of(&rec)));
+            }
+            let synced_wall = epoch0 + handle.now_ns() as f64 * 1e-9;
+            let one_frame = BitTiming::new(500_000, 500_000).unwrap().frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+            let stats = {
+                let shared = handle.shared.lock().unwrap();
+                (shared.turns_held, shared.turn_overruns)
+            };
+            if ends {
+                assert_eq!(got.len(), 2, "{got:?}");
+                assert_eq!(got[0].0, KIND_FRAME);
+                assert!((got[0].1 - (t_turn + one_frame)).abs() < 2e-6, "ended {:.6} s after its turn", got[0].1 - t_turn);
+                assert!((got[1].1 - t_read).abs() < 2e-6);
+                assert_eq!(stats, (1, 0));
+            } else {
+                assert!(synced_wall - t_turn > TURN_HOLD_MAX_S, "the reader waited {:.6} s", synced_wall - t_turn);
+                assert_eq!(stats.1, 1, "let go once");
+            }
+            handle.shutdown();
+            let _ = std::fs::remove_dir_all(&dir);
+        }
     }
 
     /// A node leaves in the turn in which a frame ends: the receivers of that frame, found after it left, must

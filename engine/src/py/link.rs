@@ -40,6 +40,11 @@ pub struct FrameLink {
     lazy: bool,
     /// The read time the node acts at (epoch s, `act_at`): its frames carry no earlier instant.
     acts_at: f64,
+    /// Its read times are turns (protocol READ_TURNS): in a turn its frames carry the read time however late they
+    /// are sent, and `end_turn` ends it.
+    turns: bool,
+    /// A turn is open (synced, acting at `acts_at`, not ended yet).
+    in_turn: bool,
 }
 
 /// Seconds since the Unix epoch now (the stamp of a lazy link's frames; the server's time base is the epoch).
@@ -80,6 +85,21 @@ impl FrameLink {
         let result = self.link.wait_synced(t, 0.0, |id, _, stamp, data| frames.push((id, stamp, Payload::new(data))));
         self.hand_over_all(frames);
         result.map_err(link_err)
+    }
+
+    /// End the server's turns of this link's read times before `t` (epoch s) that the node skipped (it was late and
+    /// never acted at them): a DONE just before `t`. Nothing on a link without turns.
+    pub(super) fn end_turns_skipped(&mut self, t: f64) -> PyResult<()> {
+        if self.turns {
+            self.in_turn = false;
+            self.link.end_turn(t - 2.0 * crate::protocol::SYNC_TOLERANCE_S).map_err(link_err)?;
+        }
+        Ok(())
+    }
+
+    /// The read time the node acts at (epoch s; -inf before the first).
+    pub(super) fn acts_at(&self) -> f64 {
+        self.acts_at
     }
 
     /// The epoch second of simulated time `sim_t` (this link's clock).
@@ -123,21 +143,41 @@ impl FrameLink {
             (false, Some(_)) => return Err(PyValueError::new_err("a bell is for a lazy link")),
         };
         Ok(FrameLink { link, t0, pace, routes: Default::default(), inboxes: Default::default(), received: 0, keep, kept: Vec::new(), packing: None,
-                       lazy, acts_at: f64::NEG_INFINITY })
+                       lazy, acts_at: f64::NEG_INFINITY, turns: false, in_turn: false })
     }
 
-    /// A lazy link's read times: `first` (epoch s), then every `period` s (0: once).
-    pub(super) fn read_every(&self, first: f64, period: f64) -> PyResult<()> {
+    /// A lazy link's read times: `first` (epoch s), then every `period` s (0: once). `turns`: from now on each of
+    /// the link's read times is a turn (protocol READ_TURNS; see `act_at`, `end_turn`).
+    #[pyo3(signature = (first, period, turns = false))]
+    pub(super) fn read_every(&mut self, first: f64, period: f64, turns: bool) -> PyResult<()> {
         if !self.lazy {
             return Err(PyValueError::new_err("read_every is for a lazy link"));
         }
-        self.link.read_every(first, period).map_err(link_err)
+        self.turns |= turns;
+        self.link.read_every(first, period, self.turns).map_err(link_err)
     }
 
     /// The node acts at read time `t` (epoch s), synced to it perhaps before it comes: the frames it sends from
-    /// now on carry `t` while that is still ahead (the server queues them then), else the instant they are sent.
+    /// now on carry `t` while that is still ahead (the server queues them then), else the instant they are sent;
+    /// on a link of turns, `t` until `end_turn`, however late (the server holds its bus for the turn).
     pub(super) fn act_at(&mut self, t: f64) {
         self.acts_at = t;
+        self.in_turn = self.turns;
+    }
+
+    /// End the open turn (a DONE record): the node sends nothing more before its next read time. Nothing without
+    /// one.
+    pub(super) fn end_turn(&mut self) -> PyResult<()> {
+        if std::mem::take(&mut self.in_turn) {
+            self.link.end_turn(self.acts_at).map_err(link_err)?;
+        }
+        Ok(())
+    }
+
+    /// Whether a turn is open (see `act_at`).
+    #[getter]
+    pub(super) fn in_turn(&self) -> bool {
+        self.in_turn
     }
 
     /// Hand over every frame that ended by read time `t` (epoch s): wait up to `timeout_s` (wall, the interpreter
@@ -209,26 +249,30 @@ impl FrameLink {
 
     /// Send frames [(frame_id, data)] as FRAME records: `extended` for 29-bit IDs, `fd` for CAN FD frames (with
     /// the bit-rate switch unless `brs` is false); `sender`: which of the connection's senders sends them (each
-    /// its own TX queue on the bus, as separate controllers; 0..MAX_SENDERS-1).
-    #[pyo3(signature = (frames, extended = false, fd = false, brs = true, sender = 0))]
-    fn send(&self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool, sender: usize) -> PyResult<()> {
+    /// its own TX queue on the bus, as separate controllers; 0..MAX_SENDERS-1). `end_turn`: they end the open turn
+    /// (as `end_turn` after them, in the same write).
+    #[pyo3(signature = (frames, extended = false, fd = false, brs = true, sender = 0, end_turn = false))]
+    fn send(&mut self, frames: Vec<(u32, PyBackedBytes)>, extended: bool, fd: bool, brs: bool, sender: usize,
+            end_turn: bool) -> PyResult<()> {
         let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_ref())).collect();
-        self.send_batch(&batch, extended, fd, brs, sender)
+        self.send_batch(&batch, extended, fd, brs, sender, end_turn)
     }
 
     /// Encode one ECU cycle's outputs [(codec, values, counter)] and send them as `send` does, in one call.
-    #[pyo3(signature = (outputs, extended = false, fd = false, brs = true, sender = 0))]
-    fn send_encoded(&self, outputs: Vec<Output<'_>>, extended: bool, fd: bool, brs: bool, sender: usize) -> PyResult<()> {
+    #[pyo3(signature = (outputs, extended = false, fd = false, brs = true, sender = 0, end_turn = false))]
+    fn send_encoded(&mut self, outputs: Vec<Output<'_>>, extended: bool, fd: bool, brs: bool, sender: usize,
+                    end_turn: bool) -> PyResult<()> {
         let frames = encode_outputs(&outputs)?;
         let batch: Vec<(u32, &[u8])> = frames.iter().map(|(id, d)| (*id, d.as_slice())).collect();
-        self.send_batch(&batch, extended, fd, brs, sender)
+        self.send_batch(&batch, extended, fd, brs, sender, end_turn)
     }
 }
 
 impl FrameLink {
     /// FRAME records of a batch (packed into containers with a packing); a lazy link stamps them now, or at the
-    /// read time it acts at if that is later.
-    fn send_batch(&self, batch: &[(u32, &[u8])], extended: bool, fd: bool, brs: bool, sender: usize) -> PyResult<()> {
+    /// read time it acts at if that is later, and in a turn at that read time. `end_turn`: a DONE after them.
+    fn send_batch(&mut self, batch: &[(u32, &[u8])], extended: bool, fd: bool, brs: bool, sender: usize,
+                  end_turn: bool) -> PyResult<()> {
         let flags = if extended { FLAG_EXTENDED } else { 0 } | format_flags(Format::of(fd, brs));
         let limit = if fd { MAX_DATA } else { crate::protocol::MAX_DLC };
         if let Some((id, data)) = batch.iter().find(|(_, d)| d.len() > limit) {
@@ -239,7 +283,12 @@ impl FrameLink {
             None => batch.iter().map(|&(id, d)| (id, Payload::new(d))).collect(),
         };
         let parts: Vec<(u32, &[u8])> = packed.iter().map(|(id, d)| (*id, d.as_slice())).collect();
-        let stamp = if self.lazy { epoch_now().max(self.acts_at) } else { 0.0 };
-        self.link.send(&parts, flags, stamp, sender).map_err(link_err)
+        let stamp = match (self.lazy, self.in_turn) {
+            (false, _) => 0.0,
+            (true, true) => self.acts_at,
+            (true, false) => epoch_now().max(self.acts_at),
+        };
+        let done = (end_turn && std::mem::take(&mut self.in_turn)).then_some(self.acts_at);
+        self.link.send(&parts, flags, stamp, sender, done).map_err(link_err)
     }
 }

@@ -33,6 +33,17 @@ impl LinkGroup {
         })
     }
 
+    /// End the turns still open at an instant before `t` (epoch s): the node has moved on to wait for `t`.
+    fn end_turns_before(&self, py: Python<'_>, t: f64) -> PyResult<()> {
+        for bus in 0..self.links.len() {
+            let mut link = self.link(py, bus)?;
+            if link.in_turn() && link.acts_at() < t - crate::protocol::SYNC_TOLERANCE_S {
+                link.end_turn()?;
+            }
+        }
+        Ok(())
+    }
+
     /// Of `buses`, those whose SYNC of `t` (epoch s) has not come yet (what came is handed over).
     fn not_synced(&self, py: Python<'_>, buses: &[usize], t: f64) -> PyResult<Vec<usize>> {
         let mut left = Vec::new();
@@ -53,10 +64,14 @@ impl LinkGroup {
         LinkGroup { links, schedule: ReadSchedule::new(), asked: Vec::new(), waiting: Vec::new() }
     }
 
-    /// Read times `first + k * period` (simulated s) on `bus`, told to its server (0: a single read).
-    fn read_every(&mut self, py: Python<'_>, bus: usize, first: f64, period: f64) -> PyResult<()> {
-        let link = self.link(py, bus)?;
-        link.read_every(link.epoch(first), period / link.pace)?;
+    /// Read times `first + k * period` (simulated s) on `bus`, told to its server (0: a single read). `turns`:
+    /// the bus's read times are the node's turns (`FrameLink.read_every`), which `end_turn` ends.
+    #[pyo3(signature = (bus, first, period, turns = false))]
+    fn read_every(&mut self, py: Python<'_>, bus: usize, first: f64, period: f64, turns: bool) -> PyResult<()> {
+        let mut link = self.link(py, bus)?;
+        let epoch = link.epoch(first);
+        let period = period / link.pace;
+        link.read_every(epoch, period, turns)?;
         drop(link);
         self.schedule.add(to_us(first), to_us(period), bus);
         Ok(())
@@ -66,12 +81,16 @@ impl LinkGroup {
     /// instant none foresaw, every bus not yet synced to it, asked once. Returns those whose SYNC has not come.
     fn begin_wait(&mut self, py: Python<'_>, sim_t: f64) -> PyResult<Vec<usize>> {
         let t = self.epoch(py, sim_t)?;
+        self.end_turns_before(py, t)?;
+        for bus in self.schedule.skipped(to_us(sim_t)) {
+            self.link(py, bus)?.end_turns_skipped(t)?; // a late node's skipped cycles must not hold its bus
+        }
         let mut asked = self.schedule.due(to_us(sim_t));
         if asked.is_empty() {
             let all: Vec<usize> = (0..self.links.len()).collect();
             asked = self.not_synced(py, &all, t)?;
             for &bus in &asked {
-                self.link(py, bus)?.read_every(t, 0.0)?;
+                self.link(py, bus)?.read_every(t, 0.0, false)?;
             }
         }
         self.waiting = self.not_synced(py, &asked, t)?;
@@ -88,6 +107,16 @@ impl LinkGroup {
         let waiting = std::mem::take(&mut self.waiting);
         self.waiting = self.not_synced(py, &waiting, t)?;
         Ok(self.waiting.clone())
+    }
+
+    /// End the node's open turns on `buses` (default: every bus): those its last `finish` opened and no
+    /// `send(end_turn=True)` ended yet. A turn still open when the node next waits for a later instant ends then.
+    #[pyo3(signature = (buses = None))]
+    fn end_turn(&mut self, py: Python<'_>, buses: Option<Vec<usize>>) -> PyResult<()> {
+        for bus in buses.unwrap_or_else(|| (0..self.links.len()).collect()) {
+            self.link(py, bus)?.end_turn()?;
+        }
+        Ok(())
     }
 
     /// End the wait: every link acts at `sim_t` (its frames sent from now on carry that instant while it is ahead),

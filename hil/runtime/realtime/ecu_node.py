@@ -28,6 +28,7 @@ from hil.record.integrity import write_json_atomic
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
+from hil.runtime.realtime.protocol import TURN_HOLD_MAX_S
 from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
 from hil.runtime.assembly import assemble
@@ -73,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
             for frame_id, listeners in table.items():
                 for ecu in listeners:
                     io.route(i, frame_id, ecu.mailbox)
-        stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late, Path(args.out))
+        stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late, Path(args.out),
+                    args.turns)
     finally:
         for b in buses:
             b.shutdown()
@@ -89,19 +91,21 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFrames, bus_of: dict, duration: float,
-        stop: StopFlag, join_late: bool = False, out: Path | None = None) -> dict[int, LatenessStats]:
+        stop: StopFlag, join_late: bool = False, out: Path | None = None, turns: bool = False) -> dict[int, LatenessStats]:
     """Cycle every hosted unit on the paced kernel to ``duration`` (``join_late``: from the first cycle after now);
     each unit's cycle lateness goes to ``out/timing_ecu_<train>_<unit>.bin`` (kept in memory without ``out``).
+    ``turns``: each cycle is the unit's turn (``EngineFrames.read_every``): the firmware runs as at its cycle start
+    and its frames go on the bus at that instant however late it is; its lateness is still the wall clock's.
 
     With ``ecu.restart_after_s``, a unit whose controller stopped it (exception, NaN) is restarted in place after
     that long, as the virtual rig's watchdog does."""
     kernel = PacedKernel(clock, io, stop, heartbeat=Heartbeat())  # silent when a cycle never returns: hung
-    cycles = UnitCycles(kernel, sc, layout, ecus, io, bus_of, out)
+    cycles = UnitCycles(kernel, sc, layout, ecus, io, bus_of, out, turns)
     start = clock.now() if join_late else 0.0
     for u in ecus:
         phase = sc.ecu.phase_s + layout.train_unit(u)[1] * sc.ecu.stagger_s
         first = phase + max(0, math.ceil((start - phase) / sc.ecu.cycle_s)) * sc.ecu.cycle_s
-        io.read_every(first, sc.ecu.cycle_s, [bus_of[u]])  # a lazy reader: its bus syncs us at each cycle start
+        io.read_every(first, sc.ecu.cycle_s, [bus_of[u]], turns)  # a lazy reader: its bus syncs us at each cycle start
         cycles.schedule(u, first)
     try:
         kernel.run(to_ns(duration))
@@ -123,10 +127,20 @@ def timing_name(layout, u: int) -> str:
 class UnitCycles:
     """Each hosted unit's cycle as a kernel event: cycle the firmware, send its frames, book its lateness, and
     schedule the next deadline (a unit more than one cycle late skips to its next future deadline). Each unit
-    sends as its own sender on its bus (its own TX queue there, as its own CAN controller would have)."""
+    sends as its own sender on its bus (its own TX queue there, as its own CAN controller would have).
 
-    def __init__(self, kernel: PacedKernel, sc, layout, ecus: dict, io, bus_of: dict, out: Path | None) -> None:
-        self.kernel, self.ecus, self.io, self.bus_of = kernel, ecus, io, bus_of
+    With ``turns`` a unit ends its turn with its frames, unless another hosted unit cycles on the same bus at the
+    same instant: that turn ends when the node next waits (``LinkGroup.begin_wait``), after both. A unit late by
+    less than ``TURN_HOLD_MAX_S`` of wall time then runs its next cycle rather than skip to a future one: its bus
+    waited for it, so the cycles after it still find the bus at their instants."""
+
+    def __init__(self, kernel: PacedKernel, sc, layout, ecus: dict, io, bus_of: dict, out: Path | None,
+                 turns: bool = False) -> None:
+        self.kernel, self.ecus, self.io, self.bus_of, self.turns = kernel, ecus, io, bus_of, turns
+        phase = {u: layout.train_unit(u)[1] * sc.ecu.stagger_s for u in ecus}
+        self.ends_turn = {u: turns and not any(v != u and bus_of[v] == bus_of[u] and phase[v] == phase[u] for v in ecus)
+                          for u in ecus}
+        self.hold_sim_s = TURN_HOLD_MAX_S * kernel.clock.pace  # how late a turn may be and its bus still wait
         self.sender = senders(ecus, bus_of)
         self.cycle_s = sc.ecu.cycle_s
         self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace, None if out is None else out / timing_name(layout, u))
@@ -139,19 +153,24 @@ class UnitCycles:
     def run_cycle(self, item: tuple[int, float]) -> None:
         u, deadline = item
         now = max(self.kernel.clock.now(), deadline)  # synced early, the cycle runs as at its deadline
+        at = deadline if self.turns else now  # in a turn, as at its deadline however late
         ecu = self.ecus[u]
-        cycle_and_send(ecu, now, u, self._send_outputs, self._send)
+        cycle_and_send(ecu, at, u, self._send_outputs, self._send)
+        if self.ends_turn[u]:
+            self.io.end_turn([self.bus_of[u]])  # nothing when its frames ended it
         if self.watchdog is not None:
-            _watch(self.watchdog, self.ecus, u, now)
+            _watch(self.watchdog, self.ecus, u, at)
         overrun = self.stats[u].add(now - deadline, deadline)
+        if self.turns and now - deadline <= self.hold_sim_s:
+            overrun = 0  # its bus still waits for this turn: the next one follows, as in virtual time
         self.stats[u].skipped += overrun
         self.schedule(u, deadline + (1 + overrun) * self.cycle_s)
 
     def _send_outputs(self, u: int, outputs: list) -> None:
-        self.io.send_outputs(self.bus_of[u], outputs, self.sender[u])
+        self.io.send_outputs(self.bus_of[u], outputs, self.sender[u], self.ends_turn[u])
 
     def _send(self, u: int, frames: list[tuple[int, bytes]]) -> None:
-        self.io.send(self.bus_of[u], frames, self.sender[u])
+        self.io.send(self.bus_of[u], frames, self.sender[u], self.ends_turn[u])
 
 
 def senders(units: Iterable[int], bus_of: dict[int, int]) -> dict[int, int]:

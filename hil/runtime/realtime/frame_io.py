@@ -80,12 +80,23 @@ class EngineFrames:
         engine.wait_readable(self._fds, max(wall_s, 0.0))
         self.drain(on_frame)
 
-    def read_every(self, first: float, period: float, buses: list[int] | None = None) -> None:
+    def read_every(self, first: float, period: float, buses: list[int] | None = None, turns: bool = False) -> None:
         """A lazy reader's read times ``first + k * period`` (simulated s) on ``buses`` (default: every bus);
-        nothing for an eager one. A wait at such a time waits for those buses' SYNCs only."""
+        nothing for an eager one. A wait at such a time waits for those buses' SYNCs only.
+
+        ``turns``: each read time is the node's turn. Its frames then carry the read time however late it sends
+        them, and its bus servers run no further than that instant until it ends the turn (``end_turn``, or a
+        ``send(..., end_turn=True)``), up to ``TURN_HOLD_MAX_S`` of wall time: what it sends in the turn competes
+        for the bus at that instant, as in virtual time, though its work takes wall time."""
         if self.lazy:
             for i in range(len(self.links)) if buses is None else buses:
-                self.group.read_every(i, first, period)
+                self.group.read_every(i, first, period, turns)
+
+    def end_turn(self, buses: list[int] | None = None) -> None:
+        """End the node's open turns on ``buses`` (default: every bus; see ``read_every``): it sends nothing more
+        there before its next read time. A turn left open ends when the node next waits for a later instant."""
+        if self.lazy:
+            self.group.end_turn(buses)
 
     def wait(self, sim_t: float, on_frame: FrameHandler | None, stop, spin_s: float = 0.0) -> None:
         """Sleep to ``sim_t`` (the last ``spin_s`` polled), then hand over every frame that arrived meanwhile.
@@ -127,11 +138,12 @@ class EngineFrames:
                 break
             waiting = self.group.wait_more(sim_t, min(max(left, 0.0) + SYNC_GRACE_S, MAX_SLEEP_S))
 
-    def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0) -> None:
-        self.links[bus].send(frames, self.extended, self.fd, self.brs, sender)
+    def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0, end_turn: bool = False) -> None:
+        """``end_turn``: the frames end the node's turn on this bus (``read_every``), in the same write."""
+        self.links[bus].send(frames, self.extended, self.fd, self.brs, sender, end_turn)
 
-    def send_outputs(self, bus: int, outputs: list[Output], sender: int = 0) -> None:
-        self.links[bus].send_encoded(outputs, self.extended, self.fd, self.brs, sender)
+    def send_outputs(self, bus: int, outputs: list[Output], sender: int = 0, end_turn: bool = False) -> None:
+        self.links[bus].send_encoded(outputs, self.extended, self.fd, self.brs, sender, end_turn)
 
 
 def _hand_over(on_frame: FrameHandler, batches: list[tuple[int, list[tuple[int, bytes, float]]]]) -> None:
@@ -163,8 +175,11 @@ class PythonCanFrames:
         for frame_id in inbox.ids:
             self._routes[bus].setdefault(frame_id, []).append(inbox)
 
-    def read_every(self, first: float, period: float, buses: list[int] | None = None) -> None:
+    def read_every(self, first: float, period: float, buses: list[int] | None = None, turns: bool = False) -> None:
         """Nothing: python-can delivers every frame at its end."""
+
+    def end_turn(self, buses: list[int] | None = None) -> None:
+        """Nothing: a SocketCAN bus runs on the host's clock, with no turns."""
 
     def _on_msg(self, i: int, msg: can.Message) -> None:
         t, fid, data = self.clock.from_epoch(msg.timestamp), msg.arbitration_id, bytes(msg.data)
@@ -192,11 +207,11 @@ class PythonCanFrames:
         self._handler = on_frame
         wait_until(self.clock, sim_t, self.buses, self._on_msg, spin_s)
 
-    def send_outputs(self, bus: int, outputs: list[Output], sender: int = 0) -> None:
+    def send_outputs(self, bus: int, outputs: list[Output], sender: int = 0, end_turn: bool = False) -> None:
         self.send(bus, encode_outputs(outputs))
 
-    def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0) -> None:
-        """``sender`` is not told apart: the kernel queues one socket's frames together."""
+    def send(self, bus: int, frames: list[tuple[int, bytes]], sender: int = 0, end_turn: bool = False) -> None:
+        """``sender`` is not told apart: the kernel queues one socket's frames together; no turns here."""
         for frame_id, data in self.packing.pack(frames) if self.packing is not None else frames:
             self.buses[bus].send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=self.extended,
                                              is_fd=self.fd, bitrate_switch=self.fd and self.brs))

@@ -29,6 +29,9 @@ def node_parser(prog: str, description: str) -> argparse.ArgumentParser:
                    help="run under SCHED_FIFO at the node's priority (hil/runtime/realtime/scheduling.py)")
     p.add_argument("--cpus", type=parse_cores, default=None, metavar="LIST",
                    help="run on these cores, e.g. 1 or 1,2 (hil/runtime/realtime/cpu_layout.py; default: anywhere)")
+    p.add_argument("--turns", action="store_true",
+                   help="act at each read time as a turn: its frames go on the bus at that instant, the bus waiting "
+                        "for them (frame_io.EngineFrames.read_every)")
     return p
 
 

@@ -236,7 +236,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
                  keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto",
-                 idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto"):
+                 idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto", turns: bool = True):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -256,7 +256,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     (IdleLatencyRefused where the host does not permit it; hil/runtime/realtime/idle_latency.py).
     ``cpu_layout``: "auto" keeps the serving thread and the plant on the first core the rig may use and the ECU
     processes on the others, at pace 1 or slower where it may use two or more; "none" leaves placement to the kernel
-    (hil/runtime/realtime/cpu_layout.py)."""
+    (hil/runtime/realtime/cpu_layout.py). ``turns``: each ECU cycle and plant publication is the node's turn on the
+    emulated buses (``frame_io.EngineFrames.read_every``): its frames go on the bus at its instant, the bus waiting
+    for them up to ``TURN_HOLD_MAX_S`` of wall time; False: when the node sends them."""
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
@@ -329,7 +331,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             env = node_environment(scenario)
             per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
                                                                         units_per_train=scenario.trains.units, pace=pace)
-            node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo")
+            node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo", turns)
             nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None, cpus=cpus)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
@@ -412,6 +414,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         extra["realtime"]["scheduling"] = sched.as_dict()
     extra["realtime"]["idle_latency_us"] = None if idle is None else idle.limit_us  # None: the host's
     extra["realtime"]["cpu_layout"] = None if cpus is None else cpus.as_dict()  # None: the kernel placed everything
+    extra["realtime"]["turns"] = turns and not socketcan
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
@@ -523,10 +526,12 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
     return RealtimeFaults(scenario, layout, servers, seed, db, radio)
 
 
-def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, fifo: bool) -> list[str]:
+def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, fifo: bool,
+                    turns: bool = False) -> list[str]:
     """The arguments every node process of a run takes (``hil.runtime.realtime.node.node_parser``)."""
     return ["--run", run, "--scenario-json", str(nodes_dir / "scenario.json"), "--seed", str(seed),
-            "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir), *(["--fifo"] if fifo else [])]
+            "--duration", repr(duration), "--pace", repr(pace), "--out", str(nodes_dir), *(["--fifo"] if fifo else []),
+            *(["--turns"] if turns else [])]
 
 
 def _respawn(nodes_dir: Path, common: list[str], layout: TrainLayout, env: dict[str, str],

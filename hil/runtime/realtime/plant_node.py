@@ -65,8 +65,12 @@ STREAM_EVERY_WALL_S = 0.25  # new signal rows are appended to DIR/signals.bin th
 class PlantNode:
     """The plant and wayside of every train, driven by a SimClock."""
 
-    def __init__(self, sc, seed: int, db: TrainDb, buses: list, wayside: list, out: Path | None = None) -> None:
-        """``out``: where the timing series go as they come (timing_plant.bin, timing_e2e.bin); None: memory."""
+    def __init__(self, sc, seed: int, db: TrainDb, buses: list, wayside: list, out: Path | None = None,
+                 turns: bool = False) -> None:
+        """``out``: where the timing series go as they come (timing_plant.bin, timing_e2e.bin); None: memory.
+        ``turns``: each publication is the plant's turn (``EngineFrames.read_every``): its frames go on the buses at
+        its instant however long its work takes."""
+        self.turns = turns
         self.sc, self.db = sc, db
         self.parts = assemble(sc, seed)
         self.plant, self.layout = self.parts.plant, self.parts.layout
@@ -153,7 +157,7 @@ class PlantNode:
             per_train[train].append((frame_id, data))
         for train, frames in enumerate(per_train):
             self.inboxes[train].published(t, samples[train])
-            self.frames.send(train, frames)
+            self.frames.send(train, frames, end_turn=True)
 
     def publish_reference(self, t: float) -> None:
         frames = self.io.reference_frames(t)
@@ -203,8 +207,10 @@ class PlantNode:
         self.target = 0
         if self.n_steps > 0:
             self.kernel.at(0, self.publish, 0)
-            # a lazy reader: synced at each publication on the train buses (the wayside's connections hear nothing)
-            self.frames.read_every(0.0, self.publish_every * step, list(range(len(self.buses))))
+            # a lazy reader: synced at each publication on the train buses (the wayside's connections hear nothing);
+            # with turns, each publication is its turn on the wayside's connections too
+            links = len(self.buses) + (len(self.wayside) if self.turns else 0)
+            self.frames.read_every(0.0, self.publish_every * step, list(range(links)), turns=self.turns)
         self.kernel.at(to_ns(self.n_steps * step), self.finish)
 
     def publish(self, target: int) -> None:
@@ -222,6 +228,7 @@ class PlantNode:
             self.publish_sensors(t)
         if target % self.every["ref"] == 0:
             self.publish_reference(t)
+        self.frames.end_turn()  # the publication is on the buses: they may go on past t
         if self.stream is not None and time.monotonic() > self.next_stream:
             self.stream()
             self.next_stream = time.monotonic() + STREAM_EVERY_WALL_S
@@ -239,6 +246,7 @@ class PlantNode:
         """The end of the run (kernel event): the commands that arrived until then applied, the last steps done."""
         self.take_commands()
         self.advance_to(self.n_steps)
+        self.frames.end_turn()
 
     def advance_to(self, k: int) -> None:
         """Integrate steps tick..k-1 (a recording sample before each step that falls on the recording period).
@@ -311,7 +319,7 @@ def main(argv: list[str] | None = None) -> int:
     db = load_train_db(sc)
     n = sc.trains.count
     out = Path(args.out)
-    node = PlantNode(sc, args.seed, db, [], [], out)
+    node = PlantNode(sc, args.seed, db, [], [], out, turns=args.turns)
     node.scheduling = scheduling
     try:
         for i in range(n):

@@ -13,8 +13,9 @@ kind    name             way       layout (struct, after the common "<")
 5       FILTER           c -> s    ``B B x x I I 12x``: kind, match, -, -, can_id, can_mask
 6       FILTERS_ACK      s -> c    ``B x x x I 16x``: kind, generation
 7       AUTH             c -> s    ``B x x x 16s 4x``: kind, -, the run's token (16 bytes); TCP only, first record
-10      READ_EVERY       c -> s    ``B 7x d d``: kind, first read time (epoch s), period (s; 0: one read); lazy only
+10      READ_EVERY       c -> s    ``B B 6x d d``: kind, READ_TURNS or 0, first read time (epoch s), period (s; 0: one read); lazy only
 11      SYNC             s -> c    ``B 7x d 8x``: kind, read time (epoch s): every frame that ended by then came before
+13      DONE             c -> s    ``B 7x d 8x``: kind, read time (epoch s) of the node's turn it ends; lazy only
 ======  ===============  ========  ==================================================================
 
 FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
@@ -45,6 +46,14 @@ a FIFO beside the socket (``<bus>.bell``, mode 0o600), when the server must see 
 frame the server hands over at its end. BELL records (kind 12) from the server say which frames those are:
 ``flags`` BELL_EVERY (every frame: an eager node, the error model or the guardian is on the bus) and BELL_RESET
 (a new set starts), ``count`` IDs (u32, from byte 4) the radio takes; until the first, every frame rings.
+
+Turns (READ_EVERY byte 1 = READ_TURNS; the rig's plant): each read time of that schedule is the node's turn. After
+its SYNC the node acts as at the read time, however long its work takes: its FRAME records carry that instant, and
+it ends the turn with DONE (after its frames, in the same write). Until then the server runs its bus, and the
+buses of its radio, no further than just before the read time, and reads the node's socket even if it is quiet;
+eager nodes' records wait meanwhile and are queued when taken. So the frames of a turn compete for the bus at
+their instant, and a reader whose read time comes later has them, as in virtual time. A turn without DONE is let
+go TURN_HOLD_MAX_S of wall time after its read time (counted: the server's ``turn_overruns``).
 
 Session: the node sends HELLO (protocol version, options bit 0 = receive own messages, its name); the server
 answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id,
@@ -129,6 +138,9 @@ KIND_SYNC = _int("KIND_SYNC")  # server -> lazy reader: every frame that ended b
 OPTION_QUIET = _int("OPTION_QUIET")  # a quiet lazy reader: its records wait for the server's next wake-up
 KIND_BELL = _int("KIND_BELL")  # server -> quiet reader: the frames it rings the bell for
 MAX_SENDERS = _int("MAX_SENDERS")  # senders per connection (FRAME byte 3), each its own TX queue on the bus
+READ_TURNS = _int("READ_TURNS")  # READ_EVERY byte 1: each read time is the node's turn, ended by DONE
+KIND_DONE = _int("KIND_DONE")  # lazy reader -> server: its turn at this epoch second is over
+TURN_HOLD_MAX_S = float(_WIRE["TURN_HOLD_MAX_S"])  # wall seconds after its read time a turn may hold the bus
 
 MATCH_ANY = _int("MATCH_ANY")
 MATCH_STANDARD = _int("MATCH_STANDARD")
