@@ -44,7 +44,7 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
+from hil.runtime.realtime.orchestrator import TURNS_MODES, TurnsMode, default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # noqa: E402
@@ -204,7 +204,7 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
         radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto",
-        idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto", turns: bool = True) -> dict:
+        idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto", turns: TurnsMode = "auto") -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -297,9 +297,9 @@ def main() -> None:
     ap.add_argument("--cpu-layout", nargs="+", choices=CPU_LAYOUT_MODES, default=["auto"],
                     help="the rig's CPU layout (hil run --cpu-layout): auto (ECU processes on cores of their own) "
                          "or none; several: side by side, alternated")
-    ap.add_argument("--turns", nargs="+", choices=("on", "off"), default=["on"],
-                    help="the nodes' turns (hil run --turns): on (frames at their instants, the bus waiting for them) "
-                         "or off; several: side by side, alternated")
+    ap.add_argument("--turns", nargs="+", choices=TURNS_MODES, default=["auto"],
+                    help="the nodes' turns (hil run --turns): on (frames at their instants, the bus waiting for them), "
+                         "off, or auto (on at pace 1 or slower); several: side by side, alternated")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
@@ -322,7 +322,7 @@ def main() -> None:
             sc = scenario_for(n, args.scenario)
             keep = (args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}-cpus{cpus}-turns{turns}"
                     if args.keep is not None else None)
-            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle, cpus, turns == "on")
+            r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle, cpus, turns)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units, pace=args.pace)
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "

@@ -239,6 +239,9 @@ pub struct Server {
     bell_routes: bool,
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
+    /// Turns not held because the bus was already further behind than TURN_HOLD_MAX_S when they came (counted in
+    /// `turn_overruns` at the next turn).
+    turns_late: u64,
     /// The earliest open turn (READ_TURNS) whose read time this turn's now has reached (bus ns), if any.
     turn_hold: Option<u64>,
     /// Whether this turn's now was held back for a node's turn (on this bus or another of its radio): eager nodes'
@@ -389,7 +392,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
         floor: 0, arbitrate_at: None, shortest_frame_ns, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
-        more_waiting: false, turn_hold: None, held: false,
+        more_waiting: false, turns_late: 0, turn_hold: None, held: false,
         done: done.clone(),
     };
     thread.add(server);
@@ -635,6 +638,7 @@ impl Server {
     /// node's DONE. The turns a DONE that came ends are closed; one held longer than TURN_HOLD_MAX_S is let go and
     /// counted.
     fn open_turn(&mut self, shared: &mut Shared, now: u64) -> Option<u64> {
+        shared.turn_overruns += std::mem::take(&mut self.turns_late);
         let limit = self.turn_hold_ns();
         let mut earliest: Option<u64> = None;
         for i in 0..self.clients.len() {
@@ -869,10 +873,16 @@ impl Server {
     /// Read time `r` of lazy readers: a SYNC after the frames that ended by then, written out now.
     fn sync_readers(&mut self, r: u64) {
         let stamp = self.epoch_s(r);
+        // a bus already further behind the wall clock than a turn may hold it does not wait: it catches up first
+        let on_time = self.now() <= r + self.turn_hold_ns();
         for c in self.clients.iter_mut().filter(|c| c.next_read() == Some(r)) {
             c.push_now(&pack_sync(stamp));
             if c.reads.iter().any(|&(next, _, turn)| turn && next <= r) {
-                c.turns.push((r, false));
+                if on_time {
+                    c.turns.push((r, false));
+                } else {
+                    self.turns_late += 1;
+                }
             }
             c.reads.retain_mut(|(next, period, _)| {
                 if *next > r {

@@ -46,7 +46,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import trainhil_engine as engine
 
@@ -236,7 +236,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  run: str | None = None, on_channels: Callable[[list[Channel]], None] | None = None,
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
                  keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto",
-                 idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto", turns: bool = True):
+                 idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto",
+                 turns: TurnsMode = "auto"):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -256,9 +257,12 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     (IdleLatencyRefused where the host does not permit it; hil/runtime/realtime/idle_latency.py).
     ``cpu_layout``: "auto" keeps the serving thread and the plant on the first core the rig may use and the ECU
     processes on the others, at pace 1 or slower where it may use two or more; "none" leaves placement to the kernel
-    (hil/runtime/realtime/cpu_layout.py). ``turns``: each ECU cycle and plant publication is the node's turn on the
-    emulated buses (``frame_io.EngineFrames.read_every``): its frames go on the bus at its instant, the bus waiting
-    for them up to ``TURN_HOLD_MAX_S`` of wall time; False: when the node sends them."""
+    (hil/runtime/realtime/cpu_layout.py). ``turns``: "on" makes each ECU cycle and plant publication the node's turn
+    on the emulated buses (``frame_io.EngineFrames.read_every``): its frames go on the bus at its instant, the bus
+    waiting for them up to ``TURN_HOLD_MAX_S`` of wall time; "off": when the node sends them; "auto" (the default):
+    on at pace 1 or slower (``uses_turns``)."""
+    if turns not in TURNS_MODES:
+        raise ValueError(f"turns={turns!r} must be one of {', '.join(TURNS_MODES)}")
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
         raise ValueError(f"pace={pace!r} must be a positive number (1.0 = wall clock)")
     if ecus_per_process is not None and ecus_per_process < 1:
@@ -331,7 +335,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             env = node_environment(scenario)
             per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
                                                                         units_per_train=scenario.trains.units, pace=pace)
-            node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo", turns)
+            node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo",
+                                        uses_turns(turns, pace))
             nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None, cpus=cpus)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
@@ -414,7 +419,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         extra["realtime"]["scheduling"] = sched.as_dict()
     extra["realtime"]["idle_latency_us"] = None if idle is None else idle.limit_us  # None: the host's
     extra["realtime"]["cpu_layout"] = None if cpus is None else cpus.as_dict()  # None: the kernel placed everything
-    extra["realtime"]["turns"] = turns and not socketcan
+    extra["realtime"]["turns"] = uses_turns(turns, pace) and not socketcan
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
@@ -524,6 +529,17 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
         raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
 
     return RealtimeFaults(scenario, layout, servers, seed, db, radio)
+
+
+TurnsMode = Literal["auto", "on", "off"]
+TURNS_MODES: tuple[TurnsMode, ...] = ("auto", "on", "off")
+
+
+def uses_turns(mode: TurnsMode, pace: float) -> bool:
+    """Whether the nodes take turns (``run_realtime``'s ``turns``). "auto": at pace 1 or slower. Faster, the turns of
+    one radio's buses follow one another within a tenth of a millisecond of wall time (seed000 at pace 10: each ECU
+    cycle a round trip to the serving thread), more than two cores kept up with in most runs (README)."""
+    return mode == "on" or (mode == "auto" and pace <= 1.0)
 
 
 def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, fifo: bool,
