@@ -248,3 +248,37 @@ def test_a_reader_synced_before_its_read_time_acts_at_it(rt):
     queued_at = srv.epoch0 + end2 - latency2  # the frame's enqueue instant, in epoch seconds
     assert abs(queued_at - t_read) < 2e-6, queued_at - t_read
     assert abs(queueing2 - (end1 + srv.epoch0 - t_read)) < 2e-6  # it waited for the wire, from the read time
+
+
+@pytest.mark.parametrize("turns", [True, False])
+def test_a_turns_frame_sent_late_goes_on_the_bus_at_its_read_time_and_a_later_reader_has_it(server, turns):
+    """A node whose read times are turns (``read_every(..., turns=True)``) takes a millisecond of work after its SYNC,
+    past another reader's read time. Its frame still goes on the bus at its own read time and that reader gets it,
+    since the bus waits for the turn's end (``send(..., end_turn=True)``). Without turns the frame goes when sent,
+    after the reader's read time."""
+    node_bus, node = lazy_link("N")
+    reader_bus, reader = lazy_link("R")
+    try:
+        t_turn = time.time() + 0.03
+        one_frame = frame_bits(0x100, bytes(1)) / BITRATE  # about 0.45 ms
+        t_read = t_turn + one_frame + 0.0002  # after the frame's end at the turn, before the node sends it
+        node.read_every(t_turn, 0.0, turns)
+        reader.read_every(t_read, 0.0)
+        assert node.sync_to(t_turn, 1.0)
+        node.act_at(t_turn)
+        assert node.in_turn is turns
+        time.sleep(max(0.0, t_turn + 0.001 - time.time()))  # the node's work: a millisecond past its read time
+        node.send([(0x100, bytes(1))], end_turn=True)
+        assert not node.in_turn
+        assert reader.sync_to(t_read, 1.0)
+        got = reader.take()
+        if turns:
+            assert [fid for fid, _, _ in got] == [0x100]
+            assert abs(got[0][2] - (t_turn + one_frame)) < 2e-6, got[0][2] - t_turn
+            assert server.stats.turns_held == 1 and server.stats.turn_overruns == 0
+        else:
+            assert got == []  # sent after the read time: the reader's next read has it
+            assert server.stats.turns_held == 0
+    finally:
+        node_bus.shutdown()
+        reader_bus.shutdown()
