@@ -237,7 +237,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
                  keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto",
                  idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto",
-                 turns: TurnsMode = "auto"):
+                 turns: TurnsMode = "off"):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -259,8 +259,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     processes on the others, at pace 1 or slower where it may use two or more; "none" leaves placement to the kernel
     (hil/runtime/realtime/cpu_layout.py). ``turns``: "on" makes each ECU cycle and plant publication the node's turn
     on the emulated buses (``frame_io.EngineFrames.read_every``): its frames go on the bus at its instant, the bus
-    waiting for them up to ``TURN_HOLD_MAX_S`` of wall time; "off": when the node sends them; "auto" (the default):
-    on at pace 1 or slower (``uses_turns``)."""
+    waiting for them up to ``TURN_HOLD_MAX_S`` of wall time; "off" (the default): when the node sends them."""
     if turns not in TURNS_MODES:
         raise ValueError(f"turns={turns!r} must be one of {', '.join(TURNS_MODES)}")
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
@@ -320,6 +319,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             cpus = place_serving_thread(choose_cpu_layout(cpu_layout, pace=pace), serving, events)
             idle, said = hold_for_run(idle_latency_us, pace)
             events.append(Event(0.0, "INFO", "rig", said))
+            took_turns = turns == "on" and not socketcan  # SocketCAN has no servers to hold
+            events.append(Event(0.0, "INFO", "rig", f"turns: {'on' if took_turns else 'off'}"))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
@@ -335,14 +336,14 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             env = node_environment(scenario)
             per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
                                                                         units_per_train=scenario.trains.units, pace=pace)
-            node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo",
-                                        uses_turns(turns, pace))
+            node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo", took_turns)
             nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None, cpus=cpus)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
                 say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}; {said}; "
-                    f"{cpus.describe() if cpus is not None else 'CPU layout: none'}" + (
+                    f"{cpus.describe() if cpus is not None else 'CPU layout: none'}; "
+                    f"turns {'on' if took_turns else 'off'}" + (
                     f"; waiting up to {scenario.ecu.join_timeout_s:g} s for external unit(s) "
                     f"{', '.join(scenario.ecu.external)}" if external else ""))
             _wait_ready(nodes, stop)
@@ -419,7 +420,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         extra["realtime"]["scheduling"] = sched.as_dict()
     extra["realtime"]["idle_latency_us"] = None if idle is None else idle.limit_us  # None: the host's
     extra["realtime"]["cpu_layout"] = None if cpus is None else cpus.as_dict()  # None: the kernel placed everything
-    extra["realtime"]["turns"] = uses_turns(turns, pace) and not socketcan
+    extra["realtime"]["turns"] = turns == "on" and not socketcan
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
@@ -531,15 +532,8 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
     return RealtimeFaults(scenario, layout, servers, seed, db, radio)
 
 
-TurnsMode = Literal["auto", "on", "off"]
-TURNS_MODES: tuple[TurnsMode, ...] = ("auto", "on", "off")
-
-
-def uses_turns(mode: TurnsMode, pace: float) -> bool:
-    """Whether the nodes take turns (``run_realtime``'s ``turns``). "auto": at pace 1 or slower. Faster, the turns of
-    one radio's buses follow one another within a tenth of a millisecond of wall time (seed000 at pace 10: each ECU
-    cycle a round trip to the serving thread), more than two cores kept up with in most runs (README)."""
-    return mode == "on" or (mode == "auto" and pace <= 1.0)
+TurnsMode = Literal["on", "off"]
+TURNS_MODES: tuple[TurnsMode, ...] = ("on", "off")
 
 
 def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, fifo: bool,

@@ -1,0 +1,36 @@
+"""Turns (``hil run --realtime --turns on``): each ECU cycle and plant publication is its node's turn, whose frames go
+on the bus at its instant while the bus waits for it (protocol READ_TURNS/DONE; the server's side in
+engine/src/server.rs, a frame's path in tests/test_lazy_delivery.py)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from hil.runtime.realtime import orchestrator
+from hil.runtime.realtime.node import node_parser
+from hil.runtime.realtime.orchestrator import run_realtime
+from hil.scenario import load_scenario
+
+
+def test_a_node_is_told_to_take_turns_on_its_command_line(tmp_path) -> None:
+    args = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, fifo=False, turns=True)
+    assert node_parser("node", "").parse_args(args).turns is True
+    assert node_parser("node", "").parse_args(orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, False)).turns is False
+
+
+def test_an_unknown_mode_is_refused_before_anything_runs(tmp_path) -> None:
+    with pytest.raises(ValueError, match="turns='sometimes' must be one of on, off"):
+        run_realtime(load_scenario("seed000"), tmp_path / "rt", duration_s=0.5, turns="sometimes")  # type: ignore[arg-type]
+    assert not (tmp_path / "rt").exists()
+
+
+@pytest.mark.parametrize("turns", ["on", "off"])
+def test_a_real_time_run_with_turns_has_its_buses_wait_for_them_and_records_it(tmp_path, monkeypatch, turns) -> None:
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    res = run_realtime(load_scenario("seed000"), tmp_path / "rt", duration_s=1.0, record=False, turns=turns)
+    rt = json.loads((tmp_path / "rt" / "metrics.json").read_text())["realtime"]
+    held = sum(b["turns_held"] for b in rt["bus_servers"].values())
+    assert rt["turns"] is (turns == "on")
+    assert (held > 0) is (turns == "on"), held  # the servers waited for some turns' ends, or took none
+    assert [e.text for e in res.log.events if e.text.startswith("turns:")] == [f"turns: {turns}"]
