@@ -359,8 +359,9 @@ class LinkGroup:
     def read_every(self, bus: int, first: float, period: float, turns: bool = False) -> None:
         """Read times ``first + k * period`` (simulated s) on ``bus``, told to its server (0: a single read);
         ``turns``: they are the node's turns (``FrameLink.read_every``)."""
-    def end_turn(self) -> None:
-        """End every link's open turn (``FrameLink.end_turn``)."""
+    def end_turn(self, buses: Sequence[int] | None = None) -> None:
+        """End the open turns of the links of ``buses`` (default: every bus; ``FrameLink.end_turn``). A turn still
+        open when the node next waits for a later instant ends then, as do the turns of read times it skipped."""
     def begin_wait(self, sim_t: float) -> list[int]:
         """Start waiting for read time ``sim_t`` (simulated s) on the buses that have it among their read times, or,
         at an instant none foresaw, on every bus not yet synced to it, asked once. The buses still without a SYNC."""
