@@ -69,9 +69,8 @@ impl LinkGroup {
     #[pyo3(signature = (bus, first, period, turns = false))]
     fn read_every(&mut self, py: Python<'_>, bus: usize, first: f64, period: f64, turns: bool) -> PyResult<()> {
         let mut link = self.link(py, bus)?;
-        let epoch = link.epoch(first);
-        let period = period / link.pace;
-        link.read_every(epoch, period, turns)?;
+        let (epoch, wall_period) = (link.epoch(first), period / link.pace);
+        link.read_every(epoch, wall_period, turns)?;
         drop(link);
         self.schedule.add(to_us(first), to_us(period), bus);
         Ok(())
