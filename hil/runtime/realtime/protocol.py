@@ -47,13 +47,15 @@ frame the server hands over at its end. BELL records (kind 12) from the server s
 ``flags`` BELL_EVERY (every frame: an eager node, the error model or the guardian is on the bus) and BELL_RESET
 (a new set starts), ``count`` IDs (u32, from byte 4) the radio takes; until the first, every frame rings.
 
-Turns (READ_EVERY byte 1 = READ_TURNS; the rig's plant): each read time of that schedule is the node's turn. After
-its SYNC the node acts as at the read time, however long its work takes: its FRAME records carry that instant, and
-it ends the turn with DONE (after its frames, in the same write). Until then the server runs its bus, and the
-buses of its radio, no further than just before the read time, and reads the node's socket even if it is quiet;
-eager nodes' records wait meanwhile and are queued when taken. So the frames of a turn compete for the bus at
-their instant, and a reader whose read time comes later has them, as in virtual time. A turn without DONE is let
-go TURN_HOLD_MAX_S of wall time after its read time (counted: the server's ``turn_overruns``).
+Turns (READ_EVERY byte 1 = READ_TURNS; the rig's ECU and plant nodes with ``hil run --turns on``): each read time
+of that schedule is the node's turn. After its SYNC the node acts as at the read time, however long its work
+takes: its FRAME records carry that instant, and it ends the turn with DONE (after its frames, in the same write).
+Until then the server runs its bus, and the buses of its radio, no further than just before the read time, and
+reads the node's socket even if it is quiet; eager nodes' records wait meanwhile and are queued when taken. So
+the frames of a turn compete for the bus at their instant, and a reader whose read time comes later has them, as
+in virtual time. A turn without DONE is let go TURN_HOLD_MAX_S of wall time after its read time, and a bus already
+further behind the wall clock than that holds for no new turn until it has caught up (both counted: the server's
+``turn_overruns``).
 
 Session: the node sends HELLO (protocol version, options bit 0 = receive own messages, its name); the server
 answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id,
