@@ -282,3 +282,27 @@ def test_a_turns_frame_sent_late_goes_on_the_bus_at_its_read_time_and_a_later_re
     finally:
         node_bus.shutdown()
         reader_bus.shutdown()
+
+
+def test_faster_than_real_time_a_wait_between_read_times_is_asked_for_and_synced(rt):
+    """At pace 10 the node's read schedule is in simulated time (the server is told the wall period): a wait at an
+    instant between two read times is not foreseen, so it is asked for once and its own SYNC comes (with the wall
+    period in the schedule, it was taken for a read time and waited for the next one's SYNC)."""
+    pace = 10.0
+    with NativeBusServer("lzp", "bus1", BITRATE, log=BusLog("bus1", BITRATE), pace=pace):
+        bus = TrainhilBus("lzp/bus1", node_name="P", lazy_reader=True)
+        try:
+            t0 = time.time() + 0.05  # the epoch second of simulated 0
+            link = engine.FrameLink(bus.fileno(), t0, pace, keep=True, lazy=True)
+            group = engine.LinkGroup([link])
+            group.read_every(0, 0.0, 0.1)  # every 0.1 simulated s: 10 ms of wall time
+            t = 0.35  # between the read times 0.3 and 0.4
+            waiting = group.begin_wait(t)
+            deadline = time.time() + 1.0
+            while waiting and time.time() < deadline:
+                waiting = group.wait_more(t, 0.1)
+            assert waiting == [], "the SYNC of an instant between read times never came"
+            assert abs(link.synced - (t0 + t / pace)) < 2e-6, "synced by the next read time's SYNC, not its own"
+            group.finish(t)
+        finally:
+            bus.shutdown()
