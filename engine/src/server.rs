@@ -239,9 +239,6 @@ pub struct Server {
     bell_routes: bool,
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
-    /// Turns not held because the bus was already further behind than TURN_HOLD_MAX_S when they came (counted in
-    /// `turn_overruns` at the next turn).
-    turns_late: u64,
     /// The earliest open turn (READ_TURNS) whose read time this turn's now has reached (bus ns), if any.
     turn_hold: Option<u64>,
     /// Whether this turn's now was held back for a node's turn (on this bus or another of its radio): eager nodes'
@@ -392,7 +389,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
         floor: 0, arbitrate_at: None, shortest_frame_ns, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
-        more_waiting: false, turns_late: 0, turn_hold: None, held: false,
+        more_waiting: false, turn_hold: None, held: false,
         done: done.clone(),
     };
     thread.add(server);
@@ -638,7 +635,6 @@ impl Server {
     /// node's DONE. The turns a DONE that came ends are closed; one held longer than TURN_HOLD_MAX_S is let go and
     /// counted.
     fn open_turn(&mut self, shared: &mut Shared, now: u64) -> Option<u64> {
-        shared.turn_overruns += std::mem::take(&mut self.turns_late);
         let limit = self.turn_hold_ns();
         let mut earliest: Option<u64> = None;
         for i in 0..self.clients.len() {
@@ -790,7 +786,7 @@ impl Server {
                 self.arbitrate_at = None;
                 let _ = shared.bus.arbitrate(t);
             }
-            Step::Read => self.sync_readers(t),
+            Step::Read => self.sync_readers(shared, t),
         }
         offered
     }
@@ -866,12 +862,12 @@ impl Server {
             if !settled {
                 return;
             }
-            self.sync_readers(r);
+            self.sync_readers(shared, r);
         }
     }
 
     /// Read time `r` of lazy readers: a SYNC after the frames that ended by then, written out now.
-    fn sync_readers(&mut self, r: u64) {
+    fn sync_readers(&mut self, shared: &mut Shared, r: u64) {
         let stamp = self.epoch_s(r);
         // a bus already further behind the wall clock than a turn may hold it does not wait: it catches up first
         let on_time = self.now() <= r + self.turn_hold_ns();
@@ -881,7 +877,7 @@ impl Server {
                 if on_time {
                     c.turns.push((r, false));
                 } else {
-                    self.turns_late += 1;
+                    shared.turn_overruns += 1; // not held: let go at once
                 }
             }
             c.reads.retain_mut(|(next, period, _)| {

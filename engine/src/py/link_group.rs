@@ -17,6 +17,8 @@ pub struct LinkGroup {
     /// The buses the current wait waits for, and those of them not synced yet.
     asked: Vec<usize>,
     waiting: Vec<usize>,
+    /// Some of its read times are turns (`read_every(..., turns=True)`): only then has a wait turns to end.
+    turns: bool,
 }
 
 impl LinkGroup {
@@ -61,7 +63,7 @@ impl LinkGroup {
     /// `links`: the node's lazy links, one per bus, indexed as its buses.
     #[new]
     fn new(links: Vec<Py<FrameLink>>) -> Self {
-        LinkGroup { links, schedule: ReadSchedule::new(), asked: Vec::new(), waiting: Vec::new() }
+        LinkGroup { links, schedule: ReadSchedule::new(), asked: Vec::new(), waiting: Vec::new(), turns: false }
     }
 
     /// Read times `first + k * period` (simulated s) on `bus`, told to its server (0: a single read). `turns`:
@@ -72,6 +74,7 @@ impl LinkGroup {
         let (epoch, wall_period) = (link.epoch(first), period / link.pace);
         link.read_every(epoch, wall_period, turns)?;
         drop(link);
+        self.turns |= turns;
         self.schedule.add(to_us(first), to_us(period), bus);
         Ok(())
     }
@@ -80,9 +83,11 @@ impl LinkGroup {
     /// instant none foresaw, every bus not yet synced to it, asked once. Returns those whose SYNC has not come.
     fn begin_wait(&mut self, py: Python<'_>, sim_t: f64) -> PyResult<Vec<usize>> {
         let t = self.epoch(py, sim_t)?;
-        self.end_turns_before(py, t)?;
-        for bus in self.schedule.skipped(to_us(sim_t)) {
-            self.link(py, bus)?.end_turns_skipped(t)?; // a late node's skipped cycles must not hold its bus
+        if self.turns {
+            self.end_turns_before(py, t)?;
+            for bus in self.schedule.skipped(to_us(sim_t)) {
+                self.link(py, bus)?.end_turns_skipped(t)?; // a late node's skipped cycles must not hold its bus
+            }
         }
         let mut asked = self.schedule.due(to_us(sim_t));
         if asked.is_empty() {
@@ -112,6 +117,9 @@ impl LinkGroup {
     /// `send(end_turn=True)` ended yet. A turn still open when the node next waits for a later instant ends then.
     #[pyo3(signature = (buses = None))]
     fn end_turn(&mut self, py: Python<'_>, buses: Option<Vec<usize>>) -> PyResult<()> {
+        if !self.turns {
+            return Ok(());
+        }
         for bus in buses.unwrap_or_else(|| (0..self.links.len()).collect()) {
             self.link(py, bus)?.end_turn()?;
         }
