@@ -294,6 +294,10 @@ class Ecu:
         """Run one control cycle at time t; return the frames to send (id, data)."""
         return encode_outputs(self.cycle_outputs(t))
 
+    def sent_messages(self) -> tuple[MessageCodec, ...]:
+        """The messages its standard cycle sends (TractionCmd, AgentState, AgentAux)."""
+        return self._out_cmd, self._out_state, self._out_aux
+
     def cycle_outputs(self, t: float) -> list[Output]:
         """Run one control cycle at time t; return its frames not yet encoded: (message, values, alive counter)."""
         if not self.alive:

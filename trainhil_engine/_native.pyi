@@ -298,6 +298,9 @@ class FrameLink:
     def read_every(self, first: float, period: float, turns: bool = False) -> None:
         """A lazy link's read times: ``first`` (epoch s), then every ``period`` s (0: once); ``turns``: from now on
         each of its read times is a turn (protocol READ_TURNS)."""
+    def sends_at_least(self, bytes: int) -> None:
+        """Every frame this link will send carries at least ``bytes`` data bytes (protocol LEAST_DATA), said before
+        its first frame: the server need not wait for shorter frames before it SYNCs, and refuses one."""
     def act_at(self, t: float) -> None:
         """The node acts at read time ``t`` (epoch s), perhaps synced to it before it comes: frames sent from now
         on carry ``t`` while it is still ahead (the server queues them then), else the instant they are sent; on a

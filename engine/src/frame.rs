@@ -386,6 +386,34 @@ impl BitTiming {
         }
         Ok(frame_bits(can_id, data, extended)? as u64 * self.nominal_bit_ns)
     }
+
+    /// The fewest ns any data frame with at least `least_data` bytes can take on a bus of `fd` (classical frames
+    /// as well; CAN FD ones with or without BRS) or classical frames only, SOF through the intermission: a lower
+    /// bound for every identifier and payload, since it counts no stuff bits (`least_frame_bits`).
+    pub fn least_frame_ns(&self, least_data: usize, fd: bool) -> u64 {
+        let ns = |b: FdBits| b.nominal as u64 * self.nominal_bit_ns + b.data as u64 * self.data_bit_ns;
+        let classical = (least_data <= MAX_CLASSIC_DATA).then(|| ns(least_frame_bits(least_data, false, false)));
+        let fd_frames = fd.then(|| ns(least_frame_bits(least_data, true, true)).min(ns(least_frame_bits(least_data, true, false))));
+        classical.into_iter().chain(fd_frames).min().unwrap_or(u64::MAX)
+    }
+}
+
+/// The bits of the shortest data frame with at least `least_data` bytes (a standard identifier and no dynamic stuff
+/// bit; a CAN FD payload padded to its length), by phase as in `fd_frame_bits`: no frame of that many bytes or
+/// more is shorter. Classical: SOF, ID, RTR, IDE, r0, DLC (19), the data, the CRC (15) and `TRAILER_BITS`.
+pub fn least_frame_bits(least_data: usize, fd: bool, brs: bool) -> FdBits {
+    if !fd {
+        return FdBits { nominal: 19 + 8 * least_data as u32 + 15 + TRAILER_BITS, data: 0 };
+    }
+    let len = fd_padded_len(least_data).unwrap_or(MAX_DATA) as u32;
+    let crc_field = if len <= 16 { FD_CRC17_FIELD } else { FD_CRC21_FIELD };
+    let arbitration = 1 + 11 + 4 + 1; // SOF, ID, RRS, IDE, FDF, res, BRS
+    let data_phase = 1 + 4 + 8 * len + crc_field + 1; // ESI, DLC, the data, stuff count and CRC, CRC delimiter
+    if brs {
+        FdBits { nominal: arbitration + FD_TAIL_BITS, data: data_phase }
+    } else {
+        FdBits { nominal: arbitration + data_phase + FD_TAIL_BITS, data: 0 }
+    }
 }
 
 #[cfg(test)]
@@ -403,6 +431,58 @@ mod tests {
         assert_eq!(fd_frame_bits(0, &[], false, false, false).unwrap(), FdBits { nominal: 65, data: 0 });
         let t = BitTiming::new(500_000, 2_000_000).unwrap();
         assert_eq!(t.frame_ns(0, &[], false, true, true).unwrap(), 31 * 2000 + 34 * 500);
+    }
+
+    /// No data frame is shorter than `least_frame_bits` of its length, whatever its identifier and payload, and
+    /// the bound is met or nearly (within a stuff bit): every standard ID with a range of payloads, classical
+    /// and CAN FD, with and without BRS, and a sample of extended IDs.
+    #[test]
+    fn no_frame_is_shorter_than_the_least_frame_of_its_length() {
+        let patterns = [0x00u8, 0xFF, 0x55, 0xAA, 0x0F, 0x33, 0xC3, 0x84];
+        for len in 0..=MAX_CLASSIC_DATA {
+            let least = least_frame_bits(len, false, false).nominal;
+            let mut shortest = u32::MAX;
+            for id in 0..STD_ID_LIMIT {
+                for &p in &patterns {
+                    let bits = frame_bits(id, &vec![p; len], false).unwrap();
+                    assert!(bits >= least, "id {id:#x}, {len} bytes of {p:#x}: {bits} bits < {least}");
+                    shortest = shortest.min(bits);
+                }
+            }
+            for id in (0..EXT_ID_LIMIT).step_by(65_537) {
+                assert!(frame_bits(id, &vec![0x55; len], true).unwrap() >= least);
+            }
+            assert!(shortest <= least + 1, "{len} bytes: the shortest frame has {shortest} bits, the bound {least}");
+        }
+        for &len in FD_LENGTHS.iter() {
+            for brs in [false, true] {
+                let least = least_frame_bits(len, true, brs);
+                for id in (0..STD_ID_LIMIT).step_by(7) {
+                    for &p in &patterns {
+                        let b = fd_frame_bits(id, &vec![p; len], false, brs, false).unwrap();
+                        assert!(b.nominal >= least.nominal && b.data >= least.data, "FD id {id:#x} {len} bytes: {b:?} < {least:?}");
+                    }
+                }
+            }
+        }
+        // ID 0x555 with 0x55 bytes has no stuff bit at all: the bound is that frame (`fd_64_byte_frame_by_hand`)
+        assert_eq!(least_frame_bits(64, true, true), fd_frame_bits(0x555, &[0x55; 64], false, true, false).unwrap());
+        // a payload between CAN FD lengths is padded: 9 bytes go as 12
+        assert_eq!(least_frame_bits(9, true, true), least_frame_bits(12, true, true));
+    }
+
+    /// The least frame a bus can carry: classical 47 bits (an empty frame without stuff bits; `frame_ns(0, &[])`,
+    /// with its stuff bits, is 53); on a CAN FD bus the empty FD frame with BRS when that is shorter; more than 8
+    /// bytes only as CAN FD.
+    #[test]
+    fn the_least_frame_of_a_bus() {
+        let classical = BitTiming::new(500_000, 500_000).unwrap();
+        assert_eq!(classical.least_frame_ns(0, false), 47 * 2000);
+        assert_eq!(classical.least_frame_ns(5, false), (47 + 40) * 2000);
+        assert_eq!(classical.least_frame_ns(12, false), u64::MAX); // no classical frame carries 12 bytes
+        let fd = BitTiming::new(500_000, 2_000_000).unwrap();
+        assert_eq!(fd.least_frame_ns(0, true), (29 * 2000 + 33 * 500).min(47 * 2000));
+        assert_eq!(fd.least_frame_ns(12, true), 29 * 2000 + (1 + 4 + 96 + 27 + 1) * 500);
     }
 
     /// 64 bytes of 0x55 (alternating bits: no dynamic stuffing in the data), ID 0x555, BRS: the header

@@ -11,7 +11,7 @@
 
 use std::os::fd::RawFd;
 
-use crate::protocol::{pack_done, pack_frame_records_from, pack_read_every, read_frames, BellSet, MAX_SENDERS, RECORD_SIZE};
+use crate::protocol::{pack_done, pack_frame_records_from, pack_least_data, pack_read_every, read_frames, BellSet, MAX_SENDERS, RECORD_SIZE};
 
 /// Why the link cannot go on.
 #[derive(Debug)]
@@ -96,6 +96,12 @@ impl Link {
         self.write_all(&pack_read_every(first, period, turns))?;
         self.ring();
         Ok(())
+    }
+
+    /// Tell the server that every frame sent through this link carries at least `bytes` data bytes (LEAST_DATA;
+    /// before the first frame): its reads need not wait for frames shorter than that. A shorter one is refused.
+    pub fn sends_at_least(&self, bytes: u8) -> Result<(), LinkError> {
+        self.write_all(&pack_least_data(bytes))
     }
 
     /// End the node's turn at read time `stamp` (epoch s): a DONE record. The server listens for it while the turn

@@ -91,6 +91,11 @@ pub const READ_TURNS: u8 = 0x01;
 pub const KIND_DONE: u8 = 13;
 /// The longest a turn holds the bus, in wall seconds after its read time.
 pub const TURN_HOLD_MAX_S: f64 = 0.002;
+/// Node to server, before its first frame: every frame the connection sends carries at least byte 1 data bytes
+/// (0..MAX_FD_DLC). The server refuses a shorter one (dropped and counted, as a frame the bus cannot carry) and,
+/// on an idle bus, SYNCs at once every read time that no frame of any possible sender could end by: the least
+/// frame of the fewest bytes any connection declared (none: an empty frame) is the bus's horizon.
+pub const KIND_LEAST_DATA: u8 = 14;
 /// A FILTER's format match: any, standard IDs only, extended IDs only.
 pub const MATCH_ANY: u8 = 0;
 pub const MATCH_STANDARD: u8 = 1;
@@ -120,6 +125,7 @@ pub fn constants() -> Vec<(&'static str, f64)> {
         ("KIND_BELL", KIND_BELL as f64), ("BELL_EVERY", BELL_EVERY as f64), ("BELL_RESET", BELL_RESET as f64),
         ("BELL_IDS_PER_RECORD", BELL_IDS_PER_RECORD as f64), ("MAX_SENDERS", MAX_SENDERS as f64),
         ("READ_TURNS", READ_TURNS as f64), ("KIND_DONE", KIND_DONE as f64), ("TURN_HOLD_MAX_S", TURN_HOLD_MAX_S),
+        ("KIND_LEAST_DATA", KIND_LEAST_DATA as f64),
     ]
 }
 
@@ -270,6 +276,14 @@ pub fn pack_done(stamp: f64) -> [u8; RECORD_SIZE] {
     r
 }
 
+/// The LEAST_DATA record: every frame of this connection carries at least `bytes` data bytes.
+pub fn pack_least_data(bytes: u8) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_LEAST_DATA;
+    r[1] = bytes;
+    r
+}
+
 /// The SYNC record a lazy reader gets at its read time `stamp` (epoch s).
 pub fn pack_sync(stamp: f64) -> [u8; RECORD_SIZE] {
     let mut r = [0u8; RECORD_SIZE];
@@ -394,14 +408,14 @@ mod tests {
     #[test]
     fn kinds_and_flags_are_distinct() {
         let kinds = [KIND_FRAME, KIND_HELLO, KIND_WELCOME, KIND_FILTERS, KIND_FILTER, KIND_FILTERS_ACK, KIND_AUTH,
-                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC, KIND_BELL, KIND_DONE];
+                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC, KIND_BELL, KIND_DONE, KIND_LEAST_DATA];
         let mut sorted = kinds.to_vec();
         sorted.sort();
         sorted.dedup();
         assert_eq!(sorted.len(), kinds.len());
         let flags = [FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_ECHO, FLAG_FD, FLAG_BRS];
         assert_eq!(flags.iter().fold(0u8, |acc, f| { assert_eq!(acc & f, 0); acc | f }), KNOWN_FLAGS);
-        assert_eq!(constants().len(), 46);
+        assert_eq!(constants().len(), 47);
     }
 
     #[test]

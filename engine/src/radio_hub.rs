@@ -55,6 +55,8 @@ pub struct HubCore {
     pace: f64,
     /// Frames a link dropped because its draws ran out (the owner did not top them up in time).
     pub starved: u64,
+    /// Per bus, the fewest data bytes its connections said their frames carry (None: it has none).
+    least_data: HashMap<usize, Option<u8>>,
 }
 
 struct Starved;
@@ -124,6 +126,20 @@ impl HubCore {
         threads.any(|t| Some(t) != first) || self.ports.values().any(|p| p.eager.load(Ordering::Relaxed))
     }
 
+    /// Bus `bus`'s connections send frames of at least `bytes` data bytes (None: it has no connection).
+    pub fn set_least_data(&mut self, bus: usize, bytes: Option<u8>) {
+        self.least_data.insert(bus, bytes);
+    }
+
+    /// The fewest data bytes a frame the radio forwards can carry: what the buses' connections said (a forwarded
+    /// frame is one of theirs), 0 when containers are unpacked (a part may be shorter than its container).
+    pub fn least_data(&self) -> Option<u8> {
+        if self.packing.is_some() {
+            return Some(0);
+        }
+        self.least_data.values().flatten().copied().min()
+    }
+
     /// How far bus `bus`'s zero lies after the hub's (model ns): bus times plus it are the hub's time.
     pub fn origin_of(&self, bus: usize) -> i64 {
         self.origin_ns(bus)
@@ -147,6 +163,7 @@ impl RadioHub {
         RadioHub { core: Mutex::new(HubCore {
             gateway: Gateway::default(), layouts: HashMap::new(), packing, reserve: Vec::new(), fault_reserve: VecDeque::new(),
             inboxes: HashMap::new(), ports: HashMap::new(), zero: Instant::now(), pace, starved: 0,
+            least_data: HashMap::new(),
         }) }
     }
 

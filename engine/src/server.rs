@@ -171,6 +171,10 @@ struct Client {
     quiet: bool,
     /// The bus nodes of its senders 1, 2, ... (FRAME byte 3; sender 0 is `node`), attached at their first frame.
     senders: Vec<usize>,
+    /// The fewest data bytes any of its frames carries (LEAST_DATA; 0 until it says), and whether it sent a frame
+    /// (after which it may no longer say).
+    least_data: u8,
+    sent: bool,
 }
 
 impl Client {
@@ -225,8 +229,11 @@ pub struct Server {
     floor: u64,
     /// A frame was queued on an idle bus at this time: arbitrate there.
     arbitrate_at: Option<u64>,
-    /// The shortest frame this bus can carry (see `anticipate`).
+    /// The least frame any sender could still put on this bus (see `anticipate`): an empty one, unless every
+    /// connection said more (LEAST_DATA); set at each turn (`least_frame`).
     shortest_frame_ns: u64,
+    /// The bus's bit timing, for that.
+    timing: BitTiming,
     /// About the longest (see `max_ahead_ns`).
     longest_frame_ns: u64,
     /// The rig's radio, when this bus is one of its trains' buses.
@@ -318,11 +325,6 @@ pub(crate) fn set_timer_slack() {
     }
 }
 
-/// The shortest frame a bus can carry (an empty one; on a CAN FD bus the shorter of classical and FD).
-fn shortest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
-    let classical = timing.frame_ns(0, &[], false, false, false).unwrap_or(0);
-    if format.is_fd() { classical.min(timing.frame_ns(0, &[], false, true, true).unwrap_or(0)) } else { classical }
-}
 
 /// About the longest frame a bus can carry: a full extended one of zero bits (stuffed the most), on a CAN FD bus
 /// 64 bytes without the faster data phase.
@@ -355,7 +357,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let (wake_r, wake_w) = UnixStream::pair()?;
     wake_r.set_nonblocking(true)?;
     wake_w.set_nonblocking(true)?;
-    let shortest_frame_ns = shortest_frame_ns(&timing, cfg.format);
+    let shortest_frame_ns = timing.least_frame_ns(0, cfg.format.is_fd());
     let longest_frame_ns = longest_frame_ns(&timing, cfg.format);
     let mut bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
     let mono0 = Instant::now(); // and the same instant on the epoch clock: records carry epoch times
@@ -388,7 +390,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        floor: 0, arbitrate_at: None, shortest_frame_ns, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
+        floor: 0, arbitrate_at: None, shortest_frame_ns, timing, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
         more_waiting: false, turn_hold: None, held: false,
         done: done.clone(),
     };
@@ -480,7 +482,7 @@ impl Server {
         (0..self.clients.len()).filter_map(|i| self.due_record_time(i, now)).filter(|&t| t > now).min()
     }
 
-    /// When the loop can give the SYNC of read time `r` (see `anticipate`): one shortest frame before it, or when
+    /// When the loop can give the SYNC of read time `r` (see `anticipate`): one least frame before it, or when
     /// the frame on the wire ends if it ends by `r` (until then the SYNC must wait for it; the loop sleeps to it).
     fn sync_wake(&self, shared: &Shared, r: u64) -> u64 {
         let early = (r + 1).saturating_sub(self.shortest_frame_ns);
@@ -617,8 +619,29 @@ impl Server {
             self.accept(shared, true);
         }
         self.take_radio();
+        if let Some(r) = &self.radio {
+            // before any server of the radio looks ahead this turn (`least_frame`): a new connection counts at once
+            r.hub.core.lock().unwrap().set_least_data(r.bus, self.own_least_data());
+        }
         self.turn_hold = self.open_turn(shared, now);
         now
+    }
+
+    /// The fewest data bytes a frame of this bus's connections carries (LEAST_DATA; None: no connection).
+    fn own_least_data(&self) -> Option<u8> {
+        self.clients.iter().filter(|c| !c.closed).map(|c| c.least_data).min()
+    }
+
+    /// The least frame any sender could still put on this bus (ns): one of the fewest data bytes its connections
+    /// said they send and, with a radio, those of every bus of the radio (it forwards their frames); an empty
+    /// frame when one did not say.
+    fn least_frame(&self) -> u64 {
+        let mut least = self.own_least_data();
+        if let Some(r) = &self.radio {
+            let forwarded = r.hub.core.lock().unwrap().least_data();
+            least = least.into_iter().chain(forwarded).min();
+        }
+        self.timing.least_frame_ns(least.unwrap_or(0) as usize, self.cfg.format.is_fd())
     }
 
     /// Whether a node's turn opened at read time `t` (its SYNC just went out).
@@ -689,6 +712,7 @@ impl Server {
     /// The last part of a turn, after the bus has run to `now`: the SYNCs it settles, write what is due, close
     /// the load windows, and tell the hub and the quiet readers what this bus needs now.
     fn end_turn(&mut self, shared: &mut Shared, now: u64) {
+        self.shortest_frame_ns = self.least_frame();
         self.anticipate(shared, now);
         if shared.bus.current.is_none() {
             let _ = shared.bus.arbitrate(now);
@@ -849,11 +873,11 @@ impl Server {
 
     /// SYNC the read times that the bus's state settles now, so that every frame that ends by them has been
     /// handed over: while a frame is on the wire, every read time before its end (no other frame can end before
-    /// it); on an idle bus, those less than one shortest frame away (a frame not yet on the wire cannot end by
-    /// then). A read time after the end of the frame on the wire waits for it. The lazy reader has its SYNC
+    /// it); on an idle bus, those less than the least frame any sender could still send away (`least_frame`: a
+    /// frame not yet on the wire cannot end by then). A read time after the end of the frame on the wire waits for it. The lazy reader has its SYNC
     /// before its read time and acts at once, so it does not wait for this loop's wake-up at that time.
     fn anticipate(&mut self, shared: &mut Shared, now: u64) {
-        let horizon = now + self.shortest_frame_ns;
+        let horizon = now.saturating_add(self.shortest_frame_ns);
         while let Some(r) = self.next_read() {
             let settled = match shared.bus.current {
                 Some(tx) => tx.t_end > r,
@@ -1074,7 +1098,7 @@ impl Server {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
                 authed: !tcp, t_open: Instant::now(), long: None, rx_off: 0, flush_to: 0, lazy: false, reads: Vec::new(),
-                turns: Vec::new(), quiet: false, senders: Vec::new(),
+                turns: Vec::new(), quiet: false, senders: Vec::new(), least_data: 0, sent: false,
             });
         }
     }
@@ -1244,7 +1268,10 @@ impl Server {
             KIND_FRAME if has_node => {
                 let (flags, dlc, can_id) = (r[1], r[2], u32_at(r, 4));
                 let node = self.sender_node(shared, i, r[3] as usize)?;
-                match frame_error(can_id, dlc, flags, shared.bus.format.is_fd()) {
+                let least = self.clients[i].least_data;
+                self.clients[i].sent = true;
+                let short = (dlc < least).then(|| format!("{dlc} data bytes, fewer than the {least} its connection said (LEAST_DATA)"));
+                match frame_error(can_id, dlc, flags, shared.bus.format.is_fd()).or(short) {
                     None if dlc > 8 => {
                         self.clients[i].long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: true, t: now, node });
                     }
@@ -1274,6 +1301,17 @@ impl Server {
             KIND_HELLO if !has_node => self.hello(shared, i, r),
             KIND_READ_EVERY if has_node && self.clients[i].lazy => self.read_every(i, r, now),
             KIND_DONE if has_node && self.clients[i].lazy => Ok(()), // its turns ended when it came (`open_turn`)
+            KIND_LEAST_DATA if has_node => {
+                let (c, bytes, most) = (&mut self.clients[i], r[1], shared.bus.format.max_data());
+                if c.sent {
+                    return Err(Fault::Protocol(format!("LEAST_DATA from node {} after its first frame", c.name)));
+                }
+                if bytes as usize > most {
+                    return Err(Fault::Protocol(format!("LEAST_DATA: {bytes} data bytes > {most}, the most a frame of this bus carries")));
+                }
+                c.least_data = bytes;
+                Ok(())
+            }
             KIND_FILTERS if has_node && self.clients[i].pending.is_none() => {
                 let count = u16::from_le_bytes([r[2], r[3]]) as usize;
                 if count > MAX_FILTERS {
@@ -1731,9 +1769,9 @@ mod tests {
         let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
         let timing = BitTiming::new(10_000, 10_000).unwrap();
         let one_frame = timing.frame_ns(0x100, &[1], false, false, false).unwrap() as f64 * 1e-9;
-        let shortest = timing.frame_ns(0, &[], false, false, false).unwrap() as f64 * 1e-9;
+        let shortest = timing.least_frame_ns(0, false) as f64 * 1e-9;
         std::thread::sleep(Duration::from_millis(5));
-        let t_send = now() + shortest; // as a node synced one shortest frame early would stamp it
+        let t_send = now() + shortest; // as a node synced one least frame early would stamp it
         sender.write_all(&pack_frame(0x100, &[1], 0, t_send)).unwrap();
         let frame_of = |s: &mut UnixStream| loop {
             let mut rec = [0u8; RECORD_SIZE];
@@ -1764,7 +1802,7 @@ mod tests {
         let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
         let timing = BitTiming::new(10_000, 10_000).unwrap();
         let one_frame = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
-        let shortest = timing.frame_ns(0, &[], false, false, false).unwrap() as f64 * 1e-9;
+        let shortest = timing.least_frame_ns(0, false) as f64 * 1e-9;
         let t_read = now() + 0.005 + one_frame - 0.0005; // while the frame sent in 5 ms is on the wire
         reader.write_all(&pack_read_every(t_read, 0.0, false)).unwrap();
         std::thread::sleep(Duration::from_millis(5));
@@ -1775,6 +1813,47 @@ mod tests {
         assert_eq!(rec[0], KIND_SYNC); // no frame: the one on the wire ends after it
         assert!((stamp_of(&rec) - t_read).abs() < 2e-6);
         assert!(got < t_read - shortest - 0.002, "synced {:.4} s before its read time", t_read - got);
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// On an idle bus a read time is SYNCed at once when no frame any connection could still send would end by
+    /// it: within the least frame of the fewest data bytes they said (LEAST_DATA). A connection that did not say
+    /// may send an empty frame, so the next read waits until one empty frame (47 bits, no stuff bit) before it.
+    /// A frame shorter than its connection said is refused, and saying it after a frame is a protocol error.
+    #[test]
+    fn a_read_time_within_the_least_frame_the_connections_said_is_synced_at_once() {
+        let (mut handle, path, dir) = serve("least", 5_000, 5_000, Format::Classical); // 200 µs a bit
+        let timing = BitTiming::new(5_000, 5_000).unwrap();
+        let (empty, eight) = (timing.least_frame_ns(0, false) as f64 * 1e-9, timing.least_frame_ns(8, false) as f64 * 1e-9);
+        assert_eq!((empty, eight), (0.0094, 0.0222));
+        let (mut sender, mut reader) = (connect_node(&path, "S", OPTION_LAZY), connect_node(&path, "R", OPTION_LAZY));
+        sender.write_all(&pack_least_data(8)).unwrap();
+        reader.write_all(&pack_least_data(8)).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
+        let mut rec = [0u8; RECORD_SIZE];
+        let mut sync_lead = |reader: &mut UnixStream| {
+            let t_read = now() + 0.020;
+            reader.write_all(&pack_read_every(t_read, 0.0, false)).unwrap();
+            reader.read_exact(&mut rec).unwrap();
+            assert_eq!((rec[0], (stamp_of(&rec) - t_read).abs() < 2e-6), (KIND_SYNC, true));
+            t_read - now()
+        };
+        let lead = sync_lead(&mut reader);
+        assert!(lead > 0.015, "synced {lead:.4} s before its read time, not at once");
+        let _other = connect_node(&path, "O", OPTION_LAZY); // says nothing
+        std::thread::sleep(Duration::from_millis(5));
+        let lead = sync_lead(&mut reader);
+        assert!(lead <= empty + 0.0005, "synced {lead:.4} s before its read time, more than an empty frame");
+        sender.write_all(&pack_frame(0x100, &[1; 2], 0, now())).unwrap(); // 2 bytes: fewer than it said
+        std::thread::sleep(Duration::from_millis(50));
+        let (rejected, frames) = { let shared = handle.shared.lock().unwrap(); (shared.rejected, shared.frames) };
+        assert_eq!((rejected, frames), (1, 0));
+        sender.write_all(&pack_least_data(1)).unwrap(); // too late: it sent a frame
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(handle.shared.lock().unwrap().bad.protocol_errors, 1);
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }

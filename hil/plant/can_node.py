@@ -36,6 +36,14 @@ class PlantCanNode:
         self.malformed_frames = 0  # TractionCmd frames of the wrong length
         self.streams = CommandStreams(layout.n_units)  # each unit's command stream in sequence (hil/plant/command_streams.py)
 
+    def sensor_bytes(self, train: int) -> int:
+        """The fewest data bytes of the Sensor frames it sends on train ``train``'s bus (its server's horizon)."""
+        return min(codec.dlc for i, codec in self._sensor_out if i == train)
+
+    def reference_bytes(self) -> int:
+        """The fewest data bytes of the wayside's frames (Reference, ReferenceAux)."""
+        return min(self.db.reference.dlc, self.db.reference_aux.dlc)
+
     def command_table(self, train: int) -> list[tuple[int, engine.MessageCodec, int]]:
         """(frame id, codec, unit) of a train's TractionCmd frames: what the engine checks and decodes."""
         return [(fid, self.db.by_id[fid], u) for fid, u in self.cmd_unit[train].items()]

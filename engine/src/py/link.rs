@@ -157,6 +157,12 @@ impl FrameLink {
         self.link.read_every(first, period, self.turns).map_err(link_err)
     }
 
+    /// Every frame this link will send carries at least `bytes` data bytes (protocol LEAST_DATA), said before its
+    /// first frame: the server then need not wait for shorter frames before it SYNCs, and refuses one.
+    fn sends_at_least(&mut self, bytes: u8) -> PyResult<()> {
+        self.link.sends_at_least(bytes).map_err(link_err)
+    }
+
     /// The node acts at read time `t` (epoch s), synced to it perhaps before it comes: the frames it sends from
     /// now on carry `t` while that is still ahead (the server queues them then), else the instant they are sent;
     /// on a link of turns, `t` until `end_turn`, however late (the server holds its bus for the turn).

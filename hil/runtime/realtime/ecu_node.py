@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Iterable
 
-from ecu_sim.runtime import cycle_and_send
+from ecu_sim.runtime import cycle_and_send, encodes_in_engine
 from hil.faults.schedule import needs_fault_machinery
 from hil.faults.watchdog import Watchdog, restart_text
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
@@ -74,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
             for frame_id, listeners in table.items():
                 for ecu in listeners:
                     io.route(i, frame_id, ecu.mailbox)
+            if (least := least_sent_bytes([e for u, e in ecus.items() if bus_of[u] == i])) is not None:
+                io.sends_at_least(i, least)
         stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late, Path(args.out),
                     args.turns)
     finally:
@@ -122,6 +124,14 @@ def timing_name(layout, u: int) -> str:
     """The file of unit ``u``'s cycle lateness (hil/runtime/realtime/merge.py records it)."""
     train, unit = layout.train_unit(u)
     return f"timing_ecu_{train + 1}_{unit + 1}.bin"
+
+
+def least_sent_bytes(ecus: list) -> int | None:
+    """The fewest data bytes of any frame these ECUs send, or None when one's program replaces the standard cycle
+    (it may send any frame)."""
+    if not all(encodes_in_engine(ecu) for ecu in ecus):
+        return None
+    return min(codec.dlc for ecu in ecus for codec in ecu.sent_messages())
 
 
 class UnitCycles:

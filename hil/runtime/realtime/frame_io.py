@@ -52,7 +52,7 @@ class EngineFrames:
 
     def __init__(self, clock: SimClock, buses: list[can.BusABC], extended: bool, fd: bool = False, brs: bool = True,
                  packing: engine.Packing | None = None, lazy: bool = False) -> None:
-        self.clock, self.extended, self.fd, self.brs, self.lazy = clock, extended, fd, brs, lazy
+        self.clock, self.extended, self.fd, self.brs, self.lazy, self.packing = clock, extended, fd, brs, lazy, packing
         self.links = [engine.FrameLink(bus.fileno(), clock.t0, clock.pace, keep=True, lazy=lazy, bell=_bell(bus))
                       for bus in buses]
         self.group = engine.LinkGroup(self.links)  # a lazy reader's waits, on every bus at once
@@ -92,6 +92,14 @@ class EngineFrames:
             for i in range(len(self.links)) if buses is None else buses:
                 self.group.read_every(i, first, period, turns)
 
+    def sends_at_least(self, bus: int, data_bytes: int) -> None:
+        """Every frame this node will send on ``bus`` carries at least ``data_bytes`` bytes (said before its first):
+        that bus's server need not wait for a shorter frame before it SYNCs a read, so it SYNCs reads up to that
+        frame's length ahead at once (protocol LEAST_DATA), and refuses a shorter frame. Nothing with containers,
+        whose parts may be shorter."""
+        if self.lazy and self.packing is None:
+            self.links[bus].sends_at_least(data_bytes)
+
     def end_turn(self, buses: list[int] | None = None) -> None:
         """End the node's open turns on ``buses`` (default: every bus; see ``read_every``): it sends nothing more
         there before its next read time. A turn left open ends when the node next waits for a later instant."""
@@ -106,7 +114,7 @@ class EngineFrames:
 
         A lazy reader sleeps on its sockets instead, until each server's SYNC of ``sim_t``, which may come up to
         one frame before ``sim_t`` (the server's ``anticipate``: while a frame on the wire ends after it, or within
-        one shortest frame of it): it then has every frame that will have ended by ``sim_t``, so it acts at once,
+        the least frame any connection could still send, ``sends_at_least``): it then has every frame that will have ended by ``sim_t``, so it acts at once,
         as at ``sim_t``. Its frames sent from then on carry ``sim_t`` while that is still ahead
         (``FrameLink.act_at``), and the server queues them at that instant. One wake-up per read, on the SYNC,
         rather than a timer's and then the SYNC's."""
@@ -177,6 +185,9 @@ class PythonCanFrames:
 
     def read_every(self, first: float, period: float, buses: list[int] | None = None, turns: bool = False) -> None:
         """Nothing: python-can delivers every frame at its end."""
+
+    def sends_at_least(self, bus: int, data_bytes: int) -> None:
+        """Nothing: a SocketCAN bus has no server to tell."""
 
     def end_turn(self, buses: list[int] | None = None) -> None:
         """Nothing: a SocketCAN bus runs on the host's clock, with no turns."""

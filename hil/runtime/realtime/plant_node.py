@@ -197,6 +197,9 @@ class PlantNode:
         self.frames = node_frames(clock, self.buses + self.wayside, self.sc.can, self.packing, lazy=True)
         for train, inbox in enumerate(self.inboxes):
             self.frames.route_commands(train, inbox)
+            self.frames.sends_at_least(train, self.io.sensor_bytes(train))
+        for k in range(len(self.wayside)):
+            self.frames.sends_at_least(len(self.buses) + k, self.io.reference_bytes())
         self.kernel = PacedKernel(clock, self.frames, stop, None, spin_s,
                                   heartbeat=Heartbeat())  # silent when a step never returns: hung
         step = self.sc.plant.step_s

@@ -16,6 +16,7 @@ kind    name             way       layout (struct, after the common "<")
 10      READ_EVERY       c -> s    ``B B 6x d d``: kind, READ_TURNS or 0, first read time (epoch s), period (s; 0: one read); lazy only
 11      SYNC             s -> c    ``B 7x d 8x``: kind, read time (epoch s): every frame that ended by then came before
 13      DONE             c -> s    ``B 7x d 8x``: kind, read time (epoch s) of the node's turn it ends; lazy only
+14      LEAST_DATA       c -> s    ``B B 22x``: kind, the fewest data bytes of any frame it will send; before its first
 ======  ===============  ========  ==================================================================
 
 FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
@@ -56,6 +57,13 @@ the frames of a turn compete for the bus at their instant, and a reader whose re
 in virtual time. A turn without DONE is let go TURN_HOLD_MAX_S of wall time after its read time, and a bus already
 further behind the wall clock than that holds for no new turn until it has caught up (both counted: the server's
 ``turn_overruns``).
+
+Look-ahead: on an idle bus the server SYNCs at once every read time that no frame could end by, however soon one
+were queued: those within the least frame any connection (or the radio, which forwards the frames of its buses'
+connections) could still send. That is an empty frame (47 bits, without stuff bits) unless every connection said
+it sends more (LEAST_DATA, before its first frame; the rig's ECU and plant nodes say what their DBC messages
+carry). A node then acts on its SYNC before its read time, as at it. A frame shorter than its connection said is
+refused and counted, as one the bus cannot carry; LEAST_DATA after a frame is a protocol error.
 
 Session: the node sends HELLO (protocol version, options bit 0 = receive own messages, its name); the server
 answers WELCOME (its version, the bitrate, ``epoch0`` = the epoch time of the bus's time zero, the node's id,
@@ -143,6 +151,7 @@ MAX_SENDERS = _int("MAX_SENDERS")  # senders per connection (FRAME byte 3), each
 READ_TURNS = _int("READ_TURNS")  # READ_EVERY byte 1: each read time is the node's turn, ended by DONE
 KIND_DONE = _int("KIND_DONE")  # lazy reader -> server: its turn at this epoch second is over
 TURN_HOLD_MAX_S = float(_WIRE["TURN_HOLD_MAX_S"])  # wall seconds after its read time a turn may hold the bus
+KIND_LEAST_DATA = _int("KIND_LEAST_DATA")  # node -> server: its frames carry at least byte 1 data bytes
 
 MATCH_ANY = _int("MATCH_ANY")
 MATCH_STANDARD = _int("MATCH_STANDARD")
