@@ -325,7 +325,6 @@ pub(crate) fn set_timer_slack() {
     }
 }
 
-
 /// About the longest frame a bus can carry: a full extended one of zero bits (stuffed the most), on a CAN FD bus
 /// 64 bytes without the faster data phase.
 fn longest_frame_ns(timing: &BitTiming, format: Format) -> u64 {
@@ -874,8 +873,9 @@ impl Server {
     /// SYNC the read times that the bus's state settles now, so that every frame that ends by them has been
     /// handed over: while a frame is on the wire, every read time before its end (no other frame can end before
     /// it); on an idle bus, those less than the least frame any sender could still send away (`least_frame`: a
-    /// frame not yet on the wire cannot end by then). A read time after the end of the frame on the wire waits for it. The lazy reader has its SYNC
-    /// before its read time and acts at once, so it does not wait for this loop's wake-up at that time.
+    /// frame not yet on the wire cannot end by then). A read time after the end of the frame on the wire waits for
+    /// it. The lazy reader has its SYNC before its read time and acts at once, so it does not wait for this loop's
+    /// wake-up at that time.
     fn anticipate(&mut self, shared: &mut Shared, now: u64) {
         let horizon = now.saturating_add(self.shortest_frame_ns);
         while let Some(r) = self.next_read() {
