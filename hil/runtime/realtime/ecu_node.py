@@ -129,7 +129,7 @@ def timing_name(layout, u: int) -> str:
 def least_sent_bytes(ecus: list) -> int | None:
     """The fewest data bytes of any frame these ECUs send, or None when one's program replaces the standard cycle
     (it may send any frame)."""
-    if not all(encodes_in_engine(ecu) for ecu in ecus):
+    if not ecus or not all(encodes_in_engine(ecu) for ecu in ecus):
         return None
     return min(codec.dlc for ecu in ecus for codec in ecu.sent_messages())
 
