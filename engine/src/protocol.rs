@@ -92,7 +92,7 @@ pub const KIND_DONE: u8 = 13;
 /// The longest a turn holds the bus, in wall seconds after its read time.
 pub const TURN_HOLD_MAX_S: f64 = 0.002;
 /// Node to server, before its first frame: every frame the connection sends carries at least byte 1 data bytes
-/// (0..MAX_FD_DLC). The server refuses a shorter one (dropped and counted, as a frame the bus cannot carry) and,
+/// (at most the bus's largest payload). The server refuses a shorter one (dropped and counted, as a frame the bus cannot carry) and,
 /// on an idle bus, SYNCs at once every read time that no frame of any possible sender could end by: the least
 /// frame of the fewest bytes any connection declared (none: an empty frame) is the bus's horizon.
 pub const KIND_LEAST_DATA: u8 = 14;

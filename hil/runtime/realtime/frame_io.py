@@ -114,8 +114,8 @@ class EngineFrames:
 
         A lazy reader sleeps on its sockets instead, until each server's SYNC of ``sim_t``, which may come up to
         one frame before ``sim_t`` (the server's ``anticipate``: while a frame on the wire ends after it, or within
-        the least frame any connection could still send, ``sends_at_least``): it then has every frame that will have ended by ``sim_t``, so it acts at once,
-        as at ``sim_t``. Its frames sent from then on carry ``sim_t`` while that is still ahead
+        the least frame any connection could still send, ``sends_at_least``): it then has every frame that will
+        have ended by ``sim_t``, so it acts at once, as at ``sim_t``. Its frames sent from then on carry ``sim_t`` while that is still ahead
         (``FrameLink.act_at``), and the server queues them at that instant. One wake-up per read, on the SYNC,
         rather than a timer's and then the SYNC's."""
         if not self.lazy:
