@@ -1959,7 +1959,8 @@ mod tests {
                 assert_eq!(got[0].0, KIND_FRAME);
                 assert!((got[0].1 - (t_turn + one_frame)).abs() < 2e-6, "ended {:.6} s after its turn", got[0].1 - t_turn);
                 assert!((got[1].1 - t_read).abs() < 2e-6);
-                assert_eq!(stats, (1, 0));
+                // not let go; held once, unless a loaded machine woke the loop only after the DONE had come
+                assert!(stats.0 <= 1 && stats.1 == 0, "{stats:?}");
             } else {
                 assert!(synced_wall - t_turn > TURN_HOLD_MAX_S, "the reader waited {:.6} s", synced_wall - t_turn);
                 assert_eq!(stats.1, 1, "let go once");
