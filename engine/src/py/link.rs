@@ -159,7 +159,7 @@ impl FrameLink {
 
     /// Every frame this link will send carries at least `bytes` data bytes (protocol LEAST_DATA), said before its
     /// first frame: the server then need not wait for shorter frames before it SYNCs, and refuses one.
-    fn sends_at_least(&mut self, bytes: u8) -> PyResult<()> {
+    fn sends_at_least(&self, bytes: u8) -> PyResult<()> {
         self.link.sends_at_least(bytes).map_err(link_err)
     }
 

@@ -271,6 +271,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         raise ValueError(f"cpu_layout={cpu_layout!r} must be one of {', '.join(CPU_LAYOUT_MODES)}")
     idle = None  # IdleLatencyHold, while the run holds the CPUs' wake-up latency limit
     socketcan = scenario.can.transport == "socketcan"
+    took_turns = turns == "on" and not socketcan  # SocketCAN has no servers to hold
     fmt = log_format(can_log)
     db = load_train_db(scenario)  # the DBC fits the scenario, before any process starts
     if socketcan:  # configuration only: every node opens the host's interfaces; no bus servers
@@ -319,7 +320,6 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             cpus = place_serving_thread(choose_cpu_layout(cpu_layout, pace=pace), serving, events)
             idle, said = hold_for_run(idle_latency_us, pace)
             events.append(Event(0.0, "INFO", "rig", said))
-            took_turns = turns == "on" and not socketcan  # SocketCAN has no servers to hold
             events.append(Event(0.0, "INFO", "rig", f"turns: {'on' if took_turns else 'off'}"))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
@@ -420,7 +420,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         extra["realtime"]["scheduling"] = sched.as_dict()
     extra["realtime"]["idle_latency_us"] = None if idle is None else idle.limit_us  # None: the host's
     extra["realtime"]["cpu_layout"] = None if cpus is None else cpus.as_dict()  # None: the kernel placed everything
-    extra["realtime"]["turns"] = turns == "on" and not socketcan
+    extra["realtime"]["turns"] = took_turns
     if rrd is not None:
         rrd.close()
         files.append(out_dir / "run.rrd")
