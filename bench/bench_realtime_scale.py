@@ -327,7 +327,7 @@ def main() -> None:
             virtual = virtual_cpu_per_sim_s(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "
-                  f"{r['cpu_per_sim_s']:11.2f}  {'yes' if r['keeps_up'] else 'no'}"
+                  f"{r['cpu_per_sim_s']:11.3f}  {'yes' if r['keeps_up'] else 'no'}"
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
                   f"  ({r['scheduling']})"
@@ -348,7 +348,7 @@ def main() -> None:
                   f"{r['overshoot_mps']:.2f} m/s, coupler max {r['coupler_max_m']:.3f} m")
             print("      " + stall_line(r["stalls"], r["misses_in_stalls"], r["plant_misses_in_stalls"]))
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
-                  f"{r['cpu_per_sim_s'] / virtual:.1f} x that   (target <= 4)")
+                  f"{r['cpu_per_sim_s'] / virtual:.2f} x that   (target <= 4)")
             if r["keeps_up"]:
                 best = max(best, n)
     print(f"largest ECU count that keeps up: {best or 'none'} (target 64)")
