@@ -22,8 +22,8 @@ runs each configuration under SCHED_FIFO where permitted and under the normal sc
 watch sleeps under SCHED_FIFO above the rig where permitted, so the rig's own bursts are not counted as stalls).
 ``--cpu-layout auto none`` runs each configuration with the ECU processes on cores of their own (the default) and
 with the kernel placing everything, side by side (``hil run --cpu-layout``). ``--turns on off`` runs each with the
-nodes' turns (the default: their frames at their instants, the bus waiting for them) and without, side by side
-(``hil run --turns``); each run also prints its loop (sensor-to-actuator p50, speed overshoot, coupler maximum),
+nodes' turns (their frames at their instants, the bus waiting for them) and without, side by side (``hil run
+--turns``; the default, auto, takes them faster than real time); each run also prints its loop (sensor-to-actuator p50, speed overshoot, coupler maximum),
 to be read beside virtual time's (``hil run <scenario> --duration S``).
 """
 from __future__ import annotations
@@ -204,7 +204,7 @@ def virtual_cpu_per_sim_s(sc, duration: float) -> float:
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
         radio: str = "servers", keep: Path | None = None, scheduling: SchedulingMode = "auto",
-        idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto", turns: TurnsMode = "off") -> dict:
+        idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto", turns: TurnsMode = "auto") -> dict:
     """One real-time run of ``sc`` and its figures; its files go to ``keep`` (None: a temporary directory)."""
     n_ecus = sc.trains.count * sc.trains.units
     cpu0, t0 = [0.0], [0.0]
@@ -297,9 +297,9 @@ def main() -> None:
     ap.add_argument("--cpu-layout", nargs="+", choices=CPU_LAYOUT_MODES, default=["auto"],
                     help="the rig's CPU layout (hil run --cpu-layout): auto (ECU processes on cores of their own) "
                          "or none; several: side by side, alternated")
-    ap.add_argument("--turns", nargs="+", choices=TURNS_MODES, default=["off"],
-                    help="the nodes' turns (hil run --turns): on (frames at their instants, the bus waiting for them) "
-                         "or off (the default); several: side by side, alternated")
+    ap.add_argument("--turns", nargs="+", choices=TURNS_MODES, default=["auto"],
+                    help="the nodes' turns (hil run --turns): on (frames at their instants, the bus waiting for them), "
+                         "off, or auto (the default: on faster than real time); several: side by side, alternated")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()

@@ -1,5 +1,5 @@
-"""Turns (``hil run --realtime --turns on``): each ECU cycle and plant publication is its node's turn, whose frames go
-on the bus at its instant while the bus waits for it (protocol READ_TURNS/DONE; the server's side in
+"""Turns (``hil run --realtime --turns on``, and by default faster than real time): each ECU cycle and plant
+publication is its node's turn, whose frames go on the bus at its instant while the bus waits for it (protocol READ_TURNS/DONE; the server's side in
 engine/src/server.rs, a frame's path in tests/test_lazy_delivery.py)."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from hil.runtime.realtime import orchestrator
 from hil.runtime.realtime.node import node_parser
-from hil.runtime.realtime.orchestrator import run_realtime
+from hil.runtime.realtime.orchestrator import run_realtime, takes_turns, turns_text
 from hil.scenario import load_scenario
 
 
@@ -20,17 +20,30 @@ def test_a_node_is_told_to_take_turns_on_its_command_line(tmp_path) -> None:
 
 
 def test_an_unknown_mode_is_refused_before_anything_runs(tmp_path) -> None:
-    with pytest.raises(ValueError, match="turns='sometimes' must be one of on, off"):
+    with pytest.raises(ValueError, match="turns='sometimes' must be one of auto, on, off"):
         run_realtime(load_scenario("seed000"), tmp_path / "rt", duration_s=0.5, turns="sometimes")  # type: ignore[arg-type]
     assert not (tmp_path / "rt").exists()
 
 
-@pytest.mark.parametrize("turns", ["on", "off"])
-def test_a_real_time_run_with_turns_has_its_buses_wait_for_them_and_records_it(tmp_path, monkeypatch, turns) -> None:
+def test_auto_takes_turns_faster_than_real_time_and_never_on_socketcan() -> None:
+    assert [takes_turns("auto", pace) for pace in (0.5, 1.0, 1.5, 10.0)] == [False, False, True, True]
+    assert takes_turns("on", 0.5) and not takes_turns("off", 10.0)
+    assert not takes_turns("on", 10.0, socketcan=True) and not takes_turns("auto", 10.0, socketcan=True)
+    assert turns_text("auto", 10.0) == "on (auto: faster than real time)"
+    assert turns_text("auto", 1.0) == "off (auto: not faster than real time)"
+    assert turns_text("on", 1.0) == "on" and turns_text("off", 10.0) == "off"
+    assert turns_text("on", 1.0, socketcan=True) == "off (SocketCAN: no bus servers to hold)"
+
+
+@pytest.mark.parametrize(("turns", "pace", "said"), [("on", 1.0, "on"), ("off", 1.0, "off"),
+                                                     ("auto", 2.0, "on (auto: faster than real time)")])
+def test_a_real_time_run_with_turns_has_its_buses_wait_for_them_and_records_it(tmp_path, monkeypatch, turns, pace,
+                                                                                said) -> None:
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
-    res = run_realtime(load_scenario("seed000"), tmp_path / "rt", duration_s=1.0, record=False, turns=turns)
+    res = run_realtime(load_scenario("seed000"), tmp_path / "rt", pace=pace, duration_s=1.0, record=False, turns=turns)
     rt = json.loads((tmp_path / "rt" / "metrics.json").read_text())["realtime"]
     held = sum(b["turns_held"] for b in rt["bus_servers"].values())
-    assert rt["turns"] is (turns == "on")
-    assert (held > 0) is (turns == "on"), held  # the servers waited for some turns' ends, or took none
-    assert [e.text for e in res.log.events if e.text.startswith("turns:")] == [f"turns: {turns}"]
+    took = said.startswith("on")
+    assert rt["turns"] is took
+    assert (held > 0) is took, held  # the servers waited for some turns' ends, or took none
+    assert [e.text for e in res.log.events if e.text.startswith("turns:")] == [f"turns: {said}"]

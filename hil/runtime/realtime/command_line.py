@@ -155,11 +155,12 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: auto (the default) keeps the bus servers and the plant on the first core the "
                         "rig may use and the ECU processes on the others (at pace 1 or slower, where it may use two "
                         "or more); none: the kernel places every process")
-    g.add_argument("--turns", choices=("on", "off"), default=None,
+    g.add_argument("--turns", choices=("auto", "on", "off"), default=None,
                    help="with --realtime: on: each ECU cycle and plant publication is a turn, whose frames go on the "
                         "bus at its instant however long the node's Python takes (the bus waits up to 2 ms of wall "
-                        "time for it), so the loop is virtual time's while the nodes keep up; off (the default): "
-                        "frames go on the bus when the node sends them, after its work")
+                        "time for it), so the loop is virtual time's while the nodes keep up; off: frames go on the "
+                        "bus when the node sends them, after its work; auto (the default): on faster than real time "
+                        "(--pace above 1), off otherwise")
     g.add_argument("--external", action="append", default=[], metavar="UNIT",
                    help="with --realtime: leave UNIT (e.g. train2/unit3) without an emulated ECU, for an external "
                         "program or device on the bus (adds to ecu.external; repeatable)")
@@ -201,7 +202,7 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
                         run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
                         source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto",
                         idle_latency_us="auto" if args.idle_latency_us is None else args.idle_latency_us,
-                        cpu_layout=args.cpu_layout or "auto", turns=args.turns or "off")
+                        cpu_layout=args.cpu_layout or "auto", turns=args.turns or "auto")
 
 
 def print_channels(channels) -> None:

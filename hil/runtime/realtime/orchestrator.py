@@ -214,14 +214,14 @@ def default_ecus_per_process(n_ecus: int, cores: int | None = None, units_per_tr
     the processes' parallelism matters more than sharing wake-ups.
 
     Measured on 2 cores under SCHED_FIFO, alternated (``bench/bench_realtime_scale.py --ecus N --per-process ...``;
-    README, "The default process layout"). Before the CPUs' idle latency was held: seed000's 12 units in one
-    process cost 0.13-0.16 CPU-s per simulated second against 0.18-0.19 for one process per train, ECU p99
-    0.51-0.68 ms against 0.65-0.74. With it held, one process against two: 32 and 48 ECUs (30 s) p99 0.28-0.38 ms
-    against 0.27-0.59, at less CPU; 64 ECUs (5 min) 0.48 (with 64 misses in a machine stall) to 1.38 ms, median
-    0.79, in seven runs against 0.76 to 1.15, median 0.79, in five, at 0.32-0.37 CPU-s against 0.42-0.46; 96 ECUs
-    (30 s) 1.85 and 1.13 against 2.02 and 1.72; only 128 ECUs (30 s) did better in two (1.49 to 2.33 ms against
-    2.59 and 2.95). At pace 10 (``hil run seed000 --realtime --pace 10 --duration 300``, three pairs) one process
-    missed more: 32-41 late plant publications of 30,000 against 23-35, ECU misses 35-159 against 1-52."""
+    docs/realtime-performance.md, "The default process layout"). Before the CPUs' idle latency was held: seed000's
+    12 units in one process cost 0.13-0.16 CPU-s per simulated second against 0.18-0.19 for one process per train,
+    ECU p99 0.51-0.68 ms against 0.65-0.74. With it held, one process against two: 32 and 48 ECUs (30 s) p99
+    0.28-0.38 ms against 0.27-0.59, at less CPU; 64 ECUs (5 min) 0.48 (with 64 misses in a machine stall) to 1.38
+    ms, median 0.79, in seven runs against 0.76 to 1.15, median 0.79, in five, at 0.32-0.37 CPU-s against 0.42-0.46;
+    96 ECUs (30 s) 1.85 and 1.13 against 2.02 and 1.72; only 128 ECUs (30 s) did better in two (1.49 to 2.33 ms
+    against 2.59 and 2.95). At pace 10 (``hil run seed000 --realtime --pace 10 --duration 300``, three pairs) one
+    process missed more: 32-41 late plant publications of 30,000 against 23-35, ECU misses 35-159 against 1-52."""
     ecu_processes = max(1, (usable_cores() if cores is None else cores) - 1)
     per_process = max(1, math.ceil(n_ecus / ecu_processes))
     if pace <= 1.0 or units_per_train is None:
@@ -237,7 +237,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                  live: LiveTarget | None = None, overrides: dict | None = None, source: str | None = None,
                  keep_signals: bool = True, radio_in_servers: bool = True, scheduling: SchedulingMode = "auto",
                  idle_latency_us: IdleLatencySetting = "auto", cpu_layout: CpuLayoutMode = "auto",
-                 turns: TurnsMode = "off"):
+                 turns: TurnsMode = "auto"):
     """Run ``scenario`` on the real-time rig (see the module docstring); returns a ``hil.session.RunResult``.
 
     ``plant_spin_us``: on SocketCAN, the plant polls this long before each publication (0: sleep only); on the
@@ -259,7 +259,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
     processes on the others, at pace 1 or slower where it may use two or more; "none" leaves placement to the kernel
     (hil/runtime/realtime/cpu_layout.py). ``turns``: "on" makes each ECU cycle and plant publication the node's turn
     on the emulated buses (``frame_io.EngineFrames.read_every``): its frames go on the bus at its instant, the bus
-    waiting for them up to ``TURN_HOLD_MAX_S`` of wall time; "off" (the default): when the node sends them."""
+    waiting for them up to ``TURN_HOLD_MAX_S`` of wall time; "off": when the node sends them; "auto" (the default):
+    on faster than real time, off otherwise (``takes_turns``)."""
     if turns not in TURNS_MODES:
         raise ValueError(f"turns={turns!r} must be one of {', '.join(TURNS_MODES)}")
     if not (isinstance(pace, (int, float)) and 0 < pace < float("inf")):
@@ -271,7 +272,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         raise ValueError(f"cpu_layout={cpu_layout!r} must be one of {', '.join(CPU_LAYOUT_MODES)}")
     idle = None  # IdleLatencyHold, while the run holds the CPUs' wake-up latency limit
     socketcan = scenario.can.transport == "socketcan"
-    took_turns = turns == "on" and not socketcan  # SocketCAN has no servers to hold
+    took_turns = takes_turns(turns, pace, socketcan)
     fmt = log_format(can_log)
     db = load_train_db(scenario)  # the DBC fits the scenario, before any process starts
     if socketcan:  # configuration only: every node opens the host's interfaces; no bus servers
@@ -320,7 +321,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             cpus = place_serving_thread(choose_cpu_layout(cpu_layout, pace=pace), serving, events)
             idle, said = hold_for_run(idle_latency_us, pace)
             events.append(Event(0.0, "INFO", "rig", said))
-            events.append(Event(0.0, "INFO", "rig", f"turns: {'on' if took_turns else 'off'}"))
+            events.append(Event(0.0, "INFO", "rig", f"turns: {turns_text(turns, pace, socketcan)}"))
             for i in range(0 if socketcan else layout.n_trains):
                 server = NativeBusServer(run, f"bus{i + 1}", sc_.bitrate, sc_.queue_policy, sc_.tx_queue_depth,
                                     extended=sc_.extended_ids, spin_us=0, pace=pace, log=BusLog(f"bus{i + 1}", sc_.bitrate),
@@ -343,7 +344,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if say is not None:
                 say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}; {said}; "
                     f"{cpus.describe() if cpus is not None else 'CPU layout: none'}; "
-                    f"turns {'on' if took_turns else 'off'}" + (
+                    f"turns {turns_text(turns, pace, socketcan)}" + (
                     f"; waiting up to {scenario.ecu.join_timeout_s:g} s for external unit(s) "
                     f"{', '.join(scenario.ecu.external)}" if external else ""))
             _wait_ready(nodes, stop)
@@ -532,8 +533,28 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
     return RealtimeFaults(scenario, layout, servers, seed, db, radio)
 
 
-TurnsMode = Literal["on", "off"]
-TURNS_MODES: tuple[TurnsMode, ...] = ("on", "off")
+TurnsMode = Literal["auto", "on", "off"]
+TURNS_MODES: tuple[TurnsMode, ...] = ("auto", "on", "off")
+
+
+def takes_turns(mode: TurnsMode, pace: float, socketcan: bool = False) -> bool:
+    """Whether a run's nodes take turns: "on" always, "auto" faster than real time, "off" never; never on SocketCAN
+    (no bus servers to hold). Faster than real time a node's Python takes a larger share of each simulated
+    millisecond, so without turns its frames miss the readers virtual time's would reach (seed000 at pace 10: speed
+    overshoot 26 m/s without, virtual time's 17.43 with; README, "Turns"); at pace 1 they are on time without the
+    round trips turns cost."""
+    if socketcan or mode == "off":
+        return False
+    return mode == "on" or pace > 1.0
+
+
+def turns_text(mode: TurnsMode, pace: float, socketcan: bool = False) -> str:
+    """What a run says of its turns (``takes_turns``): "on" or "off", and why where the mode did not say it."""
+    if socketcan and mode != "off":
+        return "off (SocketCAN: no bus servers to hold)"
+    if mode != "auto":
+        return mode
+    return "on (auto: faster than real time)" if takes_turns(mode, pace) else "off (auto: not faster than real time)"
 
 
 def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, fifo: bool,
