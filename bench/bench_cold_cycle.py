@@ -1,9 +1,10 @@
 """What a cold cache costs the Python a real-time node runs per wake-up: seed000's ECU cycle and plant step, warm,
 after a sleep, and after the caches were evicted.
 
-Real time pays for the same firmware cycle several times what virtual time pays (README, "What real time still
-costs"). A real-time node sleeps between its cycles, and on a virtual machine the host runs other work on the
-core meanwhile (or moves the virtual CPU), so the node's code and data may be out of the caches when it wakes.
+Real time pays for the same firmware cycle several times what virtual time pays (docs/realtime-performance.md,
+"What real time still costs"). A real-time node sleeps between its cycles, and on a virtual machine the host runs
+other work on the core meanwhile (or moves the virtual CPU), so the node's code and data may be out of the caches
+when it wakes.
 This bench measures that in isolation, in virtual time: it runs seed000 and times one ECU cycle
 (``cycle_and_send``: the firmware and the engine's encode-and-queue) and one plant step in every TIMED_EVERY by the
 thread's CPU clock, with before each timed one:

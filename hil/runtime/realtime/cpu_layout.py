@@ -8,9 +8,10 @@ with each other at every publication, share the first core the rig may use; the 
 "auto" (the default) does this at pace 1 or slower where the rig may use two cores or more (the orchestrator's
 affinity mask, so a container's or ``taskset``'s limits are kept); "none" leaves every placement to the kernel.
 Faster than real time it does not: at pace 10 seed000's three ECU processes (one per train) queued behind each other
-on their one core (ECU misses 72 and 49 against 41 and 4 in two alternated pairs, README "CPU layout"). The orchestrator's own
-Python (supervision, spooling, recording) is not pinned. Each node pins itself as its first step (``pin``, from
-the cores the orchestrator names in its arguments), so the threads it starts after follow it.
+on their one core (ECU misses 72 and 49 against 41 and 4 in two alternated pairs, docs/realtime-performance.md, "CPU
+layout"). The orchestrator's own Python (supervision, spooling, recording) is not pinned. Each node pins itself as
+its first step (``pin``, from the cores the orchestrator names in its arguments), so the threads it starts after
+follow it.
 """
 from __future__ import annotations
 

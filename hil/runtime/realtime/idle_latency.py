@@ -4,14 +4,15 @@ holds it.
 A node sleeps between its cycles. On a virtual machine an idle CPU halts, and the hypervisor gives it back to the
 guest later: on this project's 2-core KVM host a short piece of Python right after a 10 ms sleep runs 20-25 µs
 longer than warm. A limit of 0 µs keeps idle CPUs polling in the guest's idle loop instead; seed000's ECU cycle
-after a 10 ms sleep then costs 72 µs rather than 114 (warm: 9; ``bench/bench_cold_cycle.py``, the README's
-"Keeping idle CPUs awake"). The price: the idle CPUs no longer rest (the host sees them busy).
+after a 10 ms sleep then costs 72 µs rather than 114 (warm: 9; ``bench/bench_cold_cycle.py``,
+docs/realtime-performance.md, "Keeping idle CPUs awake"). The price: the idle CPUs no longer rest (the host sees
+them busy).
 
 A real-time run at pace 1 or slower holds 0 where the host permits it (``auto``, the default, as cyclictest does
 and as the rig takes SCHED_FIFO where permitted), else leaves the host's limit and says why in its events. Faster
 than real time, auto leaves the host's: nodes then sleep about 1 ms, and polling CPUs made the host take them
 away more often (seed000 at pace 10: 37 and 41 late plant publications of 30,000 held, 17 and 20 not; at pace 1
-five minutes of 64 ECUs reached p99 0.85 ms held, 1.57 not; the README's "Keeping idle CPUs awake").
+five minutes of 64 ECUs reached p99 0.85 ms held, 1.57 not; docs/realtime-performance.md, "Keeping idle CPUs awake").
 ``host`` leaves it always; a number holds that many µs or refuses the run (exit 1).
 
 The kernel keeps the limit while the file is open and drops it when it is closed, also when the process dies:
