@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.orchestrator import TURNS_MODES, TurnsMode, default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
+from hil.record.metrics import compute_metrics  # noqa: E402
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # noqa: E402
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.runtime.realtime.cpu_layout import CPU_LAYOUT_MODES, CpuLayoutMode  # noqa: E402
@@ -194,12 +195,36 @@ class CpuByRole:
         return out
 
 
-def virtual_cpu_per_sim_s(sc, duration: float) -> float:
-    """CPU seconds per simulated second of the same scenario in virtual time (one process, no recording)."""
+def virtual_run(sc, duration: float) -> tuple[float, dict]:
+    """The same scenario in virtual time (one process, no recording): its CPU seconds per simulated second, and
+    its loop (``loop_figures``), the reference real time's is read against."""
     rig = VirtualRig(sc)
     c0 = time.process_time()
-    rig.run(duration)
-    return (time.process_time() - c0) / duration
+    log = rig.run(duration)
+    cpu = (time.process_time() - c0) / duration
+    return cpu, loop_figures(compute_metrics(log, sc.plant.coupler_band_m))
+
+
+def loop_figures(m: dict) -> dict:
+    """What says whether two runs had the same loop: speed overshoot, coupler maximum, settling time (None: not
+    settled) and the safety verdicts violated, with how many times."""
+    verdicts = {k: v["count"] for k, v in m["safety"].items() if isinstance(v, dict) and v.get("violated")}
+    return {"overshoot_mps": m["speed_overshoot_max_mps"], "coupler_max_m": m["coupler_max_abs_m"],
+            "settling_s": m["settling_time_s"], "verdicts": verdicts}
+
+
+def loop_comparison(real: dict, virtual: dict) -> str:
+    """Real time's loop beside virtual time's: the figures, and the settling gap in per cent where both settled."""
+    def settling(s: float | None) -> str:
+        return "not settled" if s is None else f"settling {s:.1f} s"
+
+    gap = ""
+    if real["settling_s"] is not None and virtual["settling_s"] is not None:
+        gap = f" ({100 * (real['settling_s'] / virtual['settling_s'] - 1):+.1f} %)"
+    verdicts = "the same verdicts" if real["verdicts"].keys() == virtual["verdicts"].keys() else "other verdicts"
+    return (f"virtual time's loop: speed overshoot {virtual['overshoot_mps']:.2f} m/s, coupler max "
+            f"{virtual['coupler_max_m']:.3f} m, {settling(virtual['settling_s'])}; real time's "
+            f"{settling(real['settling_s'])}{gap}; {verdicts} (real {real['verdicts']}, virtual {virtual['verdicts']})")
 
 
 def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us: float = 200.0,
@@ -258,7 +283,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "scheduling": m["realtime"]["scheduling"]["policy"], "idle_latency_us": m["realtime"]["idle_latency_us"],
             "cpu_layout": m["realtime"]["cpu_layout"], "turns": m["realtime"]["turns"],
             "e2e_p50_ms": 1e3 * (m["e2e_latency_p50_s"] or 0), "overshoot_mps": m["speed_overshoot_max_mps"],
-            "coupler_max_m": m["coupler_max_abs_m"],
+            "coupler_max_m": m["coupler_max_abs_m"], "loop": loop_figures(m),
             "turns_held": sum(b["turns_held"] for b in m["realtime"]["bus_servers"].values()),
             "turn_overruns": sum(b["turn_overruns"] for b in m["realtime"]["bus_servers"].values())}
 
@@ -324,7 +349,7 @@ def main() -> None:
                     if args.keep is not None else None)
             r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle, cpus, turns)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units, pace=args.pace)
-            virtual = virtual_cpu_per_sim_s(sc, args.duration)
+            virtual, virtual_loop = virtual_run(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "
                   f"{r['cpu_per_sim_s']:11.3f}  {'yes' if r['keeps_up'] else 'no'}"
@@ -346,6 +371,7 @@ def main() -> None:
             print(f"      plant: {r['plant_misses']} of {r['publications']} publications missed their deadline")
             print(f"      the loop: sensor-to-actuator p50 {r['e2e_p50_ms']:.2f} ms, speed overshoot "
                   f"{r['overshoot_mps']:.2f} m/s, coupler max {r['coupler_max_m']:.3f} m")
+            print("      " + loop_comparison(r["loop"], virtual_loop))
             print("      " + stall_line(r["stalls"], r["misses_in_stalls"], r["plant_misses_in_stalls"]))
             print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.2f} x that   (target <= 4)")

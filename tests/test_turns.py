@@ -1,6 +1,6 @@
 """Turns (``hil run --realtime --turns on``, and by default faster than real time): each ECU cycle and plant
-publication is its node's turn, whose frames go on the bus at its instant while the bus waits for it (protocol READ_TURNS/DONE; the server's side in
-engine/src/server.rs, a frame's path in tests/test_lazy_delivery.py)."""
+publication is its node's turn, whose frames go on the bus at its instant while the bus waits for it (protocol
+READ_TURNS/DONE; the server's side in engine/src/server.rs, a frame's path in tests/test_lazy_delivery.py)."""
 from __future__ import annotations
 
 import json

@@ -44,7 +44,7 @@ class BusServerStats:
     clients_refused: int = 0  # connections refused: not loopback, or more than max_clients
     tcp_port: int | None = None  # the loopback TCP port, when listening on TCP
     wake_ups: int = 0  # turns of the serving loop so far (each a wake-up of its thread)
-    turns_held: int = 0  # nodes' turns the bus waited for (ECU cycles, plant publications: hil run --turns on)
+    turns_held: int = 0  # nodes' turns the bus waited for (ECU cycles, plant publications: hil run --turns)
     turn_overruns: int = 0  # turns let go without their end after TURN_HOLD_MAX_S (the bus went on)
 
     def as_dict(self) -> dict:

@@ -48,7 +48,7 @@ frame the server hands over at its end. BELL records (kind 12) from the server s
 ``flags`` BELL_EVERY (every frame: an eager node, the error model or the guardian is on the bus) and BELL_RESET
 (a new set starts), ``count`` IDs (u32, from byte 4) the radio takes; until the first, every frame rings.
 
-Turns (READ_EVERY byte 1 = READ_TURNS; the rig's ECU and plant nodes with ``hil run --turns on``): each read time
+Turns (READ_EVERY byte 1 = READ_TURNS; the rig's ECU and plant nodes with turns, ``hil run --turns``): each read time
 of that schedule is the node's turn. After its SYNC the node acts as at the read time, however long its work
 takes: its FRAME records carry that instant, and it ends the turn with DONE (after its frames, in the same write).
 Until then the server runs its bus, and the buses of its radio, no further than just before the read time, and
