@@ -231,7 +231,7 @@ pub struct Server {
     arbitrate_at: Option<u64>,
     /// The least frame any sender could still put on this bus (see `anticipate`): an empty one, unless every
     /// connection said more (LEAST_DATA); set at each turn (`least_frame`).
-    shortest_frame_ns: u64,
+    least_frame_ns: u64,
     /// The bus's bit timing, for that.
     timing: BitTiming,
     /// About the longest (see `max_ahead_ns`).
@@ -356,7 +356,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let (wake_r, wake_w) = UnixStream::pair()?;
     wake_r.set_nonblocking(true)?;
     wake_w.set_nonblocking(true)?;
-    let shortest_frame_ns = timing.least_frame_ns(0, cfg.format.is_fd());
+    let least_frame_ns = timing.least_frame_ns(0, cfg.format.is_fd());
     let longest_frame_ns = longest_frame_ns(&timing, cfg.format);
     let mut bus = Bus::new(&cfg.channel, timing, cfg.policy, cfg.depth, cfg.extended, cfg.load_window_ns).with_format(cfg.format);
     let mono0 = Instant::now(); // and the same instant on the epoch clock: records carry epoch times
@@ -389,7 +389,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        floor: 0, arbitrate_at: None, shortest_frame_ns, timing, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
+        floor: 0, arbitrate_at: None, least_frame_ns, timing, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
         more_waiting: false, turn_hold: None, held: false,
         done: done.clone(),
     };
@@ -484,7 +484,7 @@ impl Server {
     /// When the loop can give the SYNC of read time `r` (see `anticipate`): one least frame before it, or when
     /// the frame on the wire ends if it ends by `r` (until then the SYNC must wait for it; the loop sleeps to it).
     fn sync_wake(&self, shared: &Shared, r: u64) -> u64 {
-        let early = (r + 1).saturating_sub(self.shortest_frame_ns);
+        let early = (r + 1).saturating_sub(self.least_frame_ns);
         match shared.bus.current {
             Some(tx) if tx.t_end <= r => early.max(tx.t_end),
             _ => early,
@@ -711,7 +711,7 @@ impl Server {
     /// The last part of a turn, after the bus has run to `now`: the SYNCs it settles, write what is due, close
     /// the load windows, and tell the hub and the quiet readers what this bus needs now.
     fn end_turn(&mut self, shared: &mut Shared, now: u64) {
-        self.shortest_frame_ns = self.least_frame();
+        self.least_frame_ns = self.least_frame();
         self.anticipate(shared, now);
         if shared.bus.current.is_none() {
             let _ = shared.bus.arbitrate(now);
@@ -877,7 +877,7 @@ impl Server {
     /// it. The lazy reader has its SYNC before its read time and acts at once, so it does not wait for this loop's
     /// wake-up at that time.
     fn anticipate(&mut self, shared: &mut Shared, now: u64) {
-        let horizon = now.saturating_add(self.shortest_frame_ns);
+        let horizon = now.saturating_add(self.least_frame_ns);
         while let Some(r) = self.next_read() {
             let settled = match shared.bus.current {
                 Some(tx) => tx.t_end > r,
