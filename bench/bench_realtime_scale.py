@@ -48,6 +48,7 @@ from hil.runtime.realtime.orchestrator import TURNS_MODES, TurnsMode, default_ec
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.record.metrics import compute_metrics  # noqa: E402
+from hil.record.safety import violated  # noqa: E402
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # noqa: E402
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.runtime.realtime.cpu_layout import CPU_LAYOUT_MODES, CpuLayoutMode  # noqa: E402
@@ -208,7 +209,7 @@ def virtual_run(sc, duration: float) -> tuple[float, dict]:
 def loop_figures(m: dict) -> dict:
     """What says whether two runs had the same loop: speed overshoot, coupler maximum, settling time (None: not
     settled) and the safety verdicts violated, with how many times."""
-    verdicts = {k: v["count"] for k, v in m["safety"].items() if isinstance(v, dict) and v.get("violated")}
+    verdicts = {k: v["count"] for k, v in violated(m["safety"]).items()}
     return {"overshoot_mps": m["speed_overshoot_max_mps"], "coupler_max_m": m["coupler_max_abs_m"],
             "settling_s": m["settling_time_s"], "verdicts": verdicts}
 

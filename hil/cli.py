@@ -13,7 +13,7 @@ from ecu_sim.references import ReferenceLoadError
 from hil.cli_values import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
-from hil.record.safety import ECU_FAILURE
+from hil.record.safety import ECU_FAILURE, violated
 from hil.record.out_dir import (OutputDirError, ensure_writable_dir, free_reserve, hold_folder, release_folder,
                                 reserve_space)
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
@@ -294,9 +294,8 @@ def _keep_serving(live) -> None:
 
 def unsafe_exit(metrics: dict) -> int:
     """``--check``: EXIT_UNSAFE, with the violated verdicts named on stderr, when the run was not safe; else 0."""
-    safety = metrics.get("safety") or {}
-    bad = [f"{k} ({v['count']}x, first at t = {v['first_s']:.1f} s)" for k, v in safety.items()
-           if isinstance(v, dict) and v.get("violated")]
+    bad = [f"{k} ({v['count']}x, first at t = {v['first_s']:.1f} s)"
+           for k, v in violated(metrics.get("safety")).items()]
     if not bad:
         return 0
     print(f"hil: unsafe: {'; '.join(bad)}", file=sys.stderr)

@@ -128,6 +128,11 @@ def safety_report(log: RunLog, band: tuple[float, float], line_limit_mps: float 
     return out
 
 
+def violated(safety: dict | None) -> dict[str, dict]:
+    """The verdicts of a ``safety_report`` (metrics.json's ``safety``) that were violated, by name."""
+    return {k: v for k, v in (safety or {}).items() if isinstance(v, dict) and v.get("violated")}
+
+
 def ecu_failures(events: list[Event]) -> list[Event]:
     """The events that say an ECU stopped (its law or program raised, returned no command or a non-finite one,
     called sys.exit), its process died, or it was restarted: the ``ecu_failure`` verdict, in time order."""
