@@ -76,7 +76,7 @@ def print_summary(metrics: dict, out: Path) -> None:
     sat = metrics.get("codec_saturations") or {}
     if sat:
         print(f"  {'signals saturated (count)':38s} " + ", ".join(f"{k}: {v}" for k, v in sat.items()))
-    for line in _safety_lines(metrics.get("safety")) + _fault_lines(metrics.get("faults")):
+    for line in _safety_lines(metrics.get("safety")) + _fault_lines(metrics.get("faults")) + _turn_lines(metrics.get("realtime")):
         print(f"  {line}")
     written = [name for name in ("run.rrd", "metrics.json") if (out / name).exists()]
     print(f"  written to {out}/ ({', '.join(written)})")
@@ -91,6 +91,15 @@ def _safety_lines(safety: dict | None) -> list[str]:
            f"({v['violations'][0]['where']}: {v['violations'][0]['text']})" if k == ECU_FAILURE
            else f"({v['total_s']:.1f} s summed over units)") for k, v in verdicts.items() if v["violated"]]
     return [f"{'safety verdicts':38s} " + ("; ".join(bad) if bad else "safe (" + ", ".join(verdicts) + ": none)")]
+
+
+def _turn_lines(realtime: dict | None) -> list[str]:
+    """With turns: how many the buses waited for, and how many they let go (where the loop left virtual time's)."""
+    if not realtime or not realtime.get("turns"):
+        return []
+    servers = realtime.get("bus_servers", {}).values()
+    held, let_go = sum(b["turns_held"] for b in servers), sum(b["turn_overruns"] for b in servers)
+    return [f"{'turns waited for, let go':38s} {held}, {let_go}"]
 
 
 def _fault_lines(faults: dict | None) -> list[str]:

@@ -308,3 +308,34 @@ def test_faster_than_real_time_a_wait_between_read_times_is_asked_for_and_synced
             group.finish(t)
         finally:
             bus.shutdown()
+
+
+@pytest.mark.parametrize("for_good", [True, False])
+def test_a_node_whose_turns_are_over_holds_its_bus_for_none_of_its_later_read_times(server, for_good):
+    """A node that stays connected after its last turn (the rig's nodes linger at the end of a run) says its turns
+    are over (``LinkGroup.end_turns_for_good``): its read times go on as plain reads, and none is held or let go.
+    Without it, each later read time holds the bus TURN_HOLD_MAX_S and is let go, counted under the node's name."""
+    bus = TrainhilBus("lz/bus1", node_name="N", lazy_reader=True)
+    try:
+        t0 = time.time() + 0.02  # the epoch second of simulated 0
+        link = engine.FrameLink(bus.fileno(), t0, 1.0, keep=True, lazy=True)
+        group = engine.LinkGroup([link])
+        group.read_every(0, 0.0, 0.005, True)  # a turn every 5 ms
+        waiting = group.begin_wait(0.0)
+        deadline = time.time() + 1.0
+        while waiting and time.time() < deadline:
+            waiting = group.wait_more(0.0, 0.1)
+        assert waiting == []
+        group.finish(0.0)
+        group.end_turn()  # its last turn
+        if for_good:
+            group.end_turns_for_good()
+        time.sleep(0.03)  # lingers over six more read times
+        stats = server.stats
+    finally:
+        bus.shutdown()
+    if for_good:
+        assert (stats.turn_overruns, stats.turns_let_go, stats.turns_behind) == (0, {}, 0)
+    else:
+        assert stats.turns_let_go.get("N", 0) >= 1, stats
+        assert stats.turn_overruns == stats.turns_let_go["N"] + stats.turns_behind

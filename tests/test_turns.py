@@ -7,7 +7,9 @@ import json
 
 import pytest
 
+from hil import cli
 from hil.runtime.realtime import orchestrator
+from hil.runtime.realtime.bus_server import BusServerStats, turns_let_go_text
 from hil.runtime.realtime.node import node_parser
 from hil.runtime.realtime.orchestrator import run_realtime, takes_turns, turns_text
 from hil.scenario import load_scenario
@@ -47,3 +49,29 @@ def test_a_real_time_run_with_turns_has_its_buses_wait_for_them_and_records_it(t
     assert rt["turns"] is took
     assert (held > 0) is took, held  # the servers waited for some turns' ends, or took none
     assert [e.text for e in res.log.events if e.text.startswith("turns:")] == [f"turns: {said}"]
+    servers = rt["bus_servers"].values()
+    for b in servers:  # every turn let go is either a node's, by name, or the bus's own (behind the wall clock)
+        assert b["turn_overruns"] == sum(b["turns_let_go"].values()) + b["turns_behind"], b
+    let_go = [e for e in res.log.events if "turns let go" in e.text]
+    assert len(let_go) == (sum(b["turn_overruns"] for b in servers) > 0), let_go  # said once at the end, if any
+    assert all(e.level == "WARN" for e in let_go)
+
+
+def _stats(channel: str, let_go: dict[str, int], behind: int) -> BusServerStats:
+    return BusServerStats(channel, 500_000, 1.0, 2, 0, 0.0, 0.0, None, 0, 0, 0, None, None, None, None, None, None,
+                          turn_overruns=sum(let_go.values()) + behind, turns_let_go=let_go, turns_behind=behind)
+
+
+def test_the_turns_let_go_are_summed_over_the_buses_by_who_was_late() -> None:
+    assert turns_let_go_text([_stats("bus1", {}, 0), _stats("bus2", {}, 0)]) is None
+    text = turns_let_go_text([_stats("bus1", {"Plant": 2, "ECU_T1_U01x4": 1}, 0), _stats("bus2", {"Plant": 3}, 4)])
+    assert text is not None
+    assert text.startswith("10 turns let go (Plant 5, ECU_T1_U01x4 1, 4 at once, the bus behind the wall clock)")
+    assert "not virtual time's" in text
+
+
+def test_the_run_summary_says_how_many_turns_the_buses_waited_for_and_let_go() -> None:
+    rt = {"turns": True, "bus_servers": {"bus1": {"turns_held": 5, "turn_overruns": 1},
+                                         "bus2": {"turns_held": 3, "turn_overruns": 0}}}
+    assert cli._turn_lines(rt) == [f"{'turns waited for, let go':38s} 8, 1"]
+    assert cli._turn_lines({**rt, "turns": False}) == [] and cli._turn_lines(None) == []

@@ -365,6 +365,9 @@ class LinkGroup:
     def end_turn(self, buses: Sequence[int] | None = None) -> None:
         """End the open turns of the links of ``buses`` (default: every bus; ``FrameLink.end_turn``). A turn still
         open when the node next waits for a later instant ends then, as do the turns of read times it skipped."""
+    def end_turns_for_good(self) -> None:
+        """The node's turns are over (its run ended): a DONE stamped +inf on every link, after which its servers hold
+        their buses for none of its read times, though it may still wait for them."""
     def begin_wait(self, sim_t: float) -> list[int]:
         """Start waiting for read time ``sim_t`` (simulated s) on the buses that have it among their read times, or,
         at an instant none foresaw, on every bus not yet synced to it, asked once. The buses still without a SYNC."""

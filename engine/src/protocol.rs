@@ -87,7 +87,8 @@ pub const BELL_IDS_PER_RECORD: usize = 5;
 /// after its read time is let go (counted: `turn_overruns`) and the bus goes on.
 pub const READ_TURNS: u8 = 0x01;
 /// Node to server, after its turn: it sends nothing more stamped before its next read time (bytes 8..16: the read
-/// time of the turn, epoch s).
+/// time of the turn, epoch s). Stamped +inf: its turns are over (its run ended); its read times go on as plain
+/// reads, and no turn of it holds the bus any more.
 pub const KIND_DONE: u8 = 13;
 /// The longest a turn holds the bus, in wall seconds after its read time.
 pub const TURN_HOLD_MAX_S: f64 = 0.002;

@@ -13,6 +13,7 @@
 //! the protocol disconnects that node, and both are counted and reported (the first few of each kind).
 //! The listening sockets are made (owner-only paths, loopback TCP, token file) by the Python side.
 
+use std::collections::BTreeMap;
 use std::io::{ErrorKind, Read, Write};
 use std::net::TcpListener;
 use std::os::fd::{AsRawFd, FromRawFd, RawFd};
@@ -106,8 +107,13 @@ pub struct Shared {
     pub turns: u64,
     /// Nodes' turns (READ_TURNS) the bus waited for: their read time came before their DONE.
     pub turns_held: u64,
-    /// Turns let go after TURN_HOLD_MAX_S without their DONE (the bus went on without the rest of the turn).
+    /// Turns let go: after TURN_HOLD_MAX_S without their DONE (the bus went on without the rest of the turn), or at
+    /// once on a bus already further behind the wall clock than that (`turns_behind`).
     pub turn_overruns: u64,
+    /// Of `turn_overruns`, those held TURN_HOLD_MAX_S without their DONE, by the node's name: who was late.
+    pub turns_let_go: BTreeMap<String, u64>,
+    /// Of `turn_overruns`, those let go at once because the bus itself was behind the wall clock.
+    pub turns_behind: u64,
     /// Log lines for the owner to report (bad input, joins and leaves).
     pub messages: Vec<(String, String)>,
 }
@@ -381,7 +387,8 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     };
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
-        bad: BadInput::default(), clients: 0, now_ns: 0, turns: 0, turns_held: 0, turn_overruns: 0, messages: Vec::new(),
+        bad: BadInput::default(), clients: 0, now_ns: 0, turns: 0, turns_held: 0, turn_overruns: 0,
+        turns_let_go: BTreeMap::new(), turns_behind: 0, messages: Vec::new(),
     }));
     let stop = Arc::new(AtomicBool::new(false));
     let pace = cfg.pace;
@@ -663,7 +670,8 @@ impl Server {
             if self.clients[i].turns.is_empty() {
                 continue;
             }
-            let ended = self.clients[i].done_waiting().and_then(|done| self.bus_ns(done + SYNC_TOLERANCE_S));
+            let ended = self.clients[i].done_waiting()
+                .and_then(|done| if done == f64::INFINITY { Some(u64::MAX) } else { self.bus_ns(done + SYNC_TOLERANCE_S) });
             let c = &mut self.clients[i];
             let closed = c.closed;
             c.turns.retain_mut(|(r, waited)| {
@@ -672,6 +680,7 @@ impl Server {
                 }
                 if now > *r + limit {
                     shared.turn_overruns += 1;
+                    *shared.turns_let_go.entry(c.name.clone()).or_default() += 1;
                     return false;
                 }
                 if *r <= now {
@@ -902,6 +911,7 @@ impl Server {
                     c.turns.push((r, false));
                 } else {
                     shared.turn_overruns += 1; // not held: let go at once
+                    shared.turns_behind += 1;
                 }
             }
             c.reads.retain_mut(|(next, period, _)| {
@@ -1300,7 +1310,16 @@ impl Server {
             }
             KIND_HELLO if !has_node => self.hello(shared, i, r),
             KIND_READ_EVERY if has_node && self.clients[i].lazy => self.read_every(i, r, now),
-            KIND_DONE if has_node && self.clients[i].lazy => Ok(()), // its turns ended when it came (`open_turn`)
+            KIND_DONE if has_node && self.clients[i].lazy => {
+                // its turns ended when it came (`open_turn`); stamped +inf, its turns are over (its run ended): its
+                // read times go on as plain reads, which hold the bus for nothing
+                if stamp_of(r) == f64::INFINITY {
+                    let c = &mut self.clients[i];
+                    c.turns.clear();
+                    c.reads.iter_mut().for_each(|read| read.2 = false);
+                }
+                Ok(())
+            }
             KIND_LEAST_DATA if has_node => {
                 let (c, bytes, most) = (&mut self.clients[i], r[1], shared.bus.format.max_data());
                 if c.sent {
@@ -1924,6 +1943,43 @@ mod tests {
     /// A node's turn (READ_TURNS) that takes longer than the read after it: its frame, sent late but stamped with
     /// its read time, still goes on the bus at that instant, and the later reader's SYNC waits for the turn's DONE,
     /// so that reader has the frame as in virtual time. Without DONE the turn is let go after TURN_HOLD_MAX_S.
+    #[test]
+    fn a_done_stamped_infinity_ends_a_nodes_turns_for_good_and_the_let_go_ones_name_their_node() {
+        for for_good in [true, false] {
+            let (mut handle, path, dir) = serve(if for_good { "good" } else { "goodx" }, 500_000, 500_000, Format::Classical);
+            let mut node = connect_node(&path, "P", OPTION_LAZY);
+            let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+            let first = epoch0 + handle.now_ns() as f64 * 1e-9 + 0.005;
+            node.write_all(&pack_read_every(first, 0.005, true)).unwrap();
+            let mut rec = [0u8; RECORD_SIZE];
+            node.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_SYNC);
+            // its first turn over; then either its turns for good, or nothing more (each later turn is let go)
+            node.write_all(&pack_done(stamp_of(&rec))).unwrap();
+            if for_good {
+                node.write_all(&pack_done(f64::INFINITY)).unwrap();
+            }
+            let mut syncs = 0;
+            while syncs < 5 { // its read times go on either way
+                node.read_exact(&mut rec).unwrap();
+                syncs += (rec[0] == KIND_SYNC) as usize;
+            }
+            std::thread::sleep(Duration::from_secs_f64(2.0 * TURN_HOLD_MAX_S)); // the last one's hold over
+            let (overruns, by_node, behind) = {
+                let shared = handle.shared.lock().unwrap();
+                (shared.turn_overruns, shared.turns_let_go.clone(), shared.turns_behind)
+            };
+            if for_good {
+                assert_eq!((overruns, by_node.len(), behind), (0, 0, 0), "{by_node:?}");
+            } else {
+                assert!(by_node.get("P").is_some_and(|&n| n >= 1), "{by_node:?}");
+                assert_eq!(overruns, by_node["P"] + behind);
+            }
+            handle.shutdown();
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
     #[test]
     fn a_turn_holds_the_bus_at_its_read_time_until_the_node_ends_it() {
         for ends in [true, false] {

@@ -97,6 +97,16 @@ impl FrameLink {
         Ok(())
     }
 
+    /// The node's turns on this link are over (its run ended): a DONE stamped +inf, after which the server holds
+    /// its bus for none of the link's read times. Nothing on a link without turns.
+    pub(super) fn end_turns_for_good(&mut self) -> PyResult<()> {
+        if std::mem::take(&mut self.turns) {
+            self.in_turn = false;
+            self.link.end_turn(f64::INFINITY).map_err(link_err)?;
+        }
+        Ok(())
+    }
+
     /// The read time the node acts at (epoch s; -inf before the first).
     pub(super) fn acts_at(&self) -> f64 {
         self.acts_at

@@ -126,6 +126,17 @@ impl LinkGroup {
         Ok(())
     }
 
+    /// The node's turns are over (its run ended): none of its read times holds a bus any more, though it may still
+    /// wait for them (``FrameLink.end_turns_for_good`` on every link). A node that lingers after its last turn
+    /// calls it, so its servers do not hold their buses for turns it will never take.
+    fn end_turns_for_good(&mut self, py: Python<'_>) -> PyResult<()> {
+        for bus in 0..self.links.len() {
+            self.link(py, bus)?.end_turns_for_good()?;
+        }
+        self.turns = false;
+        Ok(())
+    }
+
     /// End the wait: every link acts at `sim_t` (its frames sent from now on carry that instant while it is ahead),
     /// and gives the frames it kept, read off its socket first unless it was just synced. Returns the buses' kept
     /// frames, [(bus, [(frame_id, data, t_sim)])], only those with some.

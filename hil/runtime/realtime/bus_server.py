@@ -6,7 +6,7 @@ is checked against lives with the tests (``tests/oracle/python_server.py``) and 
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol, runtime_checkable
 
@@ -45,10 +45,30 @@ class BusServerStats:
     tcp_port: int | None = None  # the loopback TCP port, when listening on TCP
     wake_ups: int = 0  # turns of the serving loop so far (each a wake-up of its thread)
     turns_held: int = 0  # nodes' turns the bus waited for (ECU cycles, plant publications: hil run --turns)
-    turn_overruns: int = 0  # turns let go without their end after TURN_HOLD_MAX_S (the bus went on)
+    turn_overruns: int = 0  # turns let go: held TURN_HOLD_MAX_S without their end, or the bus already behind
+    turns_let_go: dict[str, int] = field(default_factory=dict)  # of those, held without their end: by node name
+    turns_behind: int = 0  # of those, let go at once: the bus itself further behind the wall clock than a turn holds
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def turns_let_go_text(stats: list[BusServerStats]) -> str | None:
+    """What a run's turns let go, summed over its buses, by who was late; None when none was. A turn let go puts its
+    frames on the bus after the instant they carry, so the loop there is not virtual time's."""
+    total = sum(s.turn_overruns for s in stats)
+    if not total:
+        return None
+    late: dict[str, int] = {}
+    for s in stats:
+        for name, n in s.turns_let_go.items():
+            late[name] = late.get(name, 0) + n
+    parts = [f"{name} {n}" for name, n in sorted(late.items(), key=lambda kv: -kv[1])]
+    behind = sum(s.turns_behind for s in stats)
+    if behind:
+        parts.append(f"{behind} at once, the bus behind the wall clock")
+    return (f"{total} turns let go ({', '.join(parts)}): their frames went on the bus after their instant, so the "
+            "loop is not virtual time's from the first of them")
 
 
 @runtime_checkable

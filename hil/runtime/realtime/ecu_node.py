@@ -115,6 +115,7 @@ def run(clock: SimClock, sc, layout, ecus: dict, io: EngineFrames | PythonCanFra
         for ecu in ecus.values():
             ecu.events.append((clock.now(), "ERROR", f"the bus went away, the ECU stopped: {exc}"))
         return cycles.stats
+    io.end_turns_for_good()  # its last cycle is over: lingering must not hold the bus
     if not stop:
         linger(clock)
     return cycles.stats

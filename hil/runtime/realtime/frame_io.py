@@ -106,6 +106,12 @@ class EngineFrames:
         if self.lazy:
             self.group.end_turn(buses)
 
+    def end_turns_for_good(self) -> None:
+        """The node's turns are over (its run ended): its servers hold their buses for none of its read times any
+        more, so lingering after its last turn does not hold them (each would be let go and counted)."""
+        if self.lazy:
+            self.group.end_turns_for_good()
+
     def wait(self, sim_t: float, on_frame: FrameHandler | None, stop, spin_s: float = 0.0) -> None:
         """Sleep to ``sim_t`` (the last ``spin_s`` polled), then hand over every frame that arrived meanwhile.
 
@@ -190,6 +196,9 @@ class PythonCanFrames:
         """Nothing: a SocketCAN bus has no server to tell."""
 
     def end_turn(self, buses: list[int] | None = None) -> None:
+        """Nothing: a SocketCAN bus runs on the host's clock, with no turns."""
+
+    def end_turns_for_good(self) -> None:
         """Nothing: a SocketCAN bus runs on the host's clock, with no turns."""
 
     def _on_msg(self, i: int, msg: can.Message) -> None:

@@ -186,6 +186,7 @@ class PlantNode:
         if self.external is not None:
             self.log.events.extend(self.external.events(self.log.sim_time_s))
         self.log.wall_time_s = time.time() - clock.t0
+        self.frames.end_turns_for_good()  # its last publication is over: lingering must not hold the buses
         if not stop:
             linger(clock)
         assert self.stats is not None  # set by _schedule
