@@ -126,17 +126,17 @@ def role_of(proc: psutil.Process) -> str:
     return next((r.removesuffix("_node") for r in ROLES if r in cmd), "other")
 
 
-def thread_times(pid: int) -> dict[int, tuple[str, int, int]]:
-    """Every thread of process ``pid``: tid -> (name, CPU ns, time slices), from /proc's schedstat (exact, unlike
-    the tick-sampled utime/stime, which miss threads that wake briefly and often)."""
-    out: dict[int, tuple[str, int, int]] = {}
+def thread_times(pid: int) -> dict[int, tuple[str, int, int, int]]:
+    """Every thread of process ``pid``: tid -> (name, CPU ns, time slices, ns runnable but waiting for a core), from
+    /proc's schedstat (exact, unlike the tick-sampled utime/stime, which miss threads that wake briefly and often)."""
+    out: dict[int, tuple[str, int, int, int]] = {}
     for task in Path(f"/proc/{pid}/task").glob("*"):
         try:
             name = (task / "comm").read_text().strip()
-            ns, _wait, slices = (task / "schedstat").read_text().split()
+            ns, wait, slices = (task / "schedstat").read_text().split()
         except (OSError, ValueError):
             continue
-        out[int(task.name)] = (name, int(ns), int(slices))
+        out[int(task.name)] = (name, int(ns), int(slices), int(wait))
     return out
 
 
@@ -150,8 +150,8 @@ class CpuByRole:
         self.every_s = every_s
         self.me = psutil.Process()
         self.roles: dict[int, str] = {}  # tid -> role
-        self.now: dict[int, tuple[int, int]] = {}  # tid -> (CPU ns, slices), latest sample
-        self.first: dict[int, tuple[int, int]] = {}
+        self.now: dict[int, tuple[int, int, int]] = {}  # tid -> (CPU ns, slices, run-queue wait ns), latest sample
+        self.first: dict[int, tuple[int, int, int]] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
@@ -159,11 +159,11 @@ class CpuByRole:
         """Read every thread's counters; a thread seen first after the start counts from its birth."""
         procs = [(self.me.pid, None)] + [(c.pid, c) for c in self.me.children(recursive=True)]
         for pid, proc in procs:
-            for tid, (name, ns, slices) in thread_times(pid).items():
+            for tid, (name, ns, slices, wait) in thread_times(pid).items():
                 if tid not in self.roles:
                     self.roles[tid] = self._role(pid, tid, name, proc)
-                    self.first[tid] = (ns, slices) if initial else (0, 0)
-                self.now[tid] = (ns, slices)
+                    self.first[tid] = (ns, slices, wait) if initial else (0, 0, 0)
+                self.now[tid] = (ns, slices, wait)
 
     def _role(self, pid: int, tid: int, name: str, proc: psutil.Process | None) -> str:
         if proc is not None:
@@ -180,19 +180,19 @@ class CpuByRole:
         while not self._stop.wait(self.every_s):
             self._sample()
 
-    def stop(self) -> dict[str, tuple[float, int]]:
-        """Role -> (CPU s, time slices) since ``start``."""
+    def stop(self) -> dict[str, tuple[float, int, float]]:
+        """Role -> (CPU s, time slices, s its threads were runnable but waited for a core) since ``start``."""
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join()
-        out: dict[str, tuple[float, int]] = {}
-        for tid, (ns, slices) in self.now.items():
+        out: dict[str, tuple[float, int, float]] = {}
+        for tid, (ns, slices, wait) in self.now.items():
             role = self.roles[tid]
             if role == "sampler":
                 continue
-            ns0, slices0 = self.first[tid]
-            cpu, n = out.get(role, (0.0, 0))
-            out[role] = (cpu + (ns - ns0) * 1e-9, n + slices - slices0)
+            ns0, slices0, wait0 = self.first[tid]
+            cpu, n, waited = out.get(role, (0.0, 0, 0.0))
+            out[role] = (cpu + (ns - ns0) * 1e-9, n + slices - slices0, waited + (wait - wait0) * 1e-9)
         return out
 
 
@@ -280,7 +280,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,
             "plant_misses": m["plant_deadline_misses"], "publications": m["realtime"]["plant"]["cycles"],
             "misses_in_stalls": ecu_in_stalls, "plant_misses_in_stalls": plant_in_stalls,
-            "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n) in sorted(roles.items())},
+            "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n, _) in sorted(roles.items())},
+            "waited_by_role": {k: waited / duration for k, (_, _, waited) in sorted(roles.items())},
             "scheduling": m["realtime"]["scheduling"]["policy"], "idle_latency_us": m["realtime"]["idle_latency_us"],
             "cpu_layout": m["realtime"]["cpu_layout"], "turns": m["realtime"]["turns"],
             "e2e_p50_ms": 1e3 * (m["e2e_latency_p50_s"] or 0), "overshoot_mps": m["speed_overshoot_max_mps"],
@@ -363,6 +364,8 @@ def main() -> None:
                   f"{'  (interrupted)' if r['interrupted'] else ''}  [{time.monotonic() - t:.0f} s]", flush=True)
             print("      CPU s/sim s by role (times run per sim s: wake-ups and preemptions, CPU per run): " + ", ".join(
                 f"{k} {cpu:.3f} ({n:.0f}, {1e6 * cpu / max(n, 1):.0f} us)" for k, (cpu, n) in r["cpu_by_role"].items()))
+            print("      s per sim s each role was runnable but waited for a core (the cores' contention): " + ", ".join(
+                f"{k} {waited:.3f}" for k, waited in r["waited_by_role"].items()))
             if r["lost"]:
                 on_buses = sum(r["lost_on_buses"])
                 print(f"      lost: {on_buses} dropped from TX queues (by bus {r['lost_on_buses']}), "
