@@ -1940,9 +1940,8 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
-    /// A node's turn (READ_TURNS) that takes longer than the read after it: its frame, sent late but stamped with
-    /// its read time, still goes on the bus at that instant, and the later reader's SYNC waits for the turn's DONE,
-    /// so that reader has the frame as in virtual time. Without DONE the turn is let go after TURN_HOLD_MAX_S.
+    /// A node whose turns are over (DONE stamped +inf: its run ended) holds its bus for none of its later read
+    /// times, which still SYNC it; without that each is let go, counted under the node's name.
     #[test]
     fn a_done_stamped_infinity_ends_a_nodes_turns_for_good_and_the_let_go_ones_name_their_node() {
         for for_good in [true, false] {
@@ -1980,6 +1979,9 @@ mod tests {
         }
     }
 
+    /// A node's turn (READ_TURNS) that takes longer than the read after it: its frame, sent late but stamped with
+    /// its read time, still goes on the bus at that instant, and the later reader's SYNC waits for the turn's DONE,
+    /// so that reader has the frame as in virtual time. Without DONE the turn is let go after TURN_HOLD_MAX_S.
     #[test]
     fn a_turn_holds_the_bus_at_its_read_time_until_the_node_ends_it() {
         for ends in [true, false] {

@@ -27,6 +27,7 @@ frame. Frame times are the bus's end-of-transmission stamps in simulated seconds
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Callable
 
@@ -108,9 +109,11 @@ class EngineFrames:
 
     def end_turns_for_good(self) -> None:
         """The node's turns are over (its run ended): its servers hold their buses for none of its read times any
-        more, so lingering after its last turn does not hold them (each would be let go and counted)."""
+        more, so lingering after its last turn does not hold them (each would be let go and counted). A server
+        already gone holds nothing: the node goes on to save its results."""
         if self.lazy:
-            self.group.end_turns_for_good()
+            with contextlib.suppress(ConnectionError, OSError):
+                self.group.end_turns_for_good()
 
     def wait(self, sim_t: float, on_frame: FrameHandler | None, stop, spin_s: float = 0.0) -> None:
         """Sleep to ``sim_t`` (the last ``spin_s`` polled), then hand over every frame that arrived meanwhile.
