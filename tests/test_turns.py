@@ -11,7 +11,8 @@ from hil import cli
 from hil.runtime.realtime import orchestrator
 from hil.runtime.realtime.bus_server import BusServerStats, turns_let_go_text
 from hil.runtime.realtime.node import node_parser
-from hil.runtime.realtime.orchestrator import run_realtime, takes_turns, turns_text
+from hil.runtime.realtime.orchestrator import run_realtime
+from hil.runtime.realtime.turns import takes_turns, turns_text
 from hil.scenario import load_scenario
 
 

@@ -22,6 +22,7 @@ from hil.runtime.realtime.idle_latency import latency_us
 from hil.runtime.realtime.native_server import NativeBusServer
 from hil.runtime.realtime.scheduling import PRIORITIES, SCHEDULING_MODES, SchedulingRefused, choose_server_scheduling
 from hil.runtime.realtime.sockets import BusServerError, remove_run_dir
+from hil.runtime.realtime.turns import TURNS_MODES
 
 DESCRIPTION = ("Serve one emulated CAN bus in wall-clock time. python-can nodes join it with "
                "can.Bus(interface='trainhil', channel='<run>/<bus>').")
@@ -155,7 +156,7 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: auto (the default) keeps the bus servers and the plant on the first core the "
                         "rig may use and the ECU processes on the others (at pace 1 or slower, where it may use two "
                         "or more); none: the kernel places every process")
-    g.add_argument("--turns", choices=("auto", "on", "off"), default=None,
+    g.add_argument("--turns", choices=TURNS_MODES, default=None,
                    help="with --realtime: on: each ECU cycle and plant publication is a turn, whose frames go on the "
                         "bus at its instant however long the node's Python takes (the bus waits up to 2 ms of wall "
                         "time for it), so the loop is virtual time's while the nodes keep up; off: frames go on the "

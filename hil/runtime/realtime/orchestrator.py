@@ -46,7 +46,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import trainhil_engine as engine
 
@@ -55,6 +55,7 @@ from ecu_sim.references import USER_PATH_ENV
 from hil.scenario.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
 from hil.runtime.realtime.bus_server import BusServer, turns_let_go_text
+from hil.runtime.realtime.turns import TURNS_MODES, TurnsMode, takes_turns, turns_text
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, check_setting, hold_for_run
 from hil.runtime.realtime.cpu_layout import (CPU_LAYOUT_MODES, CpuLayout, CpuLayoutMode, choose_cpu_layout, format_cores,
@@ -537,30 +538,6 @@ def _faults(scenario: Scenario, layout: TrainLayout, servers: list[BusServer], s
         raise ValueError("bus faults need the emulated transport (can.transport = \"emulated\")")
 
     return RealtimeFaults(scenario, layout, servers, seed, db, radio)
-
-
-TurnsMode = Literal["auto", "on", "off"]
-TURNS_MODES: tuple[TurnsMode, ...] = ("auto", "on", "off")
-
-
-def takes_turns(mode: TurnsMode, pace: float, socketcan: bool = False) -> bool:
-    """Whether a run's nodes take turns: "on" always, "auto" faster than real time, "off" never; never on SocketCAN
-    (no bus servers to hold). Faster than real time a node's Python takes a larger share of each simulated
-    millisecond, so without turns its frames miss the readers virtual time's would reach (seed000 at pace 10: speed
-    overshoot 26 m/s without, virtual time's 17.43 with; README, "Turns"); at pace 1 they are on time without the
-    round trips turns cost."""
-    if socketcan or mode == "off":
-        return False
-    return mode == "on" or pace > 1.0
-
-
-def turns_text(mode: TurnsMode, pace: float, socketcan: bool = False) -> str:
-    """What a run says of its turns (``takes_turns``): "on" or "off", and why where the mode did not say it."""
-    if socketcan and mode != "off":
-        return "off (SocketCAN: no bus servers to hold)"
-    if mode != "auto":
-        return mode
-    return "on (auto: faster than real time)" if takes_turns(mode, pace) else "off (auto: not faster than real time)"
 
 
 def _node_arguments(run: str, nodes_dir: Path, seed: int, duration: float, pace: float, fifo: bool,
