@@ -45,7 +45,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hil.runtime.realtime.bus_server import BusServerStats, turns_let_go_text  # noqa: E402
-from hil.runtime.realtime.orchestrator import TURNS_MODES, TurnsMode, default_ecus_per_process, run_realtime  # noqa: E402
+from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
+from hil.runtime.realtime.turns import TURNS_MODES, TurnsMode  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.record.metrics import compute_metrics  # noqa: E402
@@ -273,6 +274,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
     p99 = m["cycle_lateness_p99_s"]
     misses = m["cycle_deadline_misses"]
     keeps_up = p99 is not None and p99 < CYCLE_S / 10 and misses + skipped < 1e-3 * cycles
+    servers = [BusServerStats(**b) for b in m["realtime"]["bus_servers"].values()]
     return {"ecus": n_ecus, "per_process": per_process, "p50_ms": 1e3 * (m["cycle_lateness_p50_s"] or 0),
             "p99_ms": 1e3 * (p99 or 0), "misses": misses, "skipped": skipped, "cycles": cycles,
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
@@ -287,9 +289,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "cpu_layout": m["realtime"]["cpu_layout"], "turns": m["realtime"]["turns"],
             "e2e_p50_ms": 1e3 * (m["e2e_latency_p50_s"] or 0), "overshoot_mps": m["speed_overshoot_max_mps"],
             "coupler_max_m": m["coupler_max_abs_m"], "loop": loop_figures(m),
-            "turns_held": sum(b["turns_held"] for b in m["realtime"]["bus_servers"].values()),
-            "turn_overruns": sum(b["turn_overruns"] for b in m["realtime"]["bus_servers"].values()),
-            "let_go": turns_let_go_text([BusServerStats(**b) for b in m["realtime"]["bus_servers"].values()])}
+            "turns_held": sum(b.turns_held for b in servers), "turn_overruns": sum(b.turn_overruns for b in servers),
+            "let_go": turns_let_go_text(servers)}
 
 
 def held_text(limit_us: int | None) -> str:
