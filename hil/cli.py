@@ -89,7 +89,7 @@ def _safety_lines(safety: dict | None) -> list[str]:
     verdicts = {k: v for k, v in safety.items() if isinstance(v, dict) and "violated" in v}
     bad = [f"{k}: {v['count']}x from t = {v['first_s']:.1f} s " + (
            f"({v['violations'][0]['where']}: {v['violations'][0]['text']})" if k == ECU_FAILURE
-           else f"({v['total_s']:.1f} s summed over units)") for k, v in verdicts.items() if v["violated"]]
+           else f"({v['total_s']:.1f} s summed over units)") for k, v in violated(safety).items()]
     return [f"{'safety verdicts':38s} " + ("; ".join(bad) if bad else "safe (" + ", ".join(verdicts) + ": none)")]
 
 
