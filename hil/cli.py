@@ -94,12 +94,15 @@ def _safety_lines(safety: dict | None) -> list[str]:
 
 
 def _turn_lines(realtime: dict | None) -> list[str]:
-    """With turns: how many the buses waited for, and how many they let go (where the loop left virtual time's)."""
+    """With turns: how many the buses waited for, how many they let go (where the loop left virtual time's), and on
+    how many buses they were given up (the machine did not keep up with them)."""
     if not realtime or not realtime.get("turns"):
         return []
     servers = realtime.get("bus_servers", {}).values()
     held, let_go = sum(b["turns_held"] for b in servers), sum(b["turn_overruns"] for b in servers)
-    return [f"{'turns waited for, let go':38s} {held}, {let_go}"]
+    given_up = sum(b.get("turns_given_up_s") is not None for b in servers)
+    return [f"{'turns waited for, let go':38s} {held}, {let_go}"
+            + (f"; given up on {given_up} of {len(servers)} buses" if given_up else "")]
 
 
 def _fault_lines(faults: dict | None) -> list[str]:

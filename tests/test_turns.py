@@ -9,7 +9,7 @@ import pytest
 
 from hil import cli
 from hil.runtime.realtime import orchestrator
-from hil.runtime.realtime.bus_server import BusServerStats, turns_let_go_text
+from hil.runtime.realtime.bus_server import BusServerStats, turns_given_up, turns_let_go_text
 from hil.runtime.realtime.node import node_parser
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.runtime.realtime.turns import takes_turns, turns_text
@@ -53,14 +53,17 @@ def test_a_real_time_run_with_turns_has_its_buses_wait_for_them_and_records_it(t
     servers = rt["bus_servers"].values()
     for b in servers:  # every turn let go is either a node's, by name, or the bus's own (behind the wall clock)
         assert b["turn_overruns"] == sum(b["turns_let_go"].values()) + b["turns_behind"], b
+    given_up = [e for e in res.log.events if e.text.startswith("turns given up")]
+    assert len(given_up) == any(b["turns_given_up_s"] is not None for b in servers), given_up  # said once, if any
     let_go = [e for e in res.log.events if "turns let go" in e.text]
     assert len(let_go) == (sum(b["turn_overruns"] for b in servers) > 0), let_go  # said once at the end, if any
     assert all(e.level == "WARN" for e in let_go)
 
 
-def _stats(channel: str, let_go: dict[str, int], behind: int) -> BusServerStats:
+def _stats(channel: str, let_go: dict[str, int], behind: int, given_up_s: float | None = None) -> BusServerStats:
     return BusServerStats(channel, 500_000, 1.0, 2, 0, 0.0, 0.0, None, 0, 0, 0, None, None, None, None, None, None,
-                          turn_overruns=sum(let_go.values()) + behind, turns_let_go=let_go, turns_behind=behind)
+                          turn_overruns=sum(let_go.values()) + behind, turns_let_go=let_go, turns_behind=behind,
+                          turns_given_up_s=given_up_s)
 
 
 def test_the_turns_let_go_are_summed_over_the_buses_by_who_was_late() -> None:
@@ -71,8 +74,22 @@ def test_the_turns_let_go_are_summed_over_the_buses_by_who_was_late() -> None:
     assert "not virtual time's" in text
 
 
+def test_turns_given_up_are_said_at_the_first_in_simulated_time_with_every_bus_and_when() -> None:
+    t0, pace = 1000.0, 10.0
+    assert turns_given_up([_stats("bus1", {}, 5), _stats("bus2", {}, 0)], t0, pace) is None
+    stats = [_stats("bus1", {}, 100, t0 + 1.25), _stats("bus2", {}, 40), _stats("bus3", {}, 120, t0 + 1.2)]
+    given_up = turns_given_up(stats, t0, pace)
+    assert given_up is not None
+    t, text = given_up
+    assert t == pytest.approx(12.0)
+    assert text.startswith("turns given up (bus3 at 12.0 s, bus1 at 12.5 s): the machine did not keep up")
+    assert "bus2" not in text and "as with --turns off" in text
+
+
 def test_the_run_summary_says_how_many_turns_the_buses_waited_for_and_let_go() -> None:
     rt = {"turns": True, "bus_servers": {"bus1": {"turns_held": 5, "turn_overruns": 1},
                                          "bus2": {"turns_held": 3, "turn_overruns": 0}}}
     assert cli._turn_lines(rt) == [f"{'turns waited for, let go':38s} 8, 1"]
     assert cli._turn_lines({**rt, "turns": False}) == [] and cli._turn_lines(None) == []
+    rt["bus_servers"]["bus2"]["turns_given_up_s"] = 1234.5
+    assert cli._turn_lines(rt) == [f"{'turns waited for, let go':38s} 8, 1; given up on 1 of 2 buses"]

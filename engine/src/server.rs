@@ -35,6 +35,11 @@ const OUT_CAP_BYTES: usize = 1 << 20; // a node that stops reading loses frames 
 const LOG_FIRST: u64 = 10;
 /// The poll set: the wake-up pipe, the unix listener, the TCP listener, the bell, then one per client.
 const FIRST_CLIENT_FD: usize = 4;
+/// Turns let go at once on a bus behind the wall clock (`turns_behind`) after which its server takes no more turns
+/// in the run (`turns_given_up_s`): the machine does not keep up with them, and holding the bus for more only puts it
+/// further behind. Seed000 at pace 10 in a slow hour: 11-48 % of the plant's publications late with turns held on,
+/// 0.04 % once given up (docs/realtime-performance.md, "Turns given up"). A stall of a few milliseconds lets fewer go.
+pub const TURNS_BEHIND_MAX: u64 = 100;
 
 /// Read and forget the bytes that woke the loop (its own wake-up pipe, the bell).
 pub(crate) fn drain_wake_ups(source: &mut impl Read) {
@@ -114,6 +119,9 @@ pub struct Shared {
     pub turns_let_go: BTreeMap<String, u64>,
     /// Of `turn_overruns`, those let go at once because the bus itself was behind the wall clock.
     pub turns_behind: u64,
+    /// The read time (epoch s) at which the server gave up turns, after TURNS_BEHIND_MAX of them were let go at once
+    /// (None: it takes them still): from then on its nodes' read times are plain reads, and it holds the bus for none.
+    pub turns_given_up_s: Option<f64>,
     /// Log lines for the owner to report (bad input, joins and leaves).
     pub messages: Vec<(String, String)>,
 }
@@ -388,7 +396,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
         bad: BadInput::default(), clients: 0, now_ns: 0, turns: 0, turns_held: 0, turn_overruns: 0,
-        turns_let_go: BTreeMap::new(), turns_behind: 0, messages: Vec::new(),
+        turns_let_go: BTreeMap::new(), turns_behind: 0, turns_given_up_s: None, messages: Vec::new(),
     }));
     let stop = Arc::new(AtomicBool::new(false));
     let pace = cfg.pace;
@@ -899,19 +907,23 @@ impl Server {
         }
     }
 
-    /// Read time `r` of lazy readers: a SYNC after the frames that ended by then, written out now.
+    /// Read time `r` of lazy readers: a SYNC after the frames that ended by then, written out now; a turn opened for
+    /// each whose read is a turn, unless the bus is too far behind (let go at once) or the server gave turns up.
     fn sync_readers(&mut self, shared: &mut Shared, r: u64) {
         let stamp = self.epoch_s(r);
         // a bus already further behind the wall clock than a turn may hold it does not wait: it catches up first
         let on_time = self.now() <= r + self.turn_hold_ns();
         for c in self.clients.iter_mut().filter(|c| c.next_read() == Some(r)) {
             c.push_now(&pack_sync(stamp));
-            if c.reads.iter().any(|&(next, _, turn)| turn && next <= r) {
+            if shared.turns_given_up_s.is_none() && c.reads.iter().any(|&(next, _, turn)| turn && next <= r) {
                 if on_time {
                     c.turns.push((r, false));
                 } else {
                     shared.turn_overruns += 1; // not held: let go at once
                     shared.turns_behind += 1;
+                    if shared.turns_behind >= TURNS_BEHIND_MAX {
+                        shared.turns_given_up_s = Some(stamp);
+                    }
                 }
             }
             c.reads.retain_mut(|(next, period, _)| {
@@ -1977,6 +1989,55 @@ mod tests {
             handle.shutdown();
             let _ = std::fs::remove_dir_all(&dir);
         }
+    }
+
+    /// A bus that falls behind the wall clock lets its turns go at once (`turns_behind`); after TURNS_BEHIND_MAX of
+    /// them its server takes no more turns: the node's later read times are plain reads, SYNCed on time however
+    /// late its DONE, and none is held or let go.
+    #[test]
+    fn a_server_that_falls_behind_its_turns_gives_them_up_and_holds_the_bus_no_more() {
+        let (mut handle, path, dir) = serve("giveup", 500_000, 500_000, Format::Classical);
+        let mut node = connect_node(&path, "P", OPTION_LAZY);
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let now = |h: &ServerHandle| epoch0 + h.now_ns() as f64 * 1e-9;
+        let first = now(&handle) + 0.005;
+        node.write_all(&pack_read_every(first, 0.001, true)).unwrap();
+        let mut rec = [0u8; RECORD_SIZE];
+        node.read_exact(&mut rec).unwrap();
+        node.write_all(&pack_done(stamp_of(&rec))).unwrap(); // its first turn, ended
+        let stalled = std::time::Instant::now();
+        { // the serving thread stalls: every read time meanwhile is synced long after it (the machine fell behind)
+            let _held = handle.shared.lock().unwrap();
+            std::thread::sleep(Duration::from_millis(150));
+        }
+        let given_up = loop {
+            let given_up = handle.shared.lock().unwrap().turns_given_up_s;
+            if let Some(t) = given_up {
+                break t;
+            }
+            assert!(stalled.elapsed() < Duration::from_secs(2), "turns not given up");
+            std::thread::sleep(Duration::from_millis(5));
+        };
+        assert!(given_up > first && given_up < now(&handle), "given up at {given_up}");
+        let counts = |h: &ServerHandle| {
+            let shared = h.shared.lock().unwrap();
+            (shared.turns_behind, shared.turn_overruns, shared.turns_held)
+        };
+        let before = counts(&handle);
+        assert!(before.0 >= TURNS_BEHIND_MAX, "{before:?}");
+        // the node never ends another turn: past the SYNCs of the stall, its read times go on, none of them held
+        while !(rec[0] == KIND_SYNC && stamp_of(&rec) > now(&handle) - 0.001) {
+            node.read_exact(&mut rec).unwrap();
+        }
+        let mut syncs = 0;
+        while syncs < 20 {
+            node.read_exact(&mut rec).unwrap();
+            syncs += (rec[0] == KIND_SYNC) as usize;
+        }
+        std::thread::sleep(Duration::from_secs_f64(2.0 * TURN_HOLD_MAX_S));
+        assert_eq!(counts(&handle), before, "turns held or let go after they were given up");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A node's turn (READ_TURNS) that takes longer than the read after it: its frame, sent late but stamped with

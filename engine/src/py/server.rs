@@ -53,6 +53,7 @@ pub(super) fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns
     d.set_item("turn_overruns", s.turn_overruns)?;
     d.set_item("turns_let_go", s.turns_let_go.clone())?;
     d.set_item("turns_behind", s.turns_behind)?;
+    d.set_item("turns_given_up_s", s.turns_given_up_s)?;
     d.set_item("frames", s.frames)?;
     d.set_item("busy_ns", s.busy_ns)?;
     d.set_item("frames_dropped", s.bus.frames_dropped())?;

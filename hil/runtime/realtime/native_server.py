@@ -169,7 +169,7 @@ class NativeBusServer:
             auth_failures=s["auth_failures"], clients_refused=s["clients_refused"],
             tcp_port=self.tcp_address[1] if self._tcp else None, wake_ups=s["turns"],
             turns_held=s["turns_held"], turn_overruns=s["turn_overruns"], turns_let_go=s["turns_let_go"],
-            turns_behind=s["turns_behind"])
+            turns_behind=s["turns_behind"], turns_given_up_s=s["turns_given_up_s"])
 
     # ---- the error model and the guardian (engine/src/errors.rs, guardian.rs), for hil.faults.bus.EngineBusFaults
     def enable_bus_errors(self, rng_state: tuple[int, int]) -> None:

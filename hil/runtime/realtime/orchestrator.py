@@ -54,7 +54,7 @@ from ecu_sim.codec import TrainDb
 from ecu_sim.references import USER_PATH_ENV
 from hil.scenario.layout import TrainLayout
 from hil.faults.schedule import needs_fault_machinery
-from hil.runtime.realtime.bus_server import BusServer, turns_let_go_text
+from hil.runtime.realtime.bus_server import BusServer, turns_given_up, turns_let_go_text
 from hil.runtime.realtime.turns import TURNS_MODES, TurnsMode, takes_turns, turns_text
 from hil.runtime.realtime.bus_spool import BusSpool
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, check_setting, hold_for_run
@@ -398,6 +398,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         remove_run_dir(run)
     wall = run_wall if t0 is not None else time.perf_counter() - wall0
     let_go = turns_let_go_text(final_stats)
+    given_up = turns_given_up(final_stats, t0, pace) if t0 is not None else None
     if spool is not None and spool.lost:
         events.append(Event(0.0, "ERROR", "rig", f"bus rows spooled only until the disk filled ({spool.lost})"))
     full = None  # a DiskFullError from writing the recording: the metrics are still merged and written
@@ -409,7 +410,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         sinks = ([(rrd, 0)] if rrd is not None else []) + ([(tail.writer, tail.sent)] if tail is not None else [])
         log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall, stop_reason,
                                  sinks, keep_rows=keep_signals, radio_stats=radio_stats)
-        _finish_log(log, faults, t0, pace, scenario, let_go)
+        _finish_log(log, faults, t0, pace, scenario, let_go, given_up)
         for writer, _ in sinks:  # the rest to the recording and the viewer: events, timing
             write_rest(writer, log, nodes_dir)
     except DiskFullError as exc:  # run.rrd filled the disk (its writer cuts it): the metrics are merged all the same
@@ -417,7 +418,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
         if log is None:  # it filled during the merge: again, without the recording
             log, extra = merge_nodes(scenario, layout, nodes_dir, servers, events, t0, pace, duration, wall,
                                      stop_reason, [], keep_rows=False, radio_stats=radio_stats)
-            _finish_log(log, faults, t0, pace, scenario, let_go)
+            _finish_log(log, faults, t0, pace, scenario, let_go, given_up)
         log.events.append(Event(log.sim_time_s, "ERROR", "rig", f"run.rrd cut: {exc.strerror}"))
     extra["realtime"]["bus_servers"] = server_stats
     if sched is not None:
@@ -458,11 +459,13 @@ def _all_of(ticks: list[Callable[[float], None]]) -> Callable[[float], None]:
 
 
 def _finish_log(log: RunLog, faults, t0: float | None, pace: float, scenario: Scenario,
-                let_go: str | None = None) -> None:
-    """The merged log's fault report, the turns let go (``let_go``, at the end) and its safety violations on the
-    timeline."""
+                let_go: str | None = None, given_up: tuple[float, str] | None = None) -> None:
+    """The merged log's fault report, the turns let go (``let_go``, at the end), when they were given up
+    (``given_up``: its time and text) and its safety violations on the timeline."""
     if faults is not None:
         faults.finish(log, t0, pace)
+    if given_up is not None:
+        log.events.append(Event(given_up[0], "WARN", "rig", given_up[1]))
     if let_go:
         log.events.append(Event(log.sim_time_s, "WARN", "rig", let_go))
     record_violations(log, scenario.plant.coupler_band_m)
