@@ -84,9 +84,9 @@ pub const BELL_IDS_PER_RECORD: usize = 5;
 /// that instant (its FRAME records carry it, however late it sends) and ends its turn with DONE; meanwhile the
 /// server runs its bus (and the buses of its radio) no further than just before that read time, so the frames of
 /// the turn compete at their instant as in virtual time. A turn not ended within TURN_HOLD_MAX_S of wall time
-/// after its read time is let go (counted: `turn_overruns`) and the bus goes on. A server whose bus is further behind
-/// the wall clock than that at a read time gives turns up for the rest of the run (`turns_given_up_s`): the read
-/// times go on as plain reads.
+/// after its read time is let go (counted: `turn_overruns`) and the bus goes on. A server whose bus keeps falling
+/// further behind the wall clock than that (`server::TURNS_BEHIND_MAX` turns let go at once within a second) gives
+/// turns up for the rest of the run (`turns_given_up_s`): the read times go on as plain reads.
 pub const READ_TURNS: u8 = 0x01;
 /// Node to server, after its turn: it sends nothing more stamped before its next read time (bytes 8..16: the read
 /// time of the turn, epoch s). Stamped +inf: its turns are over (its run ended); its read times go on as plain

@@ -48,8 +48,8 @@ class BusServerStats:
     turn_overruns: int = 0  # turns let go: held TURN_HOLD_MAX_S without their end, or the bus already behind
     turns_let_go: dict[str, int] = field(default_factory=dict)  # of those, held without their end: by node name
     turns_behind: int = 0  # of those, let go at once: the bus itself further behind the wall clock than a turn holds
-    # the read time (epoch s) at which the server gave turns up, its bus further behind the wall clock than a turn may
-    # hold it (None: it takes them still): from then on it holds its bus for none, as with turns off
+    # the read time (epoch s) at which the server gave turns up, having let 20 go at once within a second of wall time
+    # (TURNS_BEHIND_MAX; None: it takes them still): from then on it holds its bus for none, as with turns off
     turns_given_up_s: float | None = None
 
     def as_dict(self) -> dict:
@@ -76,8 +76,8 @@ def turns_let_go_text(stats: list[BusServerStats]) -> str | None:
 
 def turns_given_up(stats: list[BusServerStats], t0: float, pace: float) -> tuple[float, str] | None:
     """When a run's servers gave their turns up (simulated s, the first of them) and what to say of it; None when
-    none did. A server gives turns up when its bus is further behind the wall clock than a turn may hold it: the
-    machine did not keep up with them, and holding the bus for more would only put it further behind."""
+    none did. A server gives turns up when its bus keeps falling further behind the wall clock than a turn may hold
+    it: the machine did not keep up with them, and holding the bus for more would only put it further behind."""
     given_up = {s.channel: (s.turns_given_up_s - t0) * pace for s in stats if s.turns_given_up_s is not None}
     if not given_up:
         return None

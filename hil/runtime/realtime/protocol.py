@@ -55,10 +55,11 @@ Until then the server runs its bus, and the buses of its radio, no further than 
 reads the node's socket even if it is quiet; eager nodes' records wait meanwhile and are queued when taken. So
 the frames of a turn compete for the bus at their instant, and a reader whose read time comes later has them, as
 in virtual time. A turn without DONE is let go TURN_HOLD_MAX_S of wall time after its read time, and a bus already
-further behind the wall clock than that at a read time lets its turn go at once and gives turns up for the rest of
-the run (both counted: the server's ``turn_overruns``; the first kind by the node's name, ``turns_let_go``, the
-second as ``turns_behind``; ``turns_given_up_s``, when): the machine does not keep up with them there, and holding
-for more would only put the bus further behind, so the read times go on as plain reads. A DONE
+further behind the wall clock than that at a read time lets its turn go at once (both counted: the server's
+``turn_overruns``; the first kind by the node's name, ``turns_let_go``, the second as ``turns_behind``). After 20 of
+the second kind within a second of wall time (TURNS_BEHIND_MAX) the server gives turns up for the rest of the run
+(``turns_given_up_s``, when): the machine does not keep up with them, and holding for more would only put the bus
+further behind, so the read times go on as plain reads. A DONE
 stamped +inf says the node's turns are over (its run ended): its read times go on as plain reads.
 
 Look-ahead: on an idle bus the server SYNCs at once every read time that no frame could end by, however soon one
