@@ -44,7 +44,7 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.runtime.realtime.bus_server import BusServerStats, turns_let_go_text  # noqa: E402
+from hil.runtime.realtime.bus_server import BusServerStats, turns_given_up, turns_let_go_text  # noqa: E402
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.turns import TURNS_MODES, TurnsMode  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
@@ -290,7 +290,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "e2e_p50_ms": 1e3 * (m["e2e_latency_p50_s"] or 0), "overshoot_mps": m["speed_overshoot_max_mps"],
             "coupler_max_m": m["coupler_max_abs_m"], "loop": loop_figures(m),
             "turns_held": sum(b.turns_held for b in servers), "turn_overruns": sum(b.turn_overruns for b in servers),
-            "let_go": turns_let_go_text(servers)}
+            "let_go": turns_let_go_text(servers), "given_up": turns_given_up(servers, t0[0], pace)}
 
 
 def held_text(limit_us: int | None) -> str:
@@ -371,6 +371,8 @@ def main() -> None:
                 f"{k} {waited:.3f}" for k, waited in r["waited_by_role"].items()))
             if r["let_go"]:
                 print(f"      {r['let_go']}")
+            if r["given_up"]:
+                print(f"      {r['given_up'][1]}")
             if r["lost"]:
                 on_buses = sum(r["lost_on_buses"])
                 print(f"      lost: {on_buses} dropped from TX queues (by bus {r['lost_on_buses']}), "

@@ -77,7 +77,7 @@ def test_the_turns_let_go_are_summed_over_the_buses_by_who_was_late() -> None:
 def test_turns_given_up_are_said_at_the_first_in_simulated_time_with_every_bus_and_when() -> None:
     t0, pace = 1000.0, 10.0
     assert turns_given_up([_stats("bus1", {}, 5), _stats("bus2", {}, 0)], t0, pace) is None
-    stats = [_stats("bus1", {}, 100, t0 + 1.25), _stats("bus2", {}, 40), _stats("bus3", {}, 120, t0 + 1.2)]
+    stats = [_stats("run/bus1", {}, 100, t0 + 1.25), _stats("run/bus2", {}, 4), _stats("run/bus3", {}, 120, t0 + 1.2)]
     given_up = turns_given_up(stats, t0, pace)
     assert given_up is not None
     t, text = given_up

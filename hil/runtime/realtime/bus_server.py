@@ -78,7 +78,8 @@ def turns_given_up(stats: list[BusServerStats], t0: float, pace: float) -> tuple
     """When a run's servers gave their turns up (simulated s, the first of them) and what to say of it; None when
     none did. A server gives turns up when its bus keeps falling further behind the wall clock than a turn may hold
     it: the machine did not keep up with them, and holding the bus for more would only put it further behind."""
-    given_up = {s.channel: (s.turns_given_up_s - t0) * pace for s in stats if s.turns_given_up_s is not None}
+    given_up = {s.channel.rsplit("/", 1)[-1]: (s.turns_given_up_s - t0) * pace  # "run/bus1": bus1
+                for s in stats if s.turns_given_up_s is not None}
     if not given_up:
         return None
     where = ", ".join(f"{name} at {t:.1f} s" for name, t in sorted(given_up.items(), key=lambda kv: kv[1]))
