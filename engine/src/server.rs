@@ -39,9 +39,10 @@ const FIRST_CLIENT_FD: usize = 4;
 /// turn may hold it, at which its server gives turns up for the rest of the run (`turns_given_up_s`): the machine
 /// does not keep up with them, and holding the bus for more would only put it further behind. Fewer are a moment's
 /// stall (the nodes' first cycles at the start of a run let one go on each bus), after which the turns keep the
-/// frames at their instants. Seed000 at pace 10 in a slow hour: 11-48 % of the plant's publications late with turns
-/// held on, 0.01-0.06 % with them given up at the first such turn, 0.2-0.3 % after 100 in all
-/// (docs/realtime-performance.md, "Turns given up").
+/// frames at their instants. Seed000 at pace 10 in a slow hour: 6-56 % of the plant's publications late with turns
+/// held on, 0.07-0.31 % with this rule, 0.01-0.06 % given up at the first such turn (which would also end the turns
+/// of runs that keep up after their start), 0.2-0.3 % after 100 in all (docs/realtime-performance.md, "Turns given
+/// up").
 pub const TURNS_BEHIND_MAX: u64 = 20;
 pub const TURNS_BEHIND_WINDOW_S: f64 = 1.0;
 
