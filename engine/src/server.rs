@@ -611,10 +611,9 @@ impl Server {
     }
 
     /// The first part of a turn: read what came (`fds`: its own part of the poll set, as `poll_set` made it) and
-    /// take the radio's deliveries. Returns now (bus ns).
+    /// take the radio's deliveries. Returns now (bus ns), read after the sockets: an eager node's frame is queued at
+    /// now, which must not come before it was sent (the thread may be preempted between the two).
     fn take_input(&mut self, shared: &mut Shared, fds: &[libc::pollfd]) -> u64 {
-        let now = self.now();
-        shared.now_ns = now;
         shared.turns += 1;
         if fds[0].revents != 0 {
             drain_wake_ups(&mut self.wake);
@@ -639,6 +638,8 @@ impl Server {
         if fds[2].revents != 0 {
             self.accept(shared, true);
         }
+        let now = self.now();
+        shared.now_ns = now;
         self.take_radio();
         if let Some(r) = &self.radio {
             // before any server of the radio looks ahead this turn (`least_frame`): a new connection counts at once
