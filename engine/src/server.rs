@@ -44,6 +44,7 @@ const FIRST_CLIENT_FD: usize = 4;
 /// of runs that keep up after their start), 0.2-0.3 % after 100 in all (docs/realtime-performance.md, "Turns given
 /// up").
 pub const TURNS_BEHIND_MAX: u64 = 20;
+/// The window TURNS_BEHIND_MAX is counted in, in wall seconds (a window starts at the first turn let go at once).
 pub const TURNS_BEHIND_WINDOW_S: f64 = 1.0;
 
 /// Read and forget the bytes that woke the loop (its own wake-up pipe, the bell).
@@ -112,7 +113,6 @@ pub struct Shared {
     pub lateness: Histogram,
     pub bad: BadInput,
     pub clients: usize,
-    pub now_ns: u64,
     /// Turns of the serving loop so far (each one a wake-up of its thread).
     pub turns: u64,
     /// Nodes' turns (READ_TURNS) the bus waited for: their read time came before their DONE.
@@ -402,7 +402,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     };
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
-        bad: BadInput::default(), clients: 0, now_ns: 0, turns: 0, turns_held: 0, turn_overruns: 0,
+        bad: BadInput::default(), clients: 0, turns: 0, turns_held: 0, turn_overruns: 0,
         turns_let_go: BTreeMap::new(), turns_behind: 0, turns_given_up_s: None, messages: Vec::new(),
     }));
     let stop = Arc::new(AtomicBool::new(false));
@@ -639,7 +639,6 @@ impl Server {
             self.accept(shared, true);
         }
         let now = self.now();
-        shared.now_ns = now;
         self.take_radio();
         if let Some(r) = &self.radio {
             // before any server of the radio looks ahead this turn (`least_frame`): a new connection counts at once
