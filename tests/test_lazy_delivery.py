@@ -12,6 +12,7 @@ import trainhil_engine as engine
 from hil.can.bus_log import BusLog
 from hil.can.frame import frame_bits
 from hil.runtime.realtime.native_server import NativeBusServer
+from hil.runtime.realtime.protocol import TURN_HOLD_MAX_S
 from hil.runtime.realtime.pycan_bus import TrainhilBus
 
 BITRATE = 125_000  # 8 µs bits: a frame of 8 bytes lasts about 1 ms
@@ -257,9 +258,37 @@ def test_a_turns_frame_sent_late_goes_on_the_bus_at_its_read_time_and_a_later_re
     """A node whose read times are turns (``read_every(..., turns=True)``) takes a millisecond of work after its SYNC,
     past another reader's read time. Its frame still goes on the bus at its own read time and that reader gets it,
     since the bus waits for the turn's end (``send(..., end_turn=True)``). Without turns the frame goes when sent,
-    after the reader's read time."""
-    node_bus, node = lazy_link("N")
-    reader_bus, reader = lazy_link("R")
+    after the reader's read time.
+
+    The node's work must end within the turn's hold (TURN_HOLD_MAX_S after its read time). On a loaded machine the
+    node's SYNC can reach it later than that, and the turn be let go as it should; the scene is then tried again
+    (``_late_turn_scene``)."""
+    for attempt in range(LOADED_ATTEMPTS):
+        before = (server.stats.turns_held, server.stats.turn_overruns)
+        got, t_turn, work_ended = _late_turn_scene(server, turns, attempt)
+        held, overruns = server.stats.turns_held - before[0], server.stats.turn_overruns - before[1]
+        if turns and work_ended > t_turn + TURN_HOLD_MAX_S:  # the node itself was late: its turn may have gone
+            continue  # (or been held, had the serving thread been late too and found the turn's end first)
+        if turns:
+            assert [fid for fid, _, _ in got] == [0x100], f"work ended {1e3 * (work_ended - t_turn):.3f} ms after the turn"
+            assert abs(got[0][2] - (t_turn + frame_bits(0x100, bytes(1)) / BITRATE)) < 2e-6, got[0][2] - t_turn
+            # held once, unless the serving thread itself woke after the turn's end (a loaded machine): then it
+            # never had to wait (as the engine's own test of it allows)
+            assert held <= 1 and overruns == 0
+        else:
+            assert got == []  # sent after the read time: the reader's next read has it
+            assert held == 0
+        return
+    pytest.skip(f"the node's work overran the turn's hold in {LOADED_ATTEMPTS} attempts: the machine is too loaded")
+
+
+LOADED_ATTEMPTS = 5  # tries of a wall-clock scene whose node the scheduler may wake too late
+
+
+def _late_turn_scene(server, turns: bool, attempt: int) -> tuple[list, float, float]:
+    """One try: (what the reader got at its read time, the node's turn, when the node's send returned)."""
+    node_bus, node = lazy_link(f"N{attempt}")
+    reader_bus, reader = lazy_link(f"R{attempt}")
     try:
         t_turn = time.time() + 0.03
         one_frame = frame_bits(0x100, bytes(1)) / BITRATE  # about 0.45 ms
@@ -271,16 +300,10 @@ def test_a_turns_frame_sent_late_goes_on_the_bus_at_its_read_time_and_a_later_re
         assert node.in_turn is turns
         time.sleep(max(0.0, t_turn + 0.001 - time.time()))  # the node's work: a millisecond past its read time
         node.send([(0x100, bytes(1))], end_turn=True)
+        work_ended = time.time()
         assert not node.in_turn
         assert reader.sync_to(t_read, 1.0)
-        got = reader.take()
-        if turns:
-            assert [fid for fid, _, _ in got] == [0x100]
-            assert abs(got[0][2] - (t_turn + one_frame)) < 2e-6, got[0][2] - t_turn
-            assert server.stats.turns_held == 1 and server.stats.turn_overruns == 0
-        else:
-            assert got == []  # sent after the read time: the reader's next read has it
-            assert server.stats.turns_held == 0
+        return reader.take(), t_turn, work_ended
     finally:
         node_bus.shutdown()
         reader_bus.shutdown()
