@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CRUISE = ROOT / "examples" / "cruise.toml"
 EXAMPLE = ROOT / "examples" / "external_ecu.py"
 DURATION_S = 6.0
+JOIN_BY_S = 1.0  # the external unit's first command, simulated s (it starts beside the rig's nodes)
 
 
 def start_rig(tmp_path: Path, run: str, *extra: str) -> subprocess.Popen:
@@ -60,18 +61,23 @@ def test_an_external_python_can_ecu_takes_the_place_of_one_unit(tmp_path, bus):
     assert ecu.returncode == 0 and "dropped 0 with a bad E2E CRC" in ecu_out, ecu_out
     metrics = json.loads((tmp_path / "r" / "metrics.json").read_text())
     seen = metrics["external_units"]["train2/unit3"]
-    assert seen["joined_s"] < 0.1 and seen["missing"] == []  # it was on the bus before t = 0
-    assert seen["commands"] >= 0.95 * DURATION_S / 0.01  # one per Sensor frame
+    # It starts as the rig starts its nodes: on an idle machine it is on the bus before t = 0, on a loaded one its
+    # imports can take it a little past; from then on, no gap and one command per Sensor frame.
+    joined = seen["joined_s"]
+    assert joined < JOIN_BY_S and seen["missing"] == []
+    assert seen["commands"] >= 0.95 * (DURATION_S - joined) / 0.01
     assert abs(seen["period_p50_ms"] - 10.0) < 1.0 and 9.5 < seen["period_mean_ms"] < 10.5  # as seen on the bus
     assert seen["period_max_ms"] >= seen["period_p99_ms"] >= seen["period_p50_ms"] and seen["jitter_std_ms"] > 0
-    # the plant applied its commands (no fail-safe on that unit) and the unit tracked the reference
+    # the plant applied its commands (no fail-safe on that unit once it joined) and the unit tracked the reference
     events = read_text_rows(tmp_path / "r" / "run.rrd", "/events")
     texts = [text for rows in events.values() for _, text, _ in rows]
     assert any(t.startswith("train2/unit3 (external) joined: first valid TractionCmd at t = ") for t in texts), texts
-    assert not any("train 2 unit 3" in t and "fail-safe" in t for t in texts), texts
+    failsafe = [te for rows in events.values() for te, text, _ in rows
+                if text.startswith("train 2 unit 3 ") and "no command for" in text and "fail-safe" in text]
+    assert all(te < joined for te in failsafe), (joined, failsafe)  # (only while it was still starting)
     signals = read_scalars(tmp_path / "r" / "run.rrd")
     t, traction = signals["/trains/2/units/3/traction_kn"]
-    assert np.all(traction[(t > 0.1) & (t < 1.0)] > 10.0)  # 5 km/h slow at the start: the PI law pulls
+    assert np.all(traction[(t > joined + 0.1) & (t < joined + 1.0)] > 10.0)  # 5 km/h slow at the start: the PI law pulls
     t, err_kmh = signals["/trains/2/units/3/speed_error_kmh"]
     assert err_kmh[0] < -4.0 and abs(err_kmh[-1]) < 1.0  # from 5 km/h slow to within 1 km/h in 6 s
     assert metrics["e2e_latency_p99_s"] is not None
