@@ -17,6 +17,7 @@ from hil.runtime.realtime.pycan_bus import TrainhilBus
 
 BITRATE = 125_000  # 8 µs bits: a frame of 8 bytes lasts about 1 ms
 PERIOD_S = 0.02
+LOADED_ATTEMPTS = 5  # tries of a wall-clock scene whose node the scheduler may wake too late
 
 
 @pytest.fixture
@@ -280,9 +281,6 @@ def test_a_turns_frame_sent_late_goes_on_the_bus_at_its_read_time_and_a_later_re
             assert held == 0
         return
     pytest.skip(f"the node's work overran the turn's hold in {LOADED_ATTEMPTS} attempts: the machine is too loaded")
-
-
-LOADED_ATTEMPTS = 5  # tries of a wall-clock scene whose node the scheduler may wake too late
 
 
 def _late_turn_scene(server, turns: bool, attempt: int) -> tuple[list, float, float]:
