@@ -113,6 +113,9 @@ pub struct Shared {
     pub lateness: Histogram,
     pub bad: BadInput,
     pub clients: usize,
+    /// Of `clients`, those that take their frames as they end (not lazy readers): python-can programs and devices,
+    /// not the rig's own nodes, which read lazily. The rig waits for an external unit's before its clock starts.
+    pub eager_clients: usize,
     /// Turns of the serving loop so far (each one a wake-up of its thread).
     pub turns: u64,
     /// Nodes' turns (READ_TURNS) the bus waited for: their read time came before their DONE.
@@ -402,7 +405,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     };
     let shared = Arc::new(Mutex::new(Shared {
         bus, frames: 0, busy_ns: 0, rejected: 0, overruns: 0, latency: Histogram::default(), lateness: Histogram::default(),
-        bad: BadInput::default(), clients: 0, turns: 0, turns_held: 0, turn_overruns: 0,
+        bad: BadInput::default(), clients: 0, eager_clients: 0, turns: 0, turns_held: 0, turn_overruns: 0,
         turns_let_go: BTreeMap::new(), turns_behind: 0, turns_given_up_s: None, messages: Vec::new(),
     }));
     let stop = Arc::new(AtomicBool::new(false));
@@ -749,6 +752,7 @@ impl Server {
             self.remove_closed();
         }
         shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
+        shared.eager_clients = self.clients.iter().filter(|c| c.node.is_some() && !c.lazy && !c.closed).count();
         let every_end = self.every_end_needed(shared);
         if let Some(r) = self.radio.as_mut() {
             r.eager.store(every_end, Ordering::Relaxed);
@@ -1763,6 +1767,33 @@ mod tests {
 
     fn turns(handle: &ServerHandle) -> u64 {
         handle.shared.lock().unwrap().turns
+    }
+
+    /// (clients, eager clients) of `handle` once they equal `want`, or as they are after 2 s.
+    fn clients_settled(handle: &ServerHandle, want: (usize, usize)) -> (usize, usize) {
+        let deadline = Instant::now() + Duration::from_secs(2);
+        loop {
+            let got = { let s = handle.shared.lock().unwrap(); (s.clients, s.eager_clients) };
+            if got == want || Instant::now() > deadline {
+                return got;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    /// The rig's own nodes read lazily; a python-can program or device does not. The server counts the latter
+    /// apart (the rig waits for an external unit's before its clock starts), and forgets one that left.
+    #[test]
+    fn eager_clients_are_counted_apart_from_lazy_readers() {
+        let (mut handle, path, dir) = serve("eagercount", 10_000, 10_000, Format::Classical);
+        let _lazy = connect_node(&path, "Plant", OPTION_LAZY);
+        assert_eq!(clients_settled(&handle, (1, 0)), (1, 0));
+        let eager = connect_node(&path, "device", 0);
+        assert_eq!(clients_settled(&handle, (2, 1)), (2, 1));
+        drop(eager);
+        assert_eq!(clients_settled(&handle, (1, 0)), (1, 0));
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(dir);
     }
 
     /// A quiet node's frame does not wake the server; the server reads it at its next wake-up (here a reader's

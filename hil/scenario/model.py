@@ -483,8 +483,9 @@ class EcuConfig(Section):
     units: list[UnitFirmware] = Field(default=[], description="per-unit overrides of program, law and params")
     external: list[str] = Field(default=[], description="units without an emulated ECU: an external device or "
                                 "program sends their frames (real time only)")
-    join_timeout_s: float = Field(default=30.0, gt=0, description="real time: how long (wall s) the rig waits for "
-                                  "each external unit's first valid TractionCmd")
+    join_timeout_s: float = Field(default=30.0, gt=0, description="real time: how long (wall s) the rig waits, "
+                                  "from when it is ready, for each external unit's first valid TractionCmd (on the "
+                                  "emulated buses simulated t = 0 waits, as long at most, for a client on its bus)")
 
     cycle_s: float = Field(default=0.01, gt=0)
     phase_s: float = Field(default=0.002, ge=0, le=MAX_PERIOD_S, description="first cycle after each sensor publication")

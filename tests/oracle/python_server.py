@@ -666,15 +666,17 @@ class PythonBusServer:
             self._close_windows(now)
             up = max(now, 1) * 1e-9
             load = self.model.log.load
+            clients = sum(c.node is not None for c in self._clients.values())
             return BusServerStats(
-                self.channel, self.model.bitrate, up, sum(c.node is not None for c in self._clients.values()),
+                self.channel, self.model.bitrate, up, clients,
                 self._frames, self._frames / up, self._busy_ns / max(now, 1),
                 load.last(1) if len(load) else None, self.model.log.frames_dropped, self._rejected, self._overruns,
                 self._latency.quantile_s(0.5), self._latency.quantile_s(0.99),
                 self._latency.max_ns * 1e-9 if self._latency.n else None,
                 self._lateness.quantile_s(0.5), self._lateness.quantile_s(0.99),
                 self._lateness.max_ns * 1e-9 if self._lateness.n else None,
-                tcp_port=self.tcp_address[1] if self._tcp_listener is not None else None, **self._bad)
+                tcp_port=self.tcp_address[1] if self._tcp_listener is not None else None,
+                eager_clients=clients, **self._bad)  # (no lazy readers here: every client takes frames as they end)
 
 
 if __name__ == "__main__":  # python -m tests.oracle.python_server: `hil bus-server` on this server (benchmarks)

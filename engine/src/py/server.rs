@@ -48,6 +48,7 @@ pub(super) fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns
     let d = PyDict::new(py);
     d.set_item("now_ns", now_ns)?;
     d.set_item("clients", s.clients)?;
+    d.set_item("eager_clients", s.eager_clients)?;
     d.set_item("turns", s.turns)?;
     d.set_item("turns_held", s.turns_held)?;
     d.set_item("turn_overruns", s.turn_overruns)?;

@@ -42,6 +42,7 @@ class BusServerStats:
     truncated_records: int = 0  # connections that ended inside a record (the partial record is discarded)
     auth_failures: int = 0  # TCP connections refused for a missing or wrong token
     clients_refused: int = 0  # connections refused: not loopback, or more than max_clients
+    eager_clients: int = 0  # of clients, those taking frames as they end (python-can programs, devices; not lazy nodes)
     tcp_port: int | None = None  # the loopback TCP port, when listening on TCP
     wake_ups: int = 0  # turns of the serving loop so far (each a wake-up of its thread)
     turns_held: int = 0  # nodes' turns the bus waited for (ECU cycles, plant publications: hil run --turns)

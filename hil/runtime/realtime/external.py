@@ -4,21 +4,28 @@ A unit named in ``ecu.external`` gets no emulated ECU: a program or board outsid
 python-can program on the emulated bus, or a device on SocketCAN). The plant judges its TractionCmd frames like
 any other's (length, E2E CRC, mode) and its fail-safe holds the unit until valid ones come. :class:`ExternalWatch`
 lives in the plant node and sees every valid command with its bus timestamp (the end of its transmission), so
-the period and jitter it reports are those seen on the bus. :class:`JoinWait` is the orchestrator's side: it ends
-the run when a unit has sent nothing valid within ``ecu.join_timeout_s`` of the start.
+the period and jitter it reports are those seen on the bus. The orchestrator's side: on the emulated buses
+:func:`wait_for_connections` holds simulated t = 0 back until each external unit's bus has a client of its own
+(so a program started after the rig, and slow to import, is not braked by the plant's fail-safe at the start);
+:class:`JoinWait` then ends the run when a unit has sent nothing valid within ``ecu.join_timeout_s`` of the rig
+being ready.
 """
 from __future__ import annotations
 
 import math
 import queue
+import time
 from array import array
+from typing import Callable, Sequence
 
 import numpy as np
 
 from hil.scenario.layout import TrainLayout
 from hil.record.runlog import Event
+from hil.runtime.realtime.bus_server import BusServer
 
 JOIN_LINE = "joined"  # the plant node's stdout line "joined <flat unit> <sim t>" when an external unit joins
+CONNECT_POLL_S = 0.01  # wall seconds between two looks at the buses while waiting for the external units' clients
 
 
 class ExternalUnitMissing(RuntimeError):
@@ -81,18 +88,43 @@ def _timing(t: np.ndarray, end_s: float, missing_after_s: float) -> dict:
     return {"joined_s": float(t[0]), "commands": int(t.size), **stats, "missing": missing}
 
 
+def wait_for_connections(servers: Sequence[BusServer], layout: TrainLayout, units: list[int], rig_eager: int,
+                         deadline: float, stopped: Callable[[], bool], say=None) -> list[int]:
+    """Wait, before simulated t = 0, until the bus of each external unit has a client beyond the rig's own
+    ``rig_eager`` eager ones (its radio node, if any): a python-can program or device takes its frames as they
+    end, while the rig's nodes read lazily. Ends at ``deadline`` (wall, ``time.time()``) or when ``stopped()``.
+    Returns the units whose bus still has none. A logger connected first counts too: the server cannot tell."""
+    buses = sorted({layout.train_unit(u)[0] for u in units})
+    if say is not None:
+        say(f"ready; simulated t = 0 waits up to {max(deadline - time.time(), 0.0):.0f} s for a client on "
+            f"{', '.join(f'bus{b + 1}' for b in buses)} (the external unit(s))")
+    while True:
+        pending = [b for b in buses if servers[b].stats.eager_clients <= rig_eager]
+        if not pending or stopped() or time.time() >= deadline:
+            break
+        time.sleep(CONNECT_POLL_S)
+    missing = [u for u in units if layout.train_unit(u)[0] in pending]
+    if say is not None:
+        names = ", ".join(layout.unit_name(u) for u in (missing or units))
+        say(f"nothing connected to the bus of external unit(s) {names} in time: starting without"
+            if missing else f"a client connected to the bus of external unit(s) {names}: starting")
+    return missing
+
+
 class JoinWait:
-    """The orchestrator waits, from simulated t = 0, up to ``timeout_s`` wall seconds for each external unit's
-    first valid command, reported by the plant node on its stdout."""
+    """The orchestrator waits up to ``timeout_s`` wall seconds from ``started`` (the rig ready, before any wait for
+    connections) for each external unit's first valid command, reported by the plant node on its stdout."""
 
     def __init__(self, layout: TrainLayout, units: list[int], timeout_s: float, lines: "queue.Queue[str]",
-                 say=None) -> None:
+                 started: float, say=None) -> None:
         self.layout, self.timeout_s, self.lines, self.say = layout, timeout_s, lines, say
+        self.deadline = started + timeout_s
         self.waiting = set(units)
         self.joined: dict[int, float] = {}
 
-    def poll(self, wall_since_start: float) -> str | None:
-        """Take the plant's join lines; the reason to stop the run if the timeout passed with units missing."""
+    def poll(self, now: float) -> str | None:
+        """Take the plant's join lines; the reason to stop the run if the timeout passed (``now``: wall,
+        ``time.time()``) with units missing."""
         while True:
             try:
                 line = self.lines.get_nowait()
@@ -105,8 +137,8 @@ class JoinWait:
                 self.joined[u] = t
                 if self.say is not None:
                     self.say(f"external unit {self.layout.unit_name(u)} joined at t = {t:.3f} s")
-        if self.waiting and wall_since_start > self.timeout_s:
-            return self.missing(f"within ecu.join_timeout_s = {self.timeout_s:g} s of the start")
+        if self.waiting and now > self.deadline:
+            return self.missing(f"within ecu.join_timeout_s = {self.timeout_s:g} s of the rig being ready")
         return None
 
     def missing(self, when: str = "during the run") -> str:

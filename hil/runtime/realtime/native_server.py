@@ -166,7 +166,7 @@ class NativeBusServer:
             s["load_last_window"], s["frames_dropped"], s["frames_rejected"], s["rx_overruns"],
             s["latency_p50_s"], s["latency_p99_s"], s["latency_max_s"], s["lateness_p50_s"], s["lateness_p99_s"],
             s["lateness_max_s"], protocol_errors=s["protocol_errors"], truncated_records=s["truncated_records"],
-            auth_failures=s["auth_failures"], clients_refused=s["clients_refused"],
+            auth_failures=s["auth_failures"], clients_refused=s["clients_refused"], eager_clients=s["eager_clients"],
             tcp_port=self.tcp_address[1] if self._tcp else None, wake_ups=s["turns"],
             turns_held=s["turns_held"], turn_overruns=s["turn_overruns"], turns_let_go=s["turns_let_go"],
             turns_behind=s["turns_behind"], turns_given_up_s=s["turns_given_up_s"])

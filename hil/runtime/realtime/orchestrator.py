@@ -13,7 +13,9 @@ real-time rig. Steps:
 2. Node processes (same Python): the plant + wayside, the ECUs (``ecus_per_process``
    units per process; by default ``default_ecus_per_process``: one ECU process per core the rest of the rig
    leaves, and faster than real time one train's units at most in each), and on SocketCAN the radio bridge. Each prints "ready"; once all have (or ``READY_TIMEOUT_S`` passes: an error naming the
-   node), every node gets "go <T0>" with T0 a little in the future, and sim_t = (wall - T0) * pace everywhere.
+   node) and, with external units on the emulated buses, once their buses have a client of their own
+   (``external.wait_for_connections``), every node gets "go <T0>" with T0 a little in the future, and
+   sim_t = (wall - T0) * pace everywhere.
 3. The nodes stop by themselves at the simulated duration. An ECU process that exits early is an ERROR event
    ("ECU process train1/unit2 exited with code -9") and the run goes on: the plant's fail-safe takes over.
    One whose cycles stopped (a law that never returns) is killed as hung (``hang_watch``), the same way; a hung
@@ -64,7 +66,7 @@ from hil.runtime.realtime.scheduling import SchedulingMode, choose_scheduling
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.engine_radio import EngineRadio
 from hil.runtime.realtime.native_server import NativeBusServer
-from hil.runtime.realtime.external import JOIN_LINE, ExternalUnitMissing, JoinWait
+from hil.runtime.realtime.external import JOIN_LINE, ExternalUnitMissing, JoinWait, wait_for_connections
 from hil.runtime.realtime.hang_watch import HangWatch, hung_after_s
 from hil.runtime.realtime.pacing import ALIVE_LINE
 from hil.runtime.realtime.live_tail import LiveTail
@@ -350,7 +352,11 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     f"{', '.join(scenario.ecu.external)}" if external else ""))
             _wait_ready(nodes, stop)
             if external:
-                join = JoinWait(layout, external, scenario.ecu.join_timeout_s, nodes[0].lines, say)
+                ready = time.time()
+                join = JoinWait(layout, external, scenario.ecu.join_timeout_s, nodes[0].lines, ready, say)
+                if servers:  # the emulated buses: t = 0 once the external units' buses have their clients
+                    wait_for_connections(servers, layout, external, sum(n.kind == "radio" for n in nodes),
+                                         ready + scenario.ecu.join_timeout_s, lambda: stop.requested is not None, say)
             if not stop.requested:
                 t0 = clock["t0"] = time.time() + GO_MARGIN_S
                 write_json_atomic(nodes_dir / RUN_FILE, {  # what hil recover needs
@@ -657,7 +663,7 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                 bar.update(round(min(sim_now, duration), 1) - bar.n)  # drawn at most every mininterval
             if stop.requested:
                 return stop.requested
-            if join is not None and (why := join.poll(now - t0)):
+            if join is not None and (why := join.poll(now)):
                 events.append(Event(sim_now, "ERROR", "rig", f"run stopped: {why}"))
                 return why
             for n in nodes:
