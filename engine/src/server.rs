@@ -211,6 +211,11 @@ impl Client {
         self.flush_to = self.out.len();
     }
 
+    /// A node that takes its frames as they end (not a lazy reader): a python-can program or device.
+    fn is_eager_node(&self) -> bool {
+        !self.lazy && self.node.is_some() && !self.closed
+    }
+
     fn next_read(&self) -> Option<u64> {
         if self.closed || self.node.is_none() {
             return None;
@@ -752,7 +757,7 @@ impl Server {
             self.remove_closed();
         }
         shared.clients = self.clients.iter().filter(|c| c.node.is_some()).count();
-        shared.eager_clients = self.clients.iter().filter(|c| c.node.is_some() && !c.lazy && !c.closed).count();
+        shared.eager_clients = self.clients.iter().filter(|c| c.is_eager_node()).count();
         let every_end = self.every_end_needed(shared);
         if let Some(r) = self.radio.as_mut() {
             r.eager.store(every_end, Ordering::Relaxed);
@@ -773,7 +778,7 @@ impl Server {
 
     /// Whether a node that takes its frames as they end (not a lazy reader) is on the bus.
     fn has_eager_node(&self) -> bool {
-        self.clients.iter().any(|c| !c.lazy && c.node.is_some() && !c.closed)
+        self.clients.iter().any(Client::is_eager_node)
     }
 
     /// The BELL records of what quiet readers must ring for now: every frame, or those the radio takes at their
