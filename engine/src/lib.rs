@@ -13,8 +13,8 @@
 //! * `radio`: the train-to-train links and the routing gateway;
 //! * `kernel` and `network`: the virtual-time event queue and the network it drives;
 //! * `protocol`: the wire protocol between a bus server and its nodes (constants, record codec);
-//! * `server`: the real-time bus server, one OS thread per bus (`histogram`: its delay figures); `link`: a node's
-//!   end of its connection; `read_schedule`: a lazy reader's read times, which buses a wait was foreseen on;
+//! * `server`: the real-time bus server, its buses served by `serving_thread`, which waits through `poll_wait`
+//!   (`histogram`: its delay figures); `link`: a node's end of its connection; `read_schedule`: a lazy reader's read times, which buses a wait was foreseen on;
 //!   `series`: a node's per-cycle series (lateness, latency), streamed to a file, percentiles from 1 µs bins.
 //!
 //! `py` (feature `python`) is the Python surface, `trainhil_engine._native`.
@@ -32,6 +32,7 @@ pub mod link;
 pub mod mailbox;
 pub mod network;
 pub mod packing;
+pub mod poll_wait;
 pub mod protocol;
 pub mod radio;
 pub mod radio_hub;

@@ -2,9 +2,9 @@
 //! interpreter lock), its own or one it shares with the rig's other buses (`serving_thread.rs`), with the
 //! unix-socket protocol of `hil/runtime/realtime/protocol.py` (24-byte records).
 //!
-//! Each turn: wait (ppoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends (when someone
-//! must have it then), a read time comes, or a node writes (a quiet reader's records wait for the next turn); read
-//! the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP), then run the bus's events to now in time order
+//! Each turn: wait (`poll_wait.rs`: epoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends
+//! (when someone must have it then), a read time comes, or a node writes (a quiet reader's records wait for the
+//! next turn); read the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP), then run the bus's events to now in time order
 //! (`settle`; with the other buses of its radio on the same thread, `turn_together`): complete every transmission
 //! that ended, hand it to every node whose acceptance filters take it (python-can semantics, applied here), queue
 //! the records and the radio's deliveries at their times, arbitrate, SYNC lazy readers; write the output.
@@ -26,6 +26,7 @@ use crate::bus::{Bus, Format, Policy, Sink, Transmission};
 use crate::frame::BitTiming;
 
 use crate::histogram::Histogram;
+use crate::poll_wait::{descriptors_changed, PollWait};
 use crate::protocol::*;
 use crate::radio_hub::{Delivery, RadioHub};
 use crate::serving_thread::ServingThread;
@@ -273,6 +274,8 @@ pub struct Server {
     bell_routes: bool,
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
+    /// The lazy readers' sockets, looked at without waiting in each turn (`lazy_readable`).
+    lazy_wait: PollWait,
     /// The turns let go at once in the current window of TURNS_BEHIND_WINDOW_S: (its start, bus ns; how many).
     behind_window: (u64, u64),
     /// The earliest open turn (READ_TURNS) whose read time this turn's now has reached (bus ns), if any.
@@ -420,9 +423,10 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
         floor: 0, arbitrate_at: None, least_frame_ns, timing, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
-        more_waiting: false, behind_window: (0, 0), turn_hold: None, held: false,
+        more_waiting: false, behind_window: (0, 0), turn_hold: None, held: false, lazy_wait: PollWait::new(),
         done: done.clone(),
     };
+    descriptors_changed();
     thread.add(server);
     Ok(ServerHandle { shared, stop, wake: wake_w, thread, own_thread, done, epoch0_ns, mono0, pace })
 }
@@ -451,6 +455,7 @@ impl Server {
         }
         let now = self.now();
         Self::close_windows(&mut shared, now, self.cfg.keep_log);
+        descriptors_changed(); // the server and its connections close as it is dropped
         self.done.store(true, Ordering::SeqCst);
     }
 
@@ -567,6 +572,7 @@ impl Server {
         self.clients.retain(|c| !c.closed);
         if self.clients.len() != before {
             self.rx_cache.clear();
+            descriptors_changed(); // their numbers may come back with the next connections
         }
     }
 
@@ -721,8 +727,9 @@ impl Server {
 
     /// Which clients are lazy readers with something to read now. Their frames carry their time, so what came since
     /// the turn's poll is read too (fewer are late); a quiet reader is not in that poll at all. One poll of their
-    /// sockets without waiting, rather than a read of each: most turns, most of them sent nothing.
-    fn lazy_readable(&self) -> Vec<bool> {
+    /// sockets without waiting (`lazy_wait`, registered between turns), rather than a read of each: most turns,
+    /// most of them sent nothing.
+    fn lazy_readable(&mut self) -> Vec<bool> {
         let mut ready = vec![false; self.clients.len()];
         let lazy: Vec<usize> = (0..self.clients.len()).filter(|&i| self.clients[i].lazy && !self.clients[i].closed).collect();
         if lazy.is_empty() {
@@ -731,9 +738,7 @@ impl Server {
         let mut pfds: Vec<libc::pollfd> = lazy.iter()
             .map(|&i| libc::pollfd { fd: self.clients[i].stream.fd(), events: libc::POLLIN, revents: 0 })
             .collect();
-        let now = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-        // SAFETY: pfds is a valid array of pollfd for the duration of the call.
-        let polled = unsafe { libc::ppoll(pfds.as_mut_ptr(), pfds.len() as libc::nfds_t, &now, std::ptr::null()) };
+        let polled = self.lazy_wait.wait(&mut pfds, 0);
         for (&i, pfd) in lazy.iter().zip(&pfds) {
             ready[i] = polled < 0 || pfd.revents != 0; // the poll failed (interrupted): read each, as without it
         }
@@ -1144,6 +1149,7 @@ impl Server {
             }
             let cid = self.next_cid;
             self.next_cid += 1;
+            descriptors_changed();
             self.clients.push(Client {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,

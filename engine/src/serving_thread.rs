@@ -3,7 +3,7 @@
 //! cycle, the plant reads every bus at each publication) costs one wake-up of one thread, not one per bus.
 //!
 //! Each turn: take the servers added since the last, finish the ones asked to stop, let each put its descriptors on
-//! one poll set and say how long it may sleep, sleep for the shortest, then let each server whose time came or
+//! one poll set and say how long it may sleep, sleep for the shortest (`poll_wait`: the set stays registered), then let each server whose time came or
 //! whose descriptors woke the thread take its turn (a server's turn is most of its cost: the others skip theirs).
 //! The servers of one radio hub turn together, their events in one time order (`server::turn_together`).
 
@@ -15,6 +15,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use crate::poll_wait::PollWait;
 use crate::server::{drain_wake_ups, set_timer_slack, turn_together, Server};
 
 /// How long an empty thread sleeps between looks (it is woken when a server comes or it is closed).
@@ -96,6 +97,7 @@ impl ServingThread {
         let mut servers: Vec<Server> = Vec::new();
         let mut fds: Vec<libc::pollfd> = Vec::new();
         let mut parts: Vec<(std::ops::Range<usize>, Instant)> = Vec::new();
+        let mut waiter = PollWait::new(); // the poll set stays registered between turns
         loop {
             servers.append(&mut self.incoming.lock().unwrap());
             servers.retain_mut(|s| {
@@ -117,12 +119,7 @@ impl ServingThread {
                 timeout = timeout.min(own);
                 parts.push((first..fds.len(), asked + Duration::from_nanos(own as u64)));
             }
-            let timeout = timeout.max(0);
-            let ts = libc::timespec { tv_sec: (timeout / 1_000_000_000) as libc::time_t, tv_nsec: (timeout % 1_000_000_000) as libc::c_long };
-            // SAFETY: fds is a valid array of pollfd for the duration of the call.
-            unsafe {
-                libc::ppoll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, &ts, std::ptr::null());
-            }
+            waiter.wait(&mut fds, timeout.max(0));
             if fds[0].revents != 0 {
                 drain_wake_ups(&mut &self.wake_r);
             }
