@@ -55,6 +55,8 @@ def test_a_real_time_run_with_turns_has_its_buses_wait_for_them_and_records_it(t
         assert b["turn_overruns"] == sum(b["turns_let_go"].values()) + b["turns_behind"], b
     given_up = [e for e in res.log.events if e.text.startswith("turns given up")]
     assert len(given_up) == any(b["turns_given_up_s"] is not None for b in servers), given_up  # said once, if any
+    for b in servers:  # when, in simulated seconds as every time in metrics.json (the engine keeps it in epoch s)
+        assert b["turns_given_up_s"] is None or 0.0 <= b["turns_given_up_s"] <= 1.0 + 1e-6, b
     let_go = [e for e in res.log.events if "turns let go" in e.text]
     assert len(let_go) == (sum(b["turn_overruns"] for b in servers) > 0), let_go  # said once at the end, if any
     assert all(e.level == "WARN" for e in let_go)
@@ -64,6 +66,13 @@ def _stats(channel: str, let_go: dict[str, int], behind: int, given_up_s: float 
     return BusServerStats(channel, 500_000, 1.0, 2, 0, 0.0, 0.0, None, 0, 0, 0, None, None, None, None, None, None,
                           turn_overruns=sum(let_go.values()) + behind, turns_let_go=let_go, turns_behind=behind,
                           turns_given_up_s=given_up_s)
+
+
+def test_metrics_json_has_when_turns_were_given_up_in_simulated_seconds() -> None:
+    t0, pace = 1_796_588_569.45, 10.0
+    assert _stats("bus1", {}, 20, t0 + 0.125).as_dict(t0, pace)["turns_given_up_s"] == pytest.approx(1.25)
+    assert _stats("bus2", {}, 0).as_dict(t0, pace)["turns_given_up_s"] is None
+    assert _stats("bus1", {}, 20, t0 + 0.125).as_dict()["turns_given_up_s"] == t0 + 0.125  # no T0: the engine's epoch
 
 
 def test_the_turns_let_go_are_summed_over_the_buses_by_who_was_late() -> None:

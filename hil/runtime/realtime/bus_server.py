@@ -53,8 +53,13 @@ class BusServerStats:
     # (TURNS_BEHIND_MAX; None: it takes them still): from then on it holds its bus for none, as with turns off
     turns_given_up_s: float | None = None
 
-    def as_dict(self) -> dict:
-        return asdict(self)
+    def as_dict(self, t0: float | None = None, pace: float = 1.0) -> dict:
+        """The figures as ``metrics.json`` has them; given the run's T0 (epoch s) and pace, ``turns_given_up_s`` in
+        simulated seconds, as every other time there."""
+        d = asdict(self)
+        if t0 is not None and self.turns_given_up_s is not None:
+            d["turns_given_up_s"] = (self.turns_given_up_s - t0) * pace
+        return d
 
 
 def turns_let_go_text(stats: list[BusServerStats]) -> str | None:

@@ -392,7 +392,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             idle.close()
         _kill_all(nodes)
         final_stats = [s.stats for s in servers]
-        server_stats = {s.log.name: st.as_dict() for s, st in zip(servers, final_stats)}
+        server_stats = {s.log.name: st.as_dict(t0, pace) for s, st in zip(servers, final_stats)}
         if spool is not None:
             spool.close()
         for s in servers:
