@@ -79,7 +79,8 @@ impl PollWait {
         let same = epoch == self.epoch && self.registered.len() == fds.len()
             && self.registered.iter().zip(fds).all(|(&(fd, _), p)| fd == p.fd);
         if !same {
-            *self = PollWait { ep: None, registered: Vec::new(), epoch, events: std::mem::take(&mut self.events) }.with_instance();
+            let events = std::mem::take(&mut self.events);
+            *self = PollWait { ep: None, registered: Vec::new(), epoch, events }.with_instance();
             if self.ep.is_none() {
                 return Err(std::io::Error::last_os_error());
             }

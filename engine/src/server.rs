@@ -4,10 +4,11 @@
 //!
 //! Each turn: wait (`poll_wait.rs`: epoll, nanosecond timeout, timer slack 1 ns) until the frame on the wire ends
 //! (when someone must have it then), a read time comes, or a node writes (a quiet reader's records wait for the
-//! next turn); read the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP), then run the bus's events to now in time order
-//! (`settle`; with the other buses of its radio on the same thread, `turn_together`): complete every transmission
-//! that ended, hand it to every node whose acceptance filters take it (python-can semantics, applied here), queue
-//! the records and the radio's deliveries at their times, arbitrate, SYNC lazy readers; write the output.
+//! next turn); read the nodes' records (HELLO, FILTERS, FRAME; AUTH first on TCP), then run the bus's events to now
+//! in time order (`settle`; with the other buses of its radio on the same thread, `turn_together`): complete every
+//! transmission that ended, hand it to every node whose acceptance filters take it (python-can semantics, applied
+//! here), queue the records and the radio's deliveries at their times, arbitrate, SYNC lazy readers; write the
+//! output.
 //! The last `spin_ns` before an end are polled, not slept.
 //! Bad input never stops the server: frames the bus cannot carry are counted and dropped, a record that breaks
 //! the protocol disconnects that node, and both are counted and reported (the first few of each kind).

@@ -3,8 +3,9 @@
 //! cycle, the plant reads every bus at each publication) costs one wake-up of one thread, not one per bus.
 //!
 //! Each turn: take the servers added since the last, finish the ones asked to stop, let each put its descriptors on
-//! one poll set and say how long it may sleep, sleep for the shortest (`poll_wait`: the set stays registered), then let each server whose time came or
-//! whose descriptors woke the thread take its turn (a server's turn is most of its cost: the others skip theirs).
+//! one poll set and say how long it may sleep, sleep for the shortest (`poll_wait`: the set stays registered), then
+//! let each server whose time came or whose descriptors woke the thread take its turn (a server's turn is most of
+//! its cost: the others skip theirs).
 //! The servers of one radio hub turn together, their events in one time order (`server::turn_together`).
 
 use std::io::Write;
