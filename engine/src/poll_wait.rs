@@ -78,38 +78,39 @@ impl PollWait {
         let epoch = FD_EPOCH.load(Ordering::SeqCst);
         let same = epoch == self.epoch && self.registered.len() == fds.len()
             && self.registered.iter().zip(fds).all(|(&(fd, _), p)| fd == p.fd);
-        if !same {
-            let events = std::mem::take(&mut self.events);
-            *self = PollWait { ep: None, registered: Vec::new(), epoch, events }.with_instance();
-            if self.ep.is_none() {
-                return Err(std::io::Error::last_os_error());
+        if same {
+            return self.update(fds);
+        }
+        let events = std::mem::take(&mut self.events);
+        *self = PollWait { ep: None, registered: Vec::new(), epoch, events }.with_instance();
+        if self.ep.is_none() {
+            return Err(std::io::Error::last_os_error());
+        }
+        for (k, p) in fds.iter().enumerate().filter(|(_, p)| p.fd >= 0) {
+            self.ctl(libc::EPOLL_CTL_ADD, k, p)?;
+        }
+        self.registered = fds.iter().map(|p| (p.fd, p.events)).collect();
+        Ok(())
+    }
+
+    /// The same descriptors as registered: a changed interest is told to epoll.
+    fn update(&mut self, fds: &[libc::pollfd]) -> std::io::Result<()> {
+        for (k, p) in fds.iter().enumerate() {
+            if p.fd >= 0 && self.registered[k].1 != p.events {
+                self.ctl(libc::EPOLL_CTL_MOD, k, p)?;
+                self.registered[k].1 = p.events;
             }
         }
-        for (k, p) in fds.iter().enumerate() {
-            if p.fd < 0 {
-                if !same {
-                    self.registered.push((p.fd, p.events));
-                }
-                continue;
-            }
-            let op = if !same {
-                libc::EPOLL_CTL_ADD
-            } else if self.registered[k].1 != p.events {
-                libc::EPOLL_CTL_MOD
-            } else {
-                continue;
-            };
-            // (the kernel adds EPOLLHUP and EPOLLERR: reported with no events asked, as by poll)
-            let mut ev = libc::epoll_event { events: p.events as u16 as u32, u64: k as u64 };
-            // SAFETY: ev is a valid epoll_event for the duration of the call.
-            if unsafe { libc::epoll_ctl(self.ep_fd(), op, p.fd, &mut ev) } < 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            if same {
-                self.registered[k].1 = p.events;
-            } else {
-                self.registered.push((p.fd, p.events));
-            }
+        Ok(())
+    }
+
+    /// `p` (entry `k` of the set, its event's data) added or changed in the epoll instance.
+    fn ctl(&self, op: libc::c_int, k: usize, p: &libc::pollfd) -> std::io::Result<()> {
+        // (the kernel adds EPOLLHUP and EPOLLERR: reported with no events asked, as by poll)
+        let mut ev = libc::epoll_event { events: p.events as u16 as u32, u64: k as u64 };
+        // SAFETY: ev is a valid epoll_event for the duration of the call.
+        if unsafe { libc::epoll_ctl(self.ep_fd(), op, p.fd, &mut ev) } < 0 {
+            return Err(std::io::Error::last_os_error());
         }
         Ok(())
     }
