@@ -300,13 +300,17 @@ class PythonBusServer:
             self._serving.clear()
             self._stopped.set()
 
-    def start(self) -> "PythonBusServer":
-        """Serve in a daemon thread; returns once the loop runs."""
+    def start(self, pump_thread: bool = True) -> "PythonBusServer":
+        """Serve in a daemon thread; returns once the loop runs. Its loop feeds the listeners itself, so there is no
+        pump to place (``pump_thread`` is the protocol's, and changes nothing here)."""
         if self._thread is None:
             self._thread = threading.Thread(target=self.serve_forever, name=f"bus-server {self.channel}", daemon=True)
             self._thread.start()
             self._serving.wait(5.0)
         return self
+
+    def pump(self) -> None:
+        """Nothing to do: the serving loop reports and feeds the listeners as it goes (the protocol's ``pump``)."""
 
     def shutdown(self, wait: bool = True) -> None:
         """Stop the loop (from any thread); waits for it unless called from the loop's own thread."""

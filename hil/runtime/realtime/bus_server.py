@@ -98,7 +98,8 @@ def turns_given_up(stats: list[BusServerStats], t0: float, pace: float) -> tuple
 class BusServer(Protocol):
     """A server of one bus in wall-clock time: nodes connect to ``path`` (and TCP with a token, optionally);
     ``epoch0`` is the epoch time of the bus's time zero; ``log`` its frame rows and load windows (read it under
-    ``with_log``); ``frame_listeners`` get every completed transmission."""
+    ``with_log``); ``frame_listeners`` get every completed transmission, fed by ``pump`` (a thread of the server's
+    own unless it was started with ``pump_thread=False``: then its owner calls ``pump``)."""
 
     path: Path
 
@@ -119,7 +120,9 @@ class BusServer(Protocol):
 
     def with_log(self, fn: Callable[[BusLog], Any]) -> Any: ...
 
-    def start(self) -> "BusServer": ...
+    def start(self, pump_thread: bool = True) -> "BusServer": ...
+
+    def pump(self) -> None: ...
 
     def shutdown(self, wait: bool = True) -> None: ...
 

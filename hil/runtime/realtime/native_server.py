@@ -4,8 +4,9 @@ native thread outside the interpreter lock (``trainhil_engine.BusServerCore``, e
 This side makes the sockets exactly as ``BusServer`` does (owner-only run directory, the socket bound under a
 temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file) and the bell
 its quiet readers ring (``<bus>.bell``, ``sockets.make_bell``), and hands their file descriptors to the engine. A
-small Python thread wakes a few times a second to report the engine's log lines through ``logging`` and to feed
-``frame_listeners`` (CAN logs). CAN error confinement, the bus fault injectors and the guardian run in the engine's
+few times a second ``pump`` reports the engine's log lines through ``logging``, feeds ``frame_listeners`` (CAN logs)
+and takes over the new log rows: from a small thread of its own, or from its owner's loop (the rig's supervising
+loop: one thread fewer to wake per bus). CAN error confinement, the bus fault injectors and the guardian run in the engine's
 bus (``enable_bus_errors`` ..., driven by ``hil.faults.bus.EngineBusFaults``).
 """
 from __future__ import annotations
@@ -120,9 +121,12 @@ class NativeBusServer:
         """Whether a frame is on the wire now."""
         return self._core.current() is not None
 
-    def start(self) -> "NativeBusServer":
-        """The engine serves from construction on; this starts the Python side's log and trace pump."""
-        if self._pump is None:
+    def start(self, pump_thread: bool = True) -> "NativeBusServer":
+        """The engine serves from construction on; this starts the Python side's log and trace pump: its first turn
+        now (tracing on for the listeners already attached), then every ``PUMP_S`` from a thread of its own, or, with
+        ``pump_thread`` False, from the owner, who calls ``pump()``."""
+        self.pump()
+        if self._pump is None and pump_thread:
             self._pump = threading.Thread(target=self._pump_loop, name=f"bus-server pump {self.channel}", daemon=True)
             self._pump.start()
         return self
@@ -196,11 +200,16 @@ class NativeBusServer:
         return self._core.bus_errors()
 
     # ---- the pump
+    def pump(self) -> None:
+        """One turn of the pump: the engine's log lines reported, the traced frames to ``frame_listeners``, the new
+        log rows taken over (so the engine's buffers stay small)."""
+        self._report()
+        self._feed_listeners()
+        self._collect_log()
+
     def _pump_loop(self) -> None:
         while not self._stop.wait(PUMP_S):
-            self._report()
-            self._feed_listeners()
-            self._collect_log()
+            self.pump()
 
     def _report(self) -> None:
         for level, text in self._core.take_messages():

@@ -65,7 +65,7 @@ from hil.runtime.realtime.cpu_layout import (CPU_LAYOUT_MODES, CpuLayout, CpuLay
 from hil.runtime.realtime.scheduling import SchedulingMode, choose_scheduling
 from hil.runtime.realtime.merge import merge_nodes, open_recording, write_rest
 from hil.runtime.realtime.engine_radio import EngineRadio
-from hil.runtime.realtime.native_server import NativeBusServer
+from hil.runtime.realtime.native_server import PUMP_S, NativeBusServer
 from hil.runtime.realtime.external import JOIN_LINE, ExternalUnitMissing, JoinWait, wait_for_connections
 from hil.runtime.realtime.hang_watch import HangWatch, hung_after_s
 from hil.runtime.realtime.pacing import ALIVE_LINE
@@ -89,7 +89,7 @@ READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a 
 GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the message before sim time 0
 STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
 KILL_GRACE_S = 3.0
-SUPERVISE_S = 0.05  # wall seconds between the supervising loop's turns (exits, stop requests, spool, live view)
+SUPERVISE_S = 0.1  # wall seconds between the supervising loop's turns (exits, stop requests, spool, live view)
 FAULT_TICK_S = 0.01  # ... while faults are injected (their schedule is polled at each turn)
 
 
@@ -332,7 +332,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                                     radio=radio.port(i) if radio is not None else None, serving_thread=serving)
                 if fmt is not None:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
-                servers.append(server.start())
+                servers.append(server.start(pump_thread=False))  # pumped by the supervising loop
             faults = _faults(scenario, layout, servers, seed, db, radio)
             spool = BusSpool(servers, nodes_dir, pace)  # the servers' frame rows to files as the run goes
             if on_channels is not None:
@@ -373,7 +373,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                     if say is not None:
                         say(live.describe())
                 ticks = [f for f in (faults.tick if faults is not None else None, tail.poll if tail else None,
-                                     spool.tick) if f]
+                                     _pumps(servers), spool.tick) if f]
                 hangs = HangWatch(hung_after_s(max(scenario.ecu.cycle_s, scenario.can.sensor_period_s), pace), t0)
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
                                          _all_of(ticks) if ticks else None, join,
@@ -460,6 +460,20 @@ def _all_of(ticks: list[Callable[[float], None]]) -> Callable[[float], None]:
     def tick(t: float) -> None:
         for f in ticks:
             f(t)
+
+    return tick
+
+
+def _pumps(servers: list[BusServer]) -> Callable[[float], None]:
+    """One tick that pumps every server (started without a pump thread) every ``PUMP_S`` of wall time: one wake-up
+    of the supervising loop does what a thread per bus did."""
+    due = [0.0]
+
+    def tick(_sim_now: float) -> None:
+        if (now := time.monotonic()) >= due[0]:
+            due[0] = now + PUMP_S
+            for s in servers:
+                s.pump()
 
     return tick
 
