@@ -154,3 +154,41 @@ def test_the_radio_hub_refuses_what_the_virtual_network_refuses(rig):
             target.set_impairment(99, True, [], 0, lambda: [0.5])
     with pytest.raises(ValueError, match=r"radio link 1>2: loss probability 1.5 is not in \[0, 1\]"):
         radio.hub.set_impairment(0, False, [1.5], 0, lambda: [0.5])
+
+
+def test_a_top_up_says_how_many_blocks_the_busiest_link_used_and_refills_them(rig):
+    """``top_up`` returns the blocks the busiest link drew since the last one (the top-up thread's measure of how
+    soon to come back): 1,100 routed frames take two blocks of 1,024 draws; none are starved."""
+    sc, db, radio = rig
+    radio.close()  # the top-up thread stops: this test tops up itself
+    assert radio.hub.top_up() == 0
+    sender = TrainhilBus("er/bus1", node_name="T1U4")
+    try:
+        frame_id, data = tail_state(db, 200_000.0)
+        for k in range(1_100):
+            sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+            if k % 40 == 39:
+                time.sleep(0.015)  # under the TX queue's depth: every frame goes on the wire
+        deadline = time.monotonic() + 10.0
+        while radio.stats()["1>2"]["offered"] < 1_100 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert radio.stats()["1>2"]["offered"] == 1_100 and radio.starved == 0
+        assert radio.hub.top_up() == 2
+        assert radio.hub.top_up() == 0  # refilled
+    finally:
+        sender.shutdown()
+
+
+@pytest.mark.parametrize("used, waited, pace, expected", [
+    (0, 0.1, 1.0, 0.5),  # quiet: the longest wait
+    (1, 0.5, 1.0, 0.5),  # one block in half a second: 2 s to half the reserve, capped
+    (2, 0.1, 1.0, 0.2),  # two blocks in 0.1 s: half the reserve (4) in 0.2 s
+    (8, 0.1, 1.0, 0.1),  # the whole reserve in 0.1 s: never shorter than TOP_UP_S
+    (0, 0.1, 10.0, 0.1),  # pace 10: ten times the frames per wall second, so the shortest wait
+    (0, 0.1, 2.0, 0.25),
+    (0, 0.1, 0.5, 0.5),  # slower than real time: no longer than at pace 1
+])
+def test_the_top_up_wait_keeps_half_the_reserve_at_the_busiest_links_rate(used, waited, pace, expected):
+    from hil.runtime.realtime.engine_radio import next_top_up_wait
+
+    assert next_top_up_wait(used, waited, 8, pace) == pytest.approx(expected)

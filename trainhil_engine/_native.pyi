@@ -267,6 +267,7 @@ class RadioHub:
     """The radio between a real-time rig's bus servers (engine/src/radio_hub.rs): links and routes as ``Network``'s,
     frames forwarded by the servers' threads; the links' draws are queued ahead in blocks by ``top_up``."""
 
+    RESERVE_BLOCKS: int  # blocks of draws top_up keeps queued per link (and for the injected faults)
     starved: int  # frames dropped because a link's draws ran out (top_up not called often enough)
 
     def __init__(self, pace: float, packing: Packing | None = None) -> None: ...
@@ -278,8 +279,9 @@ class RadioHub:
     def set_position_codec(self, codec: MessageCodec) -> None: ...
     def set_impairment(self, link: int, blackout: bool, losses: Sequence[float], extra_ns: int,
                        refill: Callable[[], list[float]]) -> None: ...
-    def top_up(self) -> None:
-        """Queue blocks of draws (each link's ``refill``, the faults' refill) until each has a few waiting."""
+    def top_up(self) -> int:
+        """Queue blocks of draws (each link's ``refill``, the faults' refill) until each has ``RESERVE_BLOCKS``
+        waiting; returns the most blocks any one of them had used since the last top-up."""
     def link_stats(self, link: int) -> dict[str, int]: ...
 
 class FrameLink:

@@ -59,11 +59,12 @@ impl RadioHub {
                       refill: Py<PyAny>) -> PyResult<()> {
         self.hub.core.lock().unwrap().gateway.set_impairment(link, blackout, losses, extra_ns).map_err(gateway_err)?;
         self.fault_refill = Some(refill);
-        self.top_up(py)
+        self.top_up(py).map(|_| ())
     }
 
-    /// Queue blocks of draws until every link (and the injected faults, once set) has `RESERVE_BLOCKS` waiting.
-    fn top_up(&self, py: Python<'_>) -> PyResult<()> {
+    /// Queue blocks of draws until every link (and the injected faults, once set) has `RESERVE_BLOCKS` waiting;
+    /// returns the most blocks any one of them had used since the last top-up (how fast the busiest one draws).
+    fn top_up(&self, py: Python<'_>) -> PyResult<usize> {
         let (links, faults) = self.hub.reserves();
         for (link, &queued) in links.iter().enumerate() {
             for _ in queued..RESERVE_BLOCKS {
@@ -80,8 +81,13 @@ impl RadioHub {
                 self.hub.push_fault_draws(u);
             }
         }
-        Ok(())
+        let least = links.iter().copied().chain(self.fault_refill.as_ref().map(|_| faults)).min();
+        Ok(RESERVE_BLOCKS - least.unwrap_or(RESERVE_BLOCKS).min(RESERVE_BLOCKS))
     }
+
+    /// Blocks of draws `top_up` keeps queued for each link (and for the injected faults).
+    #[classattr]
+    const RESERVE_BLOCKS: usize = RESERVE_BLOCKS;
 
     fn link_stats<'py>(&self, py: Python<'py>, link: usize) -> PyResult<Bound<'py, PyDict>> {
         let core = self.hub.core.lock().unwrap();

@@ -4,8 +4,9 @@ Python per frame.
 
 The links, routes and random numbers are the virtual rig's (``configure_radio``, the run seed's "radio" stream),
 so both runtimes draw the same losses and jitter per offered frame. A serving thread cannot call Python, so the
-links' draws are queued ahead in blocks: a small thread here tops them up every ``TOP_UP_S`` (a link that ran dry
-would drop frames and count them, ``starved``). Radio faults set the links' impairments from the orchestrator
+links' draws are queued ahead in blocks: a small thread here tops them up, every ``TOP_UP_S`` while a link draws
+fast and up to ``TOP_UP_MAX_S`` apart while they are quiet (``next_top_up_wait``; a link that ran dry would drop
+frames and count them, ``starved``). Radio faults set the links' impairments from the orchestrator
 (``impairment_setter``). The counters are saved to ``radio.json`` every ``SAVE_EVERY_S`` as the radio node saves
 them, so ``hil recover`` has them if the orchestrator is killed; a full disk only skips a save. On SocketCAN there are no bus servers: the radio is a node process there
 (``radio_node``).
@@ -27,8 +28,21 @@ from hil.runtime.engine_net import configure_radio, engine_impairments
 from hil.scenario.layout import TrainLayout
 from hil.scenario.model import Scenario
 
-TOP_UP_S = 0.1  # wall seconds between top-ups of the links' draws
+TOP_UP_S = 0.1  # the shortest wait between top-ups of the links' draws (wall seconds)
+# the longest, at pace 1 or slower: a link's 8 blocks of 1,024 draws last that long at 16,000 routed frames a second
+# (a 1 Mbit/s bus carries at most 9,000 eight-byte frames a second); faster paces shorten it, down to TOP_UP_S
+TOP_UP_MAX_S = 0.5
 SAVE_EVERY_S = 1.0  # wall seconds between saves of the links' counters
+
+
+def next_top_up_wait(used: int, waited: float, reserve: int, pace: float) -> float:
+    """Wall seconds to the next top-up, given that the busiest link used ``used`` of its ``reserve`` blocks in the
+    last ``waited``: at that rate it uses at most half of them before then, and a quiet radio wakes rarely (each
+    wake-up of a Python thread costs some 100 µs of CPU here)."""
+    longest = max(TOP_UP_S, TOP_UP_MAX_S / max(pace, 1.0))
+    if used <= 0:
+        return longest
+    return min(longest, max(TOP_UP_S, waited * (reserve / 2) / used))
 
 
 class EngineRadio:
@@ -41,6 +55,7 @@ class EngineRadio:
         layout = TrainLayout.from_config(sc.trains)
         self.links = build_links(sc.radio, layout.n_trains, random_streams(seed)["radio"])
         self.hub = engine.RadioHub(pace, packing)
+        self._pace = pace
         self._lock = threading.Lock()  # the hub's Python calls (top-ups, fault settings) one at a time
         configure_radio(self.hub, layout.n_trains, self.links, layout.units_per_train, sc.radio.forward_aux,
                         [db.agent_state(k) for k in range(layout.units_per_train)], RadioIds.from_db(db))
@@ -65,9 +80,11 @@ class EngineRadio:
 
     def _top_up_loop(self) -> None:
         next_save = time.monotonic() + SAVE_EVERY_S
-        while not self._stop.wait(TOP_UP_S):
+        wait = TOP_UP_S
+        while not self._stop.wait(wait):
             with self._lock:
-                self.hub.top_up()
+                used = self.hub.top_up()
+            wait = next_top_up_wait(used, wait, self.hub.RESERVE_BLOCKS, self._pace)
             if self._save_to is not None and time.monotonic() > next_save:
                 self.save()
                 next_save = time.monotonic() + SAVE_EVERY_S
