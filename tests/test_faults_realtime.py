@@ -33,7 +33,7 @@ def test_faults_in_real_time(rt, tmp_path):  # noqa: F811
     assert rows["bus_corruption"]["detected_by"] == "bus1/can"
     assert "bus3/guardian" in rows["babbling_node"]["detectors"]
     can = f["can_errors"]
-    assert can["corrupted"] == can["rejected"] > 0 and can["undetected"] == 0
+    assert can["corrupted"] == can["rejected"] > 0 and can["undetected"] == 0, can
     rig = [e.text for e in log.events if e.source == "rig"]
     assert any("train2/unit3 killed (SIGKILL)" in t for t in rig)
     assert any("restart asked" in t for t in rig)
