@@ -6,8 +6,8 @@ temporary name, chmod 0o600 and linked into place; optional loopback TCP with a 
 its quiet readers ring (``<bus>.bell``, ``sockets.make_bell``), and hands their file descriptors to the engine. A
 few times a second ``pump`` reports the engine's log lines through ``logging``, feeds ``frame_listeners`` (CAN logs)
 and takes over the new log rows: from a small thread of its own, or from its owner's loop (the rig's supervising
-loop: one thread fewer to wake per bus). CAN error confinement, the bus fault injectors and the guardian run in the engine's
-bus (``enable_bus_errors`` ..., driven by ``hil.faults.bus.EngineBusFaults``).
+loop: one thread fewer to wake per bus). CAN error confinement, the bus fault injectors and the guardian run in the
+engine's bus (``enable_bus_errors`` ..., driven by ``hil.faults.bus.EngineBusFaults``).
 """
 from __future__ import annotations
 
