@@ -165,13 +165,12 @@ def test_a_top_up_says_how_many_blocks_the_busiest_link_used_and_refills_them(ri
     sender = TrainhilBus("er/bus1", node_name="T1U4")
     try:
         frame_id, data = tail_state(db, 200_000.0)
-        for k in range(1_100):
-            sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
-            if k % 40 == 39:
-                time.sleep(0.015)  # under the TX queue's depth: every frame goes on the wire
-        deadline = time.monotonic() + 10.0
-        while radio.stats()["1>2"]["offered"] < 1_100 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        for sent in range(50, 1_101, 50):  # 50 at a time, under the TX queue's depth, each batch on the wire first
+            for _ in range(50):
+                sender.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+            deadline = time.monotonic() + 10.0
+            while radio.stats()["1>2"]["offered"] < sent and time.monotonic() < deadline:
+                time.sleep(0.01)
         assert radio.stats()["1>2"]["offered"] == 1_100 and radio.starved == 0
         assert radio.hub.top_up() == 2
         assert radio.hub.top_up() == 0  # refilled
