@@ -14,8 +14,9 @@ p99 lateness is below a tenth of the 10 ms cycle and fewer than 0.1 % of cycles 
 Each configuration also prints the CPU per simulated second by role (ECU, plant and radio processes, the bus
 servers' threads, the orchestrator), the profile the real-time cost is read from, and the host's steal time during
 the run (a virtual machine's CPUs taken by its host: every node stalls at once). A stall watch
-(``bench/stall_watch.py``, a process that only sleeps) runs beside the rig: the bench prints its stalls and how
-many ECU and plant deadline misses fell in one (a stall of the whole machine, not of the rig). ``--keep DIR``
+(``bench/stall_watch.py``, a process that only sleeps) runs beside the rig on each CPU: the bench prints each CPU's
+stalls and how many ECU and plant deadline misses fell in one (a stall of the machine or of one of its virtual CPUs,
+not of the rig). ``--keep DIR``
 keeps each run's files (the nodes' timing series) under DIR instead of deleting them. ``--idle-latency-us host 0``
 runs each configuration as the host idles and with idle CPUs kept polling (``hil run --idle-latency-us``; the
 default, auto, polls where permitted), side by side. ``--scheduling auto normal``
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import subprocess
 import sys
 import tempfile
@@ -80,9 +82,21 @@ def scaled_scenario(n_ecus: int):
     })
 
 
-def start_stall_watch(path: Path) -> subprocess.Popen:
-    """bench/stall_watch.py in a process of its own, writing the machine's stalls to ``path``."""
-    return subprocess.Popen([sys.executable, str(ROOT / "bench" / "stall_watch.py"), str(path)])
+def start_stall_watches(out: Path) -> list[subprocess.Popen]:
+    """bench/stall_watch.py once per CPU this process may use, each kept to its CPU, writing that CPU's stalls to
+    ``out/stalls_cpu<N>.bin``."""
+    return [subprocess.Popen([sys.executable, str(ROOT / "bench" / "stall_watch.py"), str(out / f"stalls_cpu{c}.bin"),
+                              str(c)]) for c in sorted(os.sched_getaffinity(0))]
+
+
+def read_cpu_stalls(out: Path) -> np.ndarray:
+    """Every CPU's stalls in time order: rows (wall epoch at the wake-up, lateness s, host steal s, CPU)."""
+    parts = [np.column_stack([rows, np.full(len(rows), float(f.stem.removeprefix("stalls_cpu")))])
+             for f in out.glob("stalls_cpu*.bin") if len(rows := read_stalls(f))]
+    if not parts:
+        return np.zeros((0, 4))
+    rows = np.concatenate(parts)
+    return rows[np.argsort(rows[:, 0])]
 
 
 def misses_in_stalls(series: Iterable[Path], period_wall_s: float, t0: float, pace: float,
@@ -90,7 +104,7 @@ def misses_in_stalls(series: Iterable[Path], period_wall_s: float, t0: float, pa
     """(deadline misses in the nodes' timing ``series``, how many of them overlap a stall of the watcher): a miss is
     a row late by more than ``period_wall_s``, the wall interval from its deadline to its start; each stall is the
     watcher's late sleep."""
-    stall_spans = [(w - late - SLEEP_S, w) for w, late, _ in stalls]
+    stall_spans = [(w - late - SLEEP_S, w) for w, late, *_ in stalls]
     n = overlapped = 0
     for f in series:
         rows = np.fromfile(f).reshape(-1, 2)
@@ -249,7 +263,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
     def started(go: float) -> None:  # every node is ready: CPU spent on start-up (imports) is not counted
         cpu0[0], t0[0] = cpu_seconds(), go
         by_role.start()
-        watcher.append(start_stall_watch(out / "stalls.bin"))
+        watcher.extend(start_stall_watches(out))
 
     steal0 = steal_s()
     with contextlib.ExitStack() as stack:
@@ -267,7 +281,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
                     cpu0[0] += t.user + t.system  # the watch is not the rig
                 w.terminate()
                 w.wait()
-        stalls = read_stalls(out / "stalls.bin")
+        stalls = read_cpu_stalls(out)
         nodes = out / "nodes"
         ecu_in_stalls = misses_in_stalls(nodes.glob("timing_ecu_*.bin"), CYCLE_S / pace, t0[0], pace, stalls)
         publication_s = publication_steps(tick_periods(sc)) * sc.plant.step_s
@@ -308,13 +322,16 @@ def held_text(limit_us: int | None) -> str:
 
 
 def stall_line(stalls: np.ndarray, ecu: tuple[int, int], plant: tuple[int, int]) -> str:
-    """What the stall watcher saw, and how many ECU and plant deadline misses (of all) fell in its stalls."""
+    """What the stall watches saw (per CPU: a whole-machine stall shows on each), and how many ECU and plant
+    deadline misses (of all) fell in a stall of any CPU."""
     misses = f"ECU misses {ecu[1]} of {ecu[0]}, plant misses {plant[1]} of {plant[0]}"
     if not len(stalls):
-        return f"machine stalls (a sleeping process woke over 3 ms late): none; {misses}"
+        return f"CPU stalls (a sleeping process kept to each CPU woke over 3 ms late): none; {misses}"
+    per_cpu = ", ".join(f"CPU {int(c)}: {int(n)} (longest {1e3 * stalls[stalls[:, 3] == c, 1].max():.1f} ms)"
+                        for c, n in zip(*np.unique(stalls[:, 3], return_counts=True)))
     with_steal = int((stalls[:, 2] > 0).sum())
-    return (f"machine stalls (a sleeping process woke over 3 ms late): {len(stalls)}, longest "
-            f"{1e3 * stalls[:, 1].max():.1f} ms, {with_steal} with host steal; during one: {misses}")
+    return (f"CPU stalls (a sleeping process kept to each CPU woke over 3 ms late): {per_cpu}; {with_steal} with host "
+            f"steal; during one: {misses}")
 
 
 def main() -> None:

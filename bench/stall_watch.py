@@ -1,8 +1,9 @@
 """A process that only sleeps, to tell a stall of the whole machine from a stall of the rig.
 
-    python bench/stall_watch.py OUT          (until SIGTERM; bench/bench_realtime_scale.py starts and stops it)
+    python bench/stall_watch.py OUT [CPU]    (until SIGTERM; bench/bench_realtime_scale.py starts and stops it)
 
-It sleeps ``SLEEP_S`` over and over and writes each wake-up later than ``LATE_S`` to OUT as a row of float64
+With CPU it keeps to that CPU (the bench starts one per CPU: a host that takes one virtual CPU stalls only the
+threads on it, which a watch on the other CPU would not see). It sleeps ``SLEEP_S`` over and over and writes each wake-up later than ``LATE_S`` to OUT as a row of float64
 ``(wall epoch at the wake-up, lateness s, host steal s since the last reading before it)``. It shares no lock, socket or
 thread with the rig, so where it is late at the instant the rig's nodes all are, the machine stalled (the host took
 the CPUs: steal time; or every core was busy), not the rig's serving thread. Where the host permits it, it sleeps
@@ -64,5 +65,7 @@ def read_stalls(path: Path) -> np.ndarray:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 2:
+        os.sched_setaffinity(0, {int(sys.argv[2])})
     set_fifo_priority(WATCH_PRIORITY)  # where refused, an ordinary process (it then also sees the rig's bursts)
     watch(Path(sys.argv[1]))
