@@ -101,9 +101,9 @@ def read_cpu_stalls(out: Path) -> np.ndarray:
 
 def misses_in_stalls(series: Iterable[Path], period_wall_s: float, t0: float, pace: float,
                      stalls: np.ndarray) -> tuple[int, int]:
-    """(deadline misses in the nodes' timing ``series``, how many of them overlap a stall of the watcher): a miss is
-    a row late by more than ``period_wall_s``, the wall interval from its deadline to its start; each stall is the
-    watcher's late sleep."""
+    """(deadline misses in the nodes' timing ``series``, how many of them overlap a stall of any CPU's watch): a miss
+    is a row late by more than ``period_wall_s``, the wall interval from its deadline to its start; each stall is a
+    watch's late sleep."""
     stall_spans = [(w - late - SLEEP_S, w) for w, late, *_ in stalls]
     n = overlapped = 0
     for f in series:

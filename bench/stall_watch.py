@@ -1,14 +1,15 @@
-"""A process that only sleeps, to tell a stall of the whole machine from a stall of the rig.
+"""A process that only sleeps, to tell a stall of the machine (or of one of its CPUs) from a stall of the rig.
 
     python bench/stall_watch.py OUT [CPU]    (until SIGTERM; bench/bench_realtime_scale.py starts and stops it)
 
 With CPU it keeps to that CPU (the bench starts one per CPU: a host that takes one virtual CPU stalls only the
-threads on it, which a watch on the other CPU would not see). It sleeps ``SLEEP_S`` over and over and writes each wake-up later than ``LATE_S`` to OUT as a row of float64
-``(wall epoch at the wake-up, lateness s, host steal s since the last reading before it)``. It shares no lock, socket or
-thread with the rig, so where it is late at the instant the rig's nodes all are, the machine stalled (the host took
-the CPUs: steal time; or every core was busy), not the rig's serving thread. Where the host permits it, it sleeps
-under SCHED_FIFO at WATCH_PRIORITY, above every thread of the rig (hil/runtime/realtime/scheduling.py), so the
-rig's own bursts under SCHED_FIFO do not make it late: what it sees is the machine's (the host, the kernel).
+threads on it, which a watch on the other CPU would not see). It sleeps ``SLEEP_S`` over and over and writes each
+wake-up later than ``LATE_S`` to OUT as a row of float64 ``(wall epoch at the wake-up, lateness s, host steal s
+since the last reading before it)``. It shares no lock, socket or thread with the rig, so where it is late at the
+instant the rig's nodes all are, its CPU stalled (the host took it: steal time; or every core was busy),
+not the rig's serving thread. Where the host permits it, it sleeps under SCHED_FIFO at WATCH_PRIORITY, above every
+thread of the rig (hil/runtime/realtime/scheduling.py), so the rig's own bursts under SCHED_FIFO do not make it
+late: what it sees is the machine's (the host, the kernel).
 """
 from __future__ import annotations
 

@@ -14,7 +14,8 @@
 //! * `kernel` and `network`: the virtual-time event queue and the network it drives;
 //! * `protocol`: the wire protocol between a bus server and its nodes (constants, record codec);
 //! * `server`: the real-time bus server, its buses served by `serving_thread`, which waits through `poll_wait`
-//!   (`histogram`: its delay figures); `link`: a node's end of its connection; `read_schedule`: a lazy reader's read times, which buses a wait was foreseen on;
+//!   (`histogram`: its delay figures); `link`: a node's end of its connection; `read_schedule`: a lazy reader's
+//!   read times, which buses a wait was foreseen on;
 //!   `series`: a node's per-cycle series (lateness, latency), streamed to a file, percentiles from 1 µs bins.
 //!
 //! `py` (feature `python`) is the Python surface, `trainhil_engine._native`.
