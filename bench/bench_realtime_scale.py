@@ -289,6 +289,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
     roles = by_role.stop()
     steal = steal_s() - steal0
     m = res.metrics
+    plant = m["realtime"]["plant"]
     ecus = m["realtime"]["ecus"].values()
     cycles = sum(e["cycles"] for e in ecus) or 1
     skipped = sum(e.get("cycles_skipped", 0) for e in ecus)
@@ -303,7 +304,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "cpu_per_sim_s": (cpu_seconds() - cpu0[0] - by_role.sampler_s) / duration, "keeps_up": keeps_up,
             "sampler_per_sim_s": by_role.sampler_s / duration,
             "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,
-            "plant_misses": m["plant_deadline_misses"], "publications": m["realtime"]["plant"]["cycles"],
+            "plant_misses": m["plant_deadline_misses"], "publications": plant["cycles"] + plant["cycles_skipped"],
+            "publications_skipped": plant["cycles_skipped"],
             "misses_in_stalls": ecu_in_stalls, "plant_misses_in_stalls": plant_in_stalls,
             "cpu_by_role": {k: (cpu / duration, n / duration) for k, (cpu, n, _) in sorted(roles.items())},
             "waited_by_role": {k: waited / duration for k, (_, _, waited) in sorted(roles.items())},
@@ -406,7 +408,8 @@ def main() -> None:
                       f"{r['lost'] - on_buses} offered to the radio and not delivered")
             print(f"      host steal time during the run: {r['steal_s']:.2f} s"
                   f"{f'; files in {keep}' if keep is not None else ''}")
-            print(f"      plant: {r['plant_misses']} of {r['publications']} publications missed their deadline")
+            print(f"      plant: {r['plant_misses']} of {r['publications']} publications missed their deadline, "
+                  f"{r['publications_skipped']} skipped (the latest due sent instead)")
             print(f"      the loop: sensor-to-actuator p50 {r['e2e_p50_ms']:.2f} ms, speed overshoot "
                   f"{r['overshoot_mps']:.2f} m/s, coupler max {r['coupler_max_m']:.3f} m")
             print("      " + loop_comparison(r["loop"], virtual_loop))

@@ -27,6 +27,7 @@ from tests.oracle.python_server import PythonBusServer as BusServer
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.runtime.realtime.sockets import remove_run_dir
 from hil.runtime.realtime.pacing import LatenessStats, SimClock
+from hil.runtime.realtime.plant_node import late_publication
 from hil.record import paths
 from hil.runtime.virtual import run_virtual
 from hil.scenario import load_scenario
@@ -73,6 +74,18 @@ def test_lateness_stats_count_misses_and_overruns():
     out = s.summary()
     assert out["cycles"] == 3 and out["deadline_misses"] == 1
     assert out["lateness_max_s"] == pytest.approx(0.05)  # 0.025 sim s at pace 0.5 = 0.05 wall s
+
+
+def test_a_late_plant_publishes_the_latest_publication_due():
+    """Publications every 10 plant steps, the run 300 steps long: the one due is run unless the plant is more
+    than a period late; then the latest one due, never past the run's last."""
+    assert late_publication(20, 10, 300, 19.5) == 20  # synced early
+    assert late_publication(20, 10, 300, 29.0) == 20  # late, within a period
+    assert late_publication(20, 10, 300, 30.0) == 20  # exactly a period late: still on time for the next (as a cycle)
+    assert late_publication(20, 10, 300, 35.0) == 30  # 1.5 periods late: the next one is due, this one skipped
+    assert late_publication(20, 10, 300, 60.0) == 60  # four periods late
+    assert late_publication(280, 10, 300, 420.0) == 290  # never past the run's last publication
+    assert late_publication(280, 10, 295, 420.0) == 290
 
 
 def test_bus_server_pace_stretches_frames_in_wall_time(rt):
@@ -132,8 +145,10 @@ def test_realtime_run_agrees_with_virtual_time(rt, tmp_path):
     assert all(st["delivered"] == st["offered"] > 0 for st in m["radio"].values())
     # timing figures exist and are plausible (not tuned: the machine may be loaded)
     assert 0 < m["e2e_latency_p50_s"] < 0.05 and m["cycle_lateness_p99_s"] is not None
-    # the plant is paced per publication (Sensor and Reference every 10 ms), not per 1 ms step
-    assert m["realtime"]["plant"]["cycles"] == 400 and m["realtime"]["plant"]["late_commands"] >= 0
+    # the plant is paced per publication (Sensor and Reference every 10 ms), not per 1 ms step; a publication the
+    # machine made it miss by more than a period is skipped and counted (late_publication)
+    plant = m["realtime"]["plant"]
+    assert plant["cycles"] + plant["cycles_skipped"] == 400 and plant["late_commands"] >= 0
     # --can-log: every frame the bus servers carried, stamped in simulated seconds like a virtual-time log
     for i, server in enumerate(m["realtime"]["bus_servers"].values()):
         msgs = list(can.ASCReader(tmp_path / "rt" / f"bus{i + 1}.asc"))
@@ -219,6 +234,28 @@ def signal_plant_at(sim_s: float, pace: float, sig: int) -> tuple[Callable[[floa
         timers[0].start()
 
     return on_start, timers
+
+
+def test_a_plant_the_machine_stalls_publishes_the_latest_sample_and_loses_no_frame(rt, tmp_path):
+    """A plant stalled for 0.4 s (SIGSTOP, then SIGCONT: the machine took its core) is 40 publications late. It
+    publishes only the latest sample due and counts the others as skipped, as an ECU skips its cycles; sending all
+    40 at once (160 Sensor frames per bus) would overflow its TX queue of 64 and lose frames."""
+    stop, stop_timers = signal_plant_at(1.0, 1.0, signal.SIGSTOP)
+    resume, resume_timers = signal_plant_at(1.4, 1.0, signal.SIGCONT)
+
+    def on_start(t0: float) -> None:
+        stop(t0)
+        resume(t0)
+
+    res = run_realtime(load_scenario("seed000"), tmp_path / "rt", pace=1.0, duration_s=3.0, ecus_per_process=6,
+                       on_start=on_start, record=False)
+    for timer in stop_timers + resume_timers:
+        timer.join()
+    m = res.metrics
+    plant = m["realtime"]["plant"]
+    assert plant["cycles"] + plant["cycles_skipped"] == 300, plant
+    assert plant["cycles_skipped"] >= 30 and m["plant_deadline_misses"] >= 1, plant
+    assert m["frames_lost"] == 0, m["per_bus"]
 
 
 def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):

@@ -11,7 +11,10 @@ command's simulated arrival time (the bus timestamp), so the command acts from t
 after it, exactly as in the virtual rig, and the plant costs its steps instead of one wake-up per step (a 1 ms
 step at pace 10 would need 10,000 wake-ups per second). Recording samples (every ``recording.period_s``) are
 taken during integration. A command that reaches the plant after it already integrated past the command's
-arrival (the plant was late) is applied at once and counted (``late_commands``). The integration never skips.
+arrival (the plant was late) is applied at once and counted (``late_commands``). The integration never skips; the
+publications do, by the ECUs' rule: a plant more than a publication period late (the machine stalled it) publishes
+only the latest sample due, counted as skipped, instead of a burst of stale ones that would overflow its TX queues
+(``late_publication``). With turns it never skips: the buses wait for each publication.
 If commands stop, the Plant's own fail-safe acts and logs it. The commands of external units (``ecu.external``)
 are watched (hil/runtime/realtime/external.py): the node prints ``joined <unit> <t>`` on stdout at the first valid one.
 
@@ -222,10 +225,15 @@ class PlantNode:
         frames, the live stream and the periodic save; then schedule the next one."""
         step, stats = self.sc.plant.step_s, self.stats
         assert stats is not None  # set by _schedule
+        deadline = target * step
+        if not self.turns:
+            late = late_publication(target, self.publish_every, self.n_steps, self.clock.now() / step)
+            stats.skipped += (late - target) // self.publish_every
+            self.target = target = late  # commands that arrived meanwhile act at their own steps, up to it
         t = target * step
         self.take_commands()
         self.advance_to(target)
-        stats.add(max(self.clock.now() - t, 0.0), t)  # synced early, it publishes as at t
+        stats.add(max(self.clock.now() - deadline, 0.0), deadline)  # synced early, it publishes as at t
         if self.faults is not None:
             self.faults.poll(t, self.plant.x)
         if target % self.every["sensor"] == 0:
@@ -304,6 +312,16 @@ def tick_periods(sc) -> dict[str, int]:
     step = sc.plant.step_s
     return {name: max(1, round(period / step)) for name, period in
             (("sensor", sc.can.sensor_period_s), ("ref", sc.reference.period_s), ("record", sc.recording.period_s))}
+
+
+def late_publication(target: int, every: int, n_steps: int, now_steps: float) -> int:
+    """The publication (a plant tick) to run when the one at ``target`` is due: the latest one due by ``now_steps``
+    (the clock, in plant steps), at most the run's last before ``n_steps``; ``target`` itself unless the plant is
+    more than a period (``every`` steps) late. The ones between are skipped, as an ECU skips its cycles (the whole
+    periods overrun, as ``LatenessStats.add`` counts them)."""
+    overrun = int((now_steps - target) // every) if now_steps - target > every else 0
+    last = (n_steps - 1) // every * every
+    return max(target, min(target + overrun * every, last))
 
 
 def publication_steps(ticks: dict[str, int]) -> int:
