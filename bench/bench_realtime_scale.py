@@ -301,6 +301,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "p99_ms": 1e3 * (p99 or 0), "misses": misses, "skipped": skipped, "cycles": cycles,
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
             "lost": m["frames_lost"], "lost_on_buses": [b.frames_dropped for b in res.log.buses],
+            "lost_by_node": {f"{b.name}/{node}": n for b in res.log.buses for node, n in b.dropped_by_node.items()},
             "cpu_per_sim_s": (cpu_seconds() - cpu0[0] - by_role.sampler_s) / duration, "keeps_up": keeps_up,
             "sampler_per_sim_s": by_role.sampler_s / duration,
             "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,
@@ -404,7 +405,8 @@ def main() -> None:
                 print(f"      {r['given_up'][1]}")
             if r["lost"]:
                 on_buses = sum(r["lost_on_buses"])
-                print(f"      lost: {on_buses} dropped from TX queues (by bus {r['lost_on_buses']}), "
+                by_node = ", ".join(f"{name} {n}" for name, n in r["lost_by_node"].items())
+                print(f"      lost: {on_buses} dropped from TX queues (by bus {r['lost_on_buses']}; by node: {by_node}), "
                       f"{r['lost'] - on_buses} offered to the radio and not delivered")
             print(f"      host steal time during the run: {r['steal_s']:.2f} s"
                   f"{f'; files in {keep}' if keep is not None else ''}")

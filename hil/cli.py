@@ -76,10 +76,18 @@ def print_summary(metrics: dict, out: Path) -> None:
     sat = metrics.get("codec_saturations") or {}
     if sat:
         print(f"  {'signals saturated (count)':38s} " + ", ".join(f"{k}: {v}" for k, v in sat.items()))
-    for line in _safety_lines(metrics.get("safety")) + _fault_lines(metrics.get("faults")) + _turn_lines(metrics.get("realtime")):
+    for line in (_drop_lines(metrics.get("per_bus")) + _safety_lines(metrics.get("safety")) + _fault_lines(metrics.get("faults"))
+                 + _turn_lines(metrics.get("realtime"))):
         print(f"  {line}")
     written = [name for name in ("run.rrd", "metrics.json") if (out / name).exists()]
     print(f"  written to {out}/ ({', '.join(written)})")
+
+
+def _drop_lines(per_bus: dict | None) -> list[str]:
+    """Which nodes dropped frames (a full TX queue, bus-off, frames queued when they left), by bus; none: no line."""
+    drops = [f"{bus}/{node} {n}" for bus, b in (per_bus or {}).items()
+             for node, n in (b.get("frames_dropped_by_node") or {}).items()]
+    return [f"{'frames dropped, by node':38s} " + ", ".join(drops)] if drops else []
 
 
 def _safety_lines(safety: dict | None) -> list[str]:

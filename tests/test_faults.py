@@ -247,6 +247,7 @@ def test_frame_drop_shows_as_lost_frames_at_the_receivers():
     _, log = run(small([{"kind": "frame_drop", "train": 1, "at_s": 1.0, "duration_s": 1.0, "probability": 0.2,
                          "frame_ids": [0x0C1]}]), 2.5)
     assert log.buses[0].frames_dropped > 10
+    assert log.buses[0].dropped_by_node == {"Plant": log.buses[0].frames_dropped}  # the sender of 0x0C1 (Sensor)
     assert log.e2e["train1/unit2/ecu"].get("LOST", 0) > 0
     assert "train1/unit2/ecu" in report(log)["detectors"]
 

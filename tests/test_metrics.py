@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from hil import cli
 from hil.scenario.layout import TrainLayout
 from hil.record.metrics import compute_metrics
 from hil.record.runlog import BusLog, RunLog
@@ -136,6 +137,7 @@ def _bus(name: str, lat: np.ndarray, loads: list[float]) -> BusLog:
     for i, v in enumerate(loads):
         bus.load.append(np.array([0.1 * (i + 1), v]))
     bus.frames_sent, bus.frames_dropped = len(lat) + 2, 2
+    bus.dropped_by_node = {"Plant": 2}
     return bus
 
 
@@ -159,6 +161,10 @@ def test_bus_statistics_match_numpy():
     assert b2["latency_p99_s"] == pytest.approx(np.percentile(lat2, 99))
     assert b2["latency_max_s"] == pytest.approx(lat2.max())
     assert (b2["load_max"], b2["load_mean"], b2["frames_sent"], b2["frames_dropped"]) == pytest.approx((0.9, 0.5, 302, 2))
+    assert b2["frames_dropped_by_node"] == {"Plant": 2}
+    # the run's summary names them
+    assert cli._drop_lines(m["per_bus"]) == [f"{'frames dropped, by node':38s} bus1/Plant 2, bus2/Plant 2"]
+    assert cli._drop_lines({"bus1": {"frames_dropped_by_node": {}}}) == [] and cli._drop_lines(None) == []
 
 
 def test_no_frames_gives_none():

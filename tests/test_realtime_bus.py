@@ -279,6 +279,7 @@ def test_a_node_that_disconnects_loses_its_queue_and_does_not_disturb_others(ser
         assert rx.recv(2.0).arbitration_id == 0x55
         stats = server.stats
     assert (stats.frames, stats.frames_dropped, stats.clients) == (2, 4, 2)
+    assert stats.dropped_by_node == {"quitter": 4}
 
 
 def test_protocol_violation_disconnects_only_the_offender(server):

@@ -196,6 +196,9 @@ class Network:
         delivered data, sent data, flipped bits) and ``babbling_detections``; None without an error model."""
     def link_stats(self, link: int) -> dict[str, int]: ...
     def nodes(self, bus: int) -> list[tuple[str, int, int, int]]: ...
+    def dropped_by_node(self, bus: int) -> dict[str, int]:
+        """The frames each node of a bus dropped (full TX queue, bus-off, queued when it left), by node name; nodes
+        that dropped none left out."""
     def detach(self, bus: int, node: int) -> int:
         """Take a node off its bus (its queued frames dropped and counted: how many); its index stays taken."""
     def attached(self, bus: int, node: int) -> bool: ...
@@ -245,8 +248,12 @@ class BusServerCore:
         bus's bell FIFO opened read-write and non-blocking, which quiet readers ring (taken over, closed on error);
         ``thread``: the serving thread it shares with the rig's other buses (None: a thread of its own)."""
     def now_ns(self) -> int: ...
-    def stats(self) -> dict[str, float | int | None]: ...
+    def stats(self) -> dict[str, float | int | None | dict[str, int]]:
+        """The server's counters and figures (``BusServerStats``); ``turns_let_go`` and ``dropped_by_node`` are
+        counts by node name."""
     def take_log(self) -> tuple[bytes, bytes, int, int]: ...
+    def dropped_by_node(self) -> dict[str, int]:
+        """The frames each node dropped, by node name; nodes that dropped none left out."""
     def set_trace(self, on: bool) -> None: ...
     def take_trace(self) -> list[tuple[int, bytes, bool, int, int, int, bool, bool]]:
         """(frame_id, data, extended, t_enqueue, t_start, t_end, fd, brs) of each frame completed since the last call."""

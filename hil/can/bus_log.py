@@ -45,3 +45,4 @@ class BusLog:
     frames: FrameTable = field(default_factory=FrameTable)
     frames_sent: int = 0
     frames_dropped: int = 0  # TX-queue overflow or injected drop
+    dropped_by_node: dict[str, int] = field(default_factory=dict)  # of those, by node name (none: left out)

@@ -186,6 +186,7 @@ def _one_bus(bus: BusLog) -> dict[str, Any]:
     return {
         "frames_sent": int(bus.frames_sent),
         "frames_dropped": int(bus.frames_dropped),
+        "frames_dropped_by_node": {name: int(n) for name, n in sorted(bus.dropped_by_node.items())},
         "load_max": _f(load.max) if load.count else None,
         "load_mean": _f(load.sum / load.count) if load.count else None,
         "latency_p50_s": _f(latency.percentile(50)),

@@ -156,6 +156,8 @@ class EngineBus:
         frames, load, sent, dropped = self.net.take_stats(self.index)
         self.log.frames.extend_bytes(frames)
         self.log.load.extend_bytes(load)
+        if dropped != self.log.frames_dropped:
+            self.log.dropped_by_node = self.net.dropped_by_node(self.index)
         self.log.frames_sent, self.log.frames_dropped = sent, dropped
         self.collect_frames()
 

@@ -279,3 +279,8 @@ class CanBusModel:
             self.errors.finish(t)
         self._close_windows(t, inclusive=True)
         self.log.frames_dropped = sum(n.dropped for n in self.nodes) + sum(n.dropped for n in self._detached)
+        by_name: dict[str, int] = {}
+        for n in [*self.nodes, *self._detached]:
+            if n.dropped:
+                by_name[n.name] = by_name.get(n.name, 0) + n.dropped
+        self.log.dropped_by_node = dict(sorted(by_name.items()))

@@ -680,7 +680,7 @@ class PythonBusServer:
                 self._lateness.quantile_s(0.5), self._lateness.quantile_s(0.99),
                 self._lateness.max_ns * 1e-9 if self._lateness.n else None,
                 tcp_port=self.tcp_address[1] if self._tcp_listener is not None else None,
-                eager_clients=clients, **self._bad)  # (no lazy readers here: every client takes frames as they end)
+                eager_clients=clients, dropped_by_node=dict(self.model.log.dropped_by_node), **self._bad)  # (no lazy readers here: every client takes frames as they end)
 
 
 if __name__ == "__main__":  # python -m tests.oracle.python_server: `hil bus-server` on this server (benchmarks)

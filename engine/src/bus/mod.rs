@@ -521,6 +521,17 @@ impl Bus {
     pub fn frames_dropped(&self) -> u64 {
         self.nodes.iter().map(|n| n.dropped).sum()
     }
+
+    /// The frames each node dropped (a full TX queue, bus-off, frames queued when it left), by node name in name
+    /// order, nodes that dropped none left out: which controller lost frames. A name attached twice (a restarted
+    /// ECU) is summed.
+    pub fn dropped_by_node(&self) -> Vec<(String, u64)> {
+        let mut by_name = std::collections::BTreeMap::new();
+        for n in self.nodes.iter().filter(|n| n.dropped > 0) {
+            *by_name.entry(n.name.clone()).or_insert(0) += n.dropped;
+        }
+        by_name.into_iter().collect()
+    }
 }
 
 #[cfg(test)]
@@ -665,6 +676,26 @@ mod tests {
         assert!(b.enqueue(a, 2, &[], 0, None));
         assert!(!b.enqueue(a, 3, &[], 0, None));
         assert_eq!(b.frames_dropped(), 1);
+    }
+
+    #[test]
+    fn drops_are_named_by_node_and_summed_over_a_name_attached_twice() {
+        let mut b = bus(Policy::Priority); // TX queues of two frames
+        let plant = b.attach("Plant", Sink::None, None, false);
+        let quiet = b.attach("ECU_U02", Sink::None, None, false);
+        let first = b.attach("ECU_U01", Sink::None, None, false);
+        assert!(b.enqueue(quiet, 9, &[], 0, None));
+        for id in 1..=5 {
+            b.enqueue(plant, id, &[], 0, None);
+        }
+        b.enqueue(first, 7, &[], 0, None);
+        assert_eq!(b.detach(first), 1); // a crashed ECU loses its queued frame
+        let again = b.attach("ECU_U01", Sink::None, None, false); // restarted as a new node of the same name
+        for id in 10..=12 {
+            b.enqueue(again, id, &[], 0, None);
+        }
+        assert_eq!(b.dropped_by_node(), vec![("ECU_U01".to_string(), 2), ("Plant".to_string(), 3)]);
+        assert_eq!(b.frames_dropped(), 5);
     }
 
     #[test]

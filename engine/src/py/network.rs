@@ -327,6 +327,12 @@ impl Network {
         Ok(())
     }
 
+    /// The frames each node of a bus dropped, by node name (`Bus::dropped_by_node`): nodes that dropped none left out.
+    fn dropped_by_node(&self, bus: usize) -> PyResult<std::collections::BTreeMap<String, u64>> {
+        let b = self.core.buses.get(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))?;
+        Ok(b.dropped_by_node().into_iter().collect())
+    }
+
     /// (name, sent, dropped, queued) of every node of a bus, in attach order.
     fn nodes(&self, bus: usize) -> PyResult<Vec<(String, u64, u64, usize)>> {
         let b = self.core.buses.get(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))?;

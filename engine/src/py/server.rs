@@ -58,6 +58,7 @@ pub(super) fn stats_dict<'py>(py: Python<'py>, s: &crate::server::Shared, now_ns
     d.set_item("frames", s.frames)?;
     d.set_item("busy_ns", s.busy_ns)?;
     d.set_item("frames_dropped", s.bus.frames_dropped())?;
+    d.set_item("dropped_by_node", s.bus.dropped_by_node().into_iter().collect::<std::collections::BTreeMap<_, _>>())?;
     d.set_item("frames_rejected", s.rejected)?;
     d.set_item("rx_overruns", s.overruns)?;
     for (name, h) in [("latency", &s.latency), ("lateness", &s.lateness)] {
@@ -152,6 +153,12 @@ impl BusServerCore {
         let load = std::mem::take(&mut s.bus.stats.load);
         let as_bytes = |v: &[f64]| -> Vec<u8> { v.iter().flat_map(|x| x.to_ne_bytes()).collect() };
         Ok((PyBytes::new(py, &as_bytes(&frames)), PyBytes::new(py, &as_bytes(&load)), s.bus.stats.frames_sent, s.bus.frames_dropped()))
+    }
+
+    /// The frames each node dropped, by node name (`Bus::dropped_by_node`): nodes that dropped none left out.
+    fn dropped_by_node(&self) -> PyResult<std::collections::BTreeMap<String, u64>> {
+        let h = self.handle.as_ref().ok_or_else(|| PyValueError::new_err("bus server is closed"))?;
+        Ok(h.shared.lock().unwrap().bus.dropped_by_node().into_iter().collect())
     }
 
     /// Keep completed transmissions for `take_trace` (CAN logs).

@@ -52,6 +52,7 @@ class BusServerStats:
     # the read time (epoch s) at which the server gave turns up, having let 20 go at once within a second of wall time
     # (TURNS_BEHIND_MAX; None: it takes them still): from then on it holds its bus for none, as with turns off
     turns_given_up_s: float | None = None
+    dropped_by_node: dict[str, int] = field(default_factory=dict)  # of frames_dropped, by node name (none: left out)
 
     def as_dict(self, t0: float | None = None, pace: float = 1.0) -> dict:
         """The figures as ``metrics.json`` has them; given the run's T0 (epoch s) and pace, ``turns_given_up_s`` in

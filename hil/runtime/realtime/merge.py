@@ -97,7 +97,8 @@ def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | No
                 keep_rows: bool) -> BusLog:
     """A server's spooled rows (hil/runtime/realtime/bus_spool.py) moved to simulated time (model t -> t - shift)
     and cut to [0, duration] (None: as they are), as one BusLog, written to the sinks chunk by chunk."""
-    out = BusLog(src.name, src.bitrate, frames_sent=src.frames_sent, frames_dropped=src.frames_dropped)
+    out = BusLog(src.name, src.bitrate, frames_sent=src.frames_sent, frames_dropped=src.frames_dropped,
+                 dropped_by_node=dict(src.dropped_by_node))
     frames_path, load_path = spool_paths(nodes_dir, src.name)
     offsets = [(0, 0) for _ in sinks]
     for path, width, dst in ((load_path, LOAD_WIDTH, out.load), (frames_path, FRAME_WIDTH, out.frames)):

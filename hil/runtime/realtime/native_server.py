@@ -173,7 +173,7 @@ class NativeBusServer:
             auth_failures=s["auth_failures"], clients_refused=s["clients_refused"], eager_clients=s["eager_clients"],
             tcp_port=self.tcp_address[1] if self._tcp else None, wake_ups=s["turns"],
             turns_held=s["turns_held"], turn_overruns=s["turn_overruns"], turns_let_go=s["turns_let_go"],
-            turns_behind=s["turns_behind"], turns_given_up_s=s["turns_given_up_s"])
+            turns_behind=s["turns_behind"], turns_given_up_s=s["turns_given_up_s"], dropped_by_node=s["dropped_by_node"])
 
     # ---- the error model and the guardian (engine/src/errors.rs, guardian.rs), for hil.faults.bus.EngineBusFaults
     def enable_bus_errors(self, rng_state: tuple[int, int]) -> None:
@@ -237,6 +237,8 @@ class NativeBusServer:
         frames, load, sent, dropped = self._core.take_log()
         self._log.frames.extend_bytes(frames)
         self._log.load.extend_bytes(load)
+        if dropped != self._log.frames_dropped:
+            self._log.dropped_by_node = self._core.dropped_by_node()
         self._log.frames_sent, self._log.frames_dropped = sent, dropped
 
     def with_log(self, fn):
