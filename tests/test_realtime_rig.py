@@ -254,7 +254,8 @@ def test_a_plant_the_machine_stalls_publishes_the_latest_sample_and_loses_no_fra
     m = res.metrics
     plant = m["realtime"]["plant"]
     assert plant["cycles"] + plant["cycles_skipped"] == 300, plant
-    assert plant["cycles_skipped"] >= 30 and m["plant_deadline_misses"] >= 1, plant
+    # at least 20 skipped however late a loaded machine fires the timers: 20 x 4 Sensor frames would overflow 64
+    assert plant["cycles_skipped"] >= 20 and m["plant_deadline_misses"] >= 1, plant
     assert m["frames_lost"] == 0, m["per_bus"]
 
 
