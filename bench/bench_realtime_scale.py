@@ -52,7 +52,7 @@ from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_real
 from hil.runtime.realtime.turns import TURNS_MODES, TurnsMode  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
-from hil.record.metrics import compute_metrics  # noqa: E402
+from hil.record.metrics import compute_metrics, dropped_by_node  # noqa: E402
 from hil.record.safety import violated  # noqa: E402
 from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # noqa: E402
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
@@ -301,7 +301,7 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "p99_ms": 1e3 * (p99 or 0), "misses": misses, "skipped": skipped, "cycles": cycles,
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
             "lost": m["frames_lost"], "lost_on_buses": [b.frames_dropped for b in res.log.buses],
-            "lost_by_node": {f"{b.name}/{node}": n for b in res.log.buses for node, n in b.dropped_by_node.items()},
+            "lost_by_node": dropped_by_node(m["per_bus"]),
             "cpu_per_sim_s": (cpu_seconds() - cpu0[0] - by_role.sampler_s) / duration, "keeps_up": keeps_up,
             "sampler_per_sim_s": by_role.sampler_s / duration,
             "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,

@@ -13,6 +13,7 @@ from ecu_sim.references import ReferenceLoadError
 from hil.cli_values import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
+from hil.record.metrics import dropped_by_node
 from hil.record.safety import ECU_FAILURE, violated
 from hil.record.out_dir import (OutputDirError, ensure_writable_dir, free_reserve, hold_folder, release_folder,
                                 reserve_space)
@@ -85,9 +86,8 @@ def print_summary(metrics: dict, out: Path) -> None:
 
 def _drop_lines(per_bus: dict | None) -> list[str]:
     """Which nodes dropped frames (a full TX queue, bus-off, frames queued when they left), by bus; none: no line."""
-    drops = [f"{bus}/{node} {n}" for bus, b in (per_bus or {}).items()
-             for node, n in (b.get("frames_dropped_by_node") or {}).items()]
-    return [f"{'frames dropped, by node':38s} " + ", ".join(drops)] if drops else []
+    drops = dropped_by_node(per_bus)
+    return [f"{'frames dropped, by node':38s} " + ", ".join(f"{name} {n}" for name, n in drops.items())] if drops else []
 
 
 def _safety_lines(safety: dict | None) -> list[str]:

@@ -198,6 +198,12 @@ def _one_bus(bus: BusLog) -> dict[str, Any]:
     }
 
 
+def dropped_by_node(per_bus: dict[str, dict] | None) -> dict[str, int]:
+    """The frames each node dropped, over every bus of a run's ``per_bus`` metrics, keyed "<bus>/<node>"."""
+    return {f"{bus}/{node}": n for bus, b in (per_bus or {}).items()
+            for node, n in (b.get("frames_dropped_by_node") or {}).items()}
+
+
 def bus_metrics(buses: list[BusLog]) -> dict[str, Any]:
     """Frames, drops, load, latency and deadline figures of the buses, together and per bus."""
     windows = sum(b.load.count for b in buses)
