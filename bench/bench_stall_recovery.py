@@ -36,6 +36,7 @@ from bench.bench_realtime_scale import scenario_for  # noqa: E402
 from hil.runtime.realtime.orchestrator import run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.realtime.scheduling import set_fifo_priority  # noqa: E402
+from hil.scenario.loader import ScenarioError  # noqa: E402
 
 FIRST_STALL_S = 2.0  # simulated s: the nodes are past their first, cold cycles
 
@@ -187,11 +188,14 @@ def main() -> None:
     if any(length <= 0 or length >= 1e3 * args.every - 50 for length in args.stall_ms):
         raise SystemExit(f"--stall-ms: each must be above 0 and at least 50 ms below --every ({args.every:g} s)")
     sets = cpu_sets(args.cpus)
+    try:
+        scenarios = [(name, scenario(name)) for name in args.runs]
+    except ScenarioError as exc:
+        raise SystemExit(f"--runs: {exc}") from None
     print(f"{os.cpu_count()} CPUs; stalls of {', '.join(f'{x:g}' for x in args.stall_ms)} ms on CPUs "
           f"{', '.join(args.cpus)}, every {args.every:g} s; the rig's default settings (its CPU layout at pace 1: "
           "the serving thread and the plant on the first CPU, the ECU processes on the others)")
-    for name in args.runs:
-        sc = scenario(name)
+    for name, sc in scenarios:
         run(name, sc, plan(sets, [x / 1e3 for x in args.stall_ms], args.every, sc.ecu.phase_s), args.every)
 
 
