@@ -19,7 +19,6 @@ CAP_SYS_NICE); exits 2 without it.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import subprocess
 import sys
@@ -110,7 +109,7 @@ class Recovery:
 
     due: int  # ECU cycles due during the stall
     worst_ms: float  # the worst lateness of a cycle due from a period before the stall to its end
-    recovered_ms: float  # when the last of those cycles started, after the stall's end (<= 0: none was late)
+    recovered_ms: float  # when the last of those cycles started, after the stall's end (0: all before it)
     misses: int  # of those cycles, late by more than their period
     plant_worst_ms: float  # the worst lateness of a publication due in the same span
 
@@ -133,29 +132,15 @@ def scenario(name: str):
 
 def run(name: str, sc, stalls_asked: list[Stall], every_s: float) -> None:
     """One real-time run of ``sc`` (called ``name``) with the stalls; prints a line per stall."""
-    makers = start_stall_makers({c for s in stalls_asked for c in s.cpus})
-    t0: list[float] = []
-
-    def on_start(go: float) -> None:
-        t0.append(go)
-        send_plan(makers, stalls_asked, go)
-
     duration = stalls_asked[-1].start_s + every_s + 1.0
     with tempfile.TemporaryDirectory() as d:
-        try:
-            res = run_realtime(sc, Path(d) / "rt", pace=1.0, duration_s=duration, record=False, on_start=on_start)
-        finally:
-            for maker in makers.values():
-                if maker.stdin is not None and not maker.stdin.closed:
-                    maker.stdin.close()  # the rig did not start: the makers end
-        held = held_intervals(makers)
+        metrics, t0, held = run_stalled(sc, Path(d) / "rt", duration, stalls_asked)
         nodes = Path(d) / "rt" / "nodes"
         ecu = timing_rows(sorted(nodes.glob("timing_ecu_*.bin")))
         plant = timing_rows([nodes / "timing_plant.bin"])
-    m = res.metrics
-    n = sc.trains.count * sc.trains.units
-    print(f"\n{name} ({n} ECUs), pace 1, {duration:.1f} s: ECU misses {m['cycle_deadline_misses']}, plant misses "
-          f"{m['plant_deadline_misses']}, frames lost {m['frames_lost']}; publication period "
+    print(f"\n{name} ({sc.trains.count * sc.trains.units} ECUs), pace 1, {duration:.1f} s: ECU misses "
+          f"{metrics['cycle_deadline_misses']}, plant misses {metrics['plant_deadline_misses']}, frames lost "
+          f"{metrics['frames_lost']}; publication period "
           f"{1e3 * publication_steps(tick_periods(sc)) * sc.plant.step_s:g} ms, ECU cycle {1e3 * sc.ecu.cycle_s:g} ms")
     print(f"  {'CPUs':>6} {'asked':>7} {'held':>7} {'cycles due':>10} {'worst late':>10} {'last late cycle started':>24} "
           f"{'misses':>6} {'plant worst':>11}")
@@ -164,11 +149,34 @@ def run(name: str, sc, stalls_asked: list[Stall], every_s: float) -> None:
         spans = [held[c][position[c]] for c in s.cpus]
         for c in s.cpus:
             position[c] += 1
-        start, end = min(a for a, _ in spans) - t0[0], max(b for _, b in spans) - t0[0]
+        start, end = min(a for a, _ in spans) - t0, max(b for _, b in spans) - t0
         r = recovery(ecu, plant, start, end, sc.ecu.cycle_s)
         cpus = "all" if len(s.cpus) > 1 else str(s.cpus[0])
         print(f"  {cpus:>6} {1e3 * s.length_s:5.1f}ms {1e3 * (end - start):5.1f}ms {r.due:10d} {r.worst_ms:8.2f}ms "
               f"{r.recovered_ms:+10.2f} ms after its end {r.misses:6d} {r.plant_worst_ms:9.2f}ms", flush=True)
+
+
+def run_stalled(sc, out: Path, duration: float, stalls: list[Stall]) -> tuple[dict, float, dict[int, list]]:
+    """Run ``sc`` in real time into ``out`` with the stall makers holding their CPUs as planned: (its metrics, the
+    epoch of simulated t = 0, the intervals each CPU was held). A run that fails or is interrupted stops the makers
+    first: none outlives the bench to stall the machine later."""
+    makers = start_stall_makers({c for s in stalls for c in s.cpus})
+    t0: list[float] = []
+
+    def on_start(go: float) -> None:
+        t0.append(go)
+        send_plan(makers, stalls, go)
+
+    try:
+        res = run_realtime(sc, out, pace=1.0, duration_s=duration, record=False, on_start=on_start)
+        if res.metrics["interrupted"]:  # Ctrl-C stops the rig cleanly: the bench stops too
+            raise KeyboardInterrupt
+    except BaseException:
+        for maker in makers.values():
+            maker.kill()
+            maker.wait()
+        raise
+    return res.metrics, t0[0], held_intervals(makers)
 
 
 def main() -> None:
@@ -200,5 +208,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    with contextlib.suppress(KeyboardInterrupt):
+    try:
         main()
+    except KeyboardInterrupt:
+        print("bench_stall_recovery: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
