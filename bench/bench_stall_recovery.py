@@ -62,6 +62,8 @@ def cpu_sets(names: list[str]) -> list[tuple[int, ...]]:
     mine = tuple(sorted(os.sched_getaffinity(0)))
     out = []
     for name in names:
+        if name != "all" and not name.isdigit():
+            raise SystemExit(f"--cpus {name}: not 'all' or a CPU number")
         cpus = mine if name == "all" else (int(name),)
         if not set(cpus) <= set(mine):
             raise SystemExit(f"--cpus {name}: not a CPU this process may use ({', '.join(map(str, mine))})")
@@ -201,8 +203,8 @@ def main() -> None:
     except ScenarioError as exc:
         raise SystemExit(f"--runs: {exc}") from None
     print(f"{os.cpu_count()} CPUs; stalls of {', '.join(f'{x:g}' for x in args.stall_ms)} ms on CPUs "
-          f"{', '.join(args.cpus)}, every {args.every:g} s; the rig's default settings (its CPU layout at pace 1: "
-          "the serving thread and the plant on the first CPU, the ECU processes on the others)")
+          f"{', '.join(args.cpus)}, every {args.every:g} s; the rig's default settings (at pace 1 on two CPUs or more: "
+          "the serving thread and the plant on the first CPU the rig may use, the ECU processes on the others)")
     for name, sc in scenarios:
         run(name, sc, plan(sets, [x / 1e3 for x in args.stall_ms], args.every, sc.ecu.phase_s), args.every)
 
