@@ -62,6 +62,12 @@ class SimClock:
         return (sim_t - self.now()) / self.pace
 
 
+def periods_overrun(late: float, period: float) -> int:
+    """The whole periods a cycle ``late`` overran: 0 unless it is more than a period late (a deadline miss, whose
+    overrun cycles are skipped). The ECUs' and the plant's rule, in any unit."""
+    return int(late // period) if late > period else 0
+
+
 class LatenessStats:
     """Per-cycle lateness (actual start - deadline, wall seconds) and deadline misses of one periodic task.
 
@@ -78,10 +84,10 @@ class LatenessStats:
     def add(self, lateness_sim_s: float, deadline: float = math.nan) -> int:
         """Record one cycle's lateness (given in simulated seconds); returns how many whole periods it overran."""
         self.series.add(deadline, lateness_sim_s / self.pace)
-        if lateness_sim_s > self.period_sim_s:
+        overrun = periods_overrun(lateness_sim_s, self.period_sim_s)
+        if overrun:
             self.misses += 1
-            return int(lateness_sim_s // self.period_sim_s)
-        return 0
+        return overrun
 
     def table(self) -> np.ndarray:
         """(n, 2): deadline (simulated s), lateness (wall s) per cycle, for a task without a file."""

@@ -54,7 +54,8 @@ from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.streamed_series import StreamedSeries
 from hil.runtime.realtime.scheduling import enter_role
-from hil.runtime.realtime.pacing import Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
+from hil.runtime.realtime.pacing import (Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger,
+                                         periods_overrun, set_timer_slack)
 from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
@@ -317,9 +318,8 @@ def tick_periods(sc) -> dict[str, int]:
 def late_publication(target: int, every: int, n_steps: int, now_steps: float) -> int:
     """The publication (a plant tick) to run when the one at ``target`` is due: the latest one due by ``now_steps``
     (the clock, in plant steps), at most the run's last before ``n_steps``; ``target`` itself unless the plant is
-    more than a period (``every`` steps) late. The ones between are skipped, as an ECU skips its cycles (the whole
-    periods overrun, as ``LatenessStats.add`` counts them)."""
-    overrun = int((now_steps - target) // every) if now_steps - target > every else 0
+    more than a period (``every`` steps) late. The ones between are skipped, as an ECU skips its cycles."""
+    overrun = periods_overrun(now_steps - target, every)
     last = (n_steps - 1) // every * every
     return max(target, min(target + overrun * every, last))
 
