@@ -82,7 +82,7 @@ impl RadioHub {
             }
         }
         let least = links.iter().copied().chain(self.fault_refill.as_ref().map(|_| faults)).min();
-        Ok(RESERVE_BLOCKS - least.unwrap_or(RESERVE_BLOCKS).min(RESERVE_BLOCKS))
+        Ok(RESERVE_BLOCKS.saturating_sub(least.unwrap_or(RESERVE_BLOCKS)))
     }
 
     /// Blocks of draws `top_up` keeps queued for each link (and for the injected faults).
