@@ -58,7 +58,7 @@ from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # 
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.runtime.realtime.cpu_layout import CPU_LAYOUT_MODES, CpuLayoutMode  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
-from bench.stall_watch import SLEEP_S, read_stalls, steal_s  # noqa: E402
+from bench.stall_watch import LATE_S, SLEEP_S, read_stalls, steal_s  # noqa: E402
 
 CYCLE_S = 0.01
 
@@ -329,12 +329,13 @@ def stall_line(stalls: np.ndarray, ecu: tuple[int, int], plant: tuple[int, int])
     deadline misses (of all) fell in a stall of any CPU."""
     misses = f"ECU misses {ecu[1]} of {ecu[0]}, plant misses {plant[1]} of {plant[0]}"
     if not len(stalls):
-        return f"CPU stalls (a sleeping process kept to each CPU woke over 3 ms late): none; {misses}"
-    per_cpu = ", ".join(f"CPU {int(c)}: {int(n)} (longest {1e3 * stalls[stalls[:, 3] == c, 1].max():.1f} ms)"
-                        for c, n in zip(*np.unique(stalls[:, 3], return_counts=True)))
+        return f"CPU stalls (a sleeping process kept to each CPU woke over {LATE_S * 1e3:g} ms late): none; {misses}"
+    per_cpu = ", ".join(f"CPU {int(c)}: {int(n)} (longest {1e3 * late.max():.1f} ms, {1e3 * late.sum():.0f} ms in all)"
+                        for c, n in zip(*np.unique(stalls[:, 3], return_counts=True))
+                        for late in [stalls[stalls[:, 3] == c, 1]])
     with_steal = int((stalls[:, 2] > 0).sum())
-    return (f"CPU stalls (a sleeping process kept to each CPU woke over 3 ms late): {per_cpu}; {with_steal} with host "
-            f"steal; during one: {misses}")
+    return (f"CPU stalls (a sleeping process kept to each CPU woke over {LATE_S * 1e3:g} ms late): {per_cpu}; "
+            f"{with_steal} with host steal; during one: {misses}")
 
 
 def main() -> None:
