@@ -50,6 +50,7 @@ sys.path.insert(0, str(ROOT))
 from hil.runtime.realtime.bus_server import BusServerStats, turns_given_up, turns_let_go_text  # noqa: E402
 from hil.runtime.realtime.orchestrator import default_ecus_per_process, run_realtime  # noqa: E402
 from hil.runtime.realtime.turns import TURNS_MODES, TurnsMode  # noqa: E402
+from hil.runtime.realtime.streamed_series import read_series  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.record.metrics import compute_metrics, dropped_by_node  # noqa: E402
@@ -107,7 +108,7 @@ def misses_in_stalls(series: Iterable[Path], period_wall_s: float, t0: float, pa
     stall_spans = [(w - late - SLEEP_S, w) for w, late, *_ in stalls]
     n = overlapped = 0
     for f in series:
-        rows = np.fromfile(f).reshape(-1, 2)
+        rows = read_series(f)
         for deadline, lateness in rows[rows[:, 1] > period_wall_s]:
             start = t0 + deadline / pace
             n += 1

@@ -35,6 +35,7 @@ from bench.bench_realtime_scale import scenario_for  # noqa: E402
 from hil.runtime.realtime.orchestrator import run_realtime  # noqa: E402
 from hil.runtime.realtime.plant_node import publication_steps, tick_periods  # noqa: E402
 from hil.runtime.realtime.scheduling import set_fifo_priority  # noqa: E402
+from hil.runtime.realtime.streamed_series import read_series  # noqa: E402
 from hil.scenario.loader import ScenarioError  # noqa: E402
 
 FIRST_STALL_S = 2.0  # simulated s: the nodes are past their first, cold cycles
@@ -100,8 +101,8 @@ def held_intervals(makers: dict[int, subprocess.Popen]) -> dict[int, list[tuple[
 
 
 def timing_rows(paths: list[Path]) -> np.ndarray:
-    """Rows (deadline s, lateness s) of the nodes' timing series."""
-    parts = [np.fromfile(p).reshape(-1, 2) for p in paths if p.exists()]
+    """Rows (deadline s, lateness s) of the nodes' timing series, all together."""
+    parts = [read_series(p) for p in paths if p.exists()]
     return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
