@@ -43,7 +43,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for k, sim in enumerate(float(s) for s in args.sims.split(",")):
-            argv = [sys.executable, "-m", "hil.cli", "run", args.scenario, "--duration", repr(sim), "--quiet",
+            argv = [sys.executable, "-m", "hil", "run", args.scenario, "--duration", repr(sim), "--quiet",
                     "--out", os.path.join(tmp, f"r{k}")] + (["--realtime"] if args.realtime else [])
             rss, wall = peak_rss_mb(argv)
             rows.append((sim, rss, wall))

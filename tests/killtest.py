@@ -61,8 +61,8 @@ class KillOutcome:
 
 def hil_run_argv(out_dir: Path, scenario: str = "seed000", duration_s: float = 600.0, realtime: bool = False,
                  extra: tuple[str, ...] = ()) -> list[str]:
-    """``hil run`` (as ``python -m hil.cli``) of a run long enough not to finish before the kill."""
-    argv = [sys.executable, "-m", "hil.cli", "run", scenario, "--duration", repr(duration_s), "--out", str(out_dir),
+    """``hil run`` (as ``python -m hil``) of a run long enough not to finish before the kill."""
+    argv = [sys.executable, "-m", "hil", "run", scenario, "--duration", repr(duration_s), "--out", str(out_dir),
             "--quiet", *extra]
     if realtime:
         argv += ["--realtime", "--ecus-per-process", "6"]

@@ -195,7 +195,7 @@ def test_cli_refuses_a_bad_file_with_every_error_and_no_traceback(tmp_path: Path
     path = tmp_path / "bad.toml"
     path.write_text(to_toml(edited({"trains.unit_mass_kg": -1.0, "can.bitrate": 300000, "radio.rnage": 3})))
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(path), "--out", str(out)],
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", str(path), "--out", str(out)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     for field in ("trains.unit_mass_kg", "can.bitrate", "radio.rnage"):

@@ -97,7 +97,7 @@ def test_a_diverging_plant_ends_the_run_with_an_event_and_readable_files(tmp_pat
 
 def test_hil_run_reports_a_diverging_plant_in_one_line(tmp_path: Path):
     bad = "plant.disturbances=[{kind = 'step', train = 2, unit = 1, start_s = 2.0, end_s = 3.0, amplitude_n = 1e200}]"
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--duration", "3", "--quiet", "--out",
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "seed000", "--duration", "3", "--quiet", "--out",
                            str(tmp_path), "--set", bad], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1, proc.stderr
     assert "hil: error: plant diverged at t = 2.0" in proc.stderr and "Traceback" not in proc.stderr

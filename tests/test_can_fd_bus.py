@@ -157,7 +157,7 @@ def test_fd_frames_go_into_the_can_logs_in_their_fd_form(tmp_path, fmt):
     from ecu_sim.codec import default_dbc_path
 
     out = tmp_path / "r"
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed001-fd", "--duration", "0.5", "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "seed001-fd", "--duration", "0.5", "--out", str(out),
                            "--no-record", "--quiet", "--can-log", fmt], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     reader = can.ASCReader if fmt == "asc" else can.BLFReader

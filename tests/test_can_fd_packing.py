@@ -133,7 +133,7 @@ def test_a_packed_dbc_needs_an_fd_bus(tmp_path):
     with pytest.raises(ScenarioError, match=r"can.dbc.*no DBC 'nope.dbc'"):
         load_scenario("seed000", {"can.dbc": "nope.dbc"})
     out = tmp_path / "r"
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--set", "can.dbc=train_fd.dbc", "--duration",
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "seed000", "--set", "can.dbc=train_fd.dbc", "--duration",
                            "1", "--no-record", "--quiet", "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "set can.fd = true" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists() or not any(out.iterdir())  # refused before anything was written: no stub in the way
@@ -177,7 +177,7 @@ def test_packed_frames_go_into_the_can_log_and_decode_with_the_fd_dbc(tmp_path):
     import can
 
     out = tmp_path / "r"
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed001-fd-packed", "--duration", "0.2", "--out",
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "seed001-fd-packed", "--duration", "0.2", "--out",
                            str(out), "--no-record", "--quiet", "--can-log", "asc"], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 0, proc.stderr

@@ -97,10 +97,10 @@ def test_hil_bus_server_serves_an_fd_bus_and_names_a_data_bitrate_without_fd(rt)
     import subprocess
     import sys
 
-    bad = subprocess.run([sys.executable, "-m", "hil.cli", "bus-server", "--run", "r2", "--bus", "bus1",
+    bad = subprocess.run([sys.executable, "-m", "hil", "bus-server", "--run", "r2", "--bus", "bus1",
                           "--data-bitrate", "2000000", "--duration", "1"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--data-bitrate is for CAN FD buses: add --fd" in bad.stderr
-    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "bus-server", "--run", "r2", "--bus", "bus1", "--fd",
+    proc = subprocess.Popen([sys.executable, "-m", "hil", "bus-server", "--run", "r2", "--bus", "bus1", "--fd",
                              "--bitrate", "1000000", "--data-bitrate", "8000000", "--duration", "20"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

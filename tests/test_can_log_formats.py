@@ -48,6 +48,16 @@ def test_every_format_reads_back_with_the_same_frames(logs):
         assert {c for *_, c in other} == {1}, fmt
 
 
+def test_the_hil_command_writes_mf4_though_it_starts_without_asammdf(logs, tmp_path):
+    """``hil`` imports python-can with its MF4 support deferred (hil/deferred_mf4.py); ``--can-log mf4`` loads it,
+    and the log has the frames of the same run made in this process, where python-can was imported as usual."""
+    pytest.importorskip("asammdf")
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", str(CRUISE), "--duration", "0.5", "--can-log", "mf4",
+                           "--no-record", "--quiet", "--out", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert frames(tmp_path / "bus2.mf4") == frames(logs["mf4"] / "bus2.mf4")
+
+
 def test_cantools_decodes_the_blf_log_with_the_dbc(logs):
     db = cantools.database.load_file(ROOT / "dbc" / "train.dbc")
     decoded = [db.decode_message(m.arbitration_id, m.data) for m in can.BLFReader(logs["blf"] / "bus1.blf")
@@ -69,7 +79,7 @@ def test_unknown_or_unavailable_formats_are_named():
 
 @pytest.mark.slow  # about 12 s: a 2 s real-time run in BLF, and can.logger beside it
 def test_real_time_logs_agree_with_can_logger_on_channel_numbers(tmp_path):
-    rig = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "2",
+    rig = subprocess.Popen([sys.executable, "-m", "hil", "run", str(CRUISE), "--realtime", "--duration", "2",
                             "--ecus-per-process", "3", "--quiet", "--no-record", "--can-log", "blf", "--run",
                             f"logs{id(tmp_path) % 10**6}", "--out", str(tmp_path / "r")],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -195,7 +195,7 @@ def test_a_law_that_fails_on_every_step_fails_check(bad_laws, capsys, law):
 
 @pytest.mark.slow  # a real-time run: about 8 s
 def test_an_ecu_process_that_exits_fails_check_in_real_time(bad_laws):
-    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "2",
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil", "run", str(CRUISE), "--realtime", "--duration", "2",
                            "--quiet", "--check", "--out", "rt", "--set", "controller.law=careless_laws:OsExit0"],
                           capture_output=True, text=True, timeout=300, cwd=bad_laws)
     assert proc.returncode == 3, proc.stderr
@@ -209,7 +209,7 @@ def test_an_ecu_whose_law_never_returns_is_stopped_as_hung_and_fails_check(bad_l
     finish``) with a "safe" verdict. Its heartbeat falls silent: it is killed within seconds, each unit's stop is
     the ecu_failure verdict, and the run ends on time with the plant's fail-safe holding the trains."""
     started = time.monotonic()
-    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "5",
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil", "run", str(CRUISE), "--realtime", "--duration", "5",
                            "--quiet", "--check", "--out", "rt-hang", "--overwrite",
                            "--set", "controller.law=careless_laws:Hangs"],
                           capture_output=True, text=True, timeout=300, cwd=bad_laws)
@@ -227,7 +227,7 @@ def test_an_ecu_whose_law_never_returns_is_stopped_as_hung_and_fails_check(bad_l
 @pytest.mark.slow  # a real-time run: about 10 s
 def test_a_law_that_redirects_stdout_is_not_taken_for_hung(bad_laws):
     """The heartbeat goes to the process's own stdout, not to whatever ``sys.stdout`` a law put there."""
-    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "4",
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil", "run", str(CRUISE), "--realtime", "--duration", "4",
                            "--quiet", "--out", "rt-silent", "--overwrite",
                            "--set", "controller.law=careless_laws:Silences"],
                           capture_output=True, text=True, timeout=300, cwd=bad_laws)

@@ -14,7 +14,7 @@ from tests.rrd_reader import read_scalars
 
 
 def hil(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hil.cli", *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True, timeout=timeout)
 
 
 def test_scenarios_lists_the_packaged_ones():
@@ -73,7 +73,7 @@ def test_sigint_mid_run_leaves_readable_results(tmp_path):
     import signal
     import time
 
-    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", "seed000", "--duration", "600", "--out", str(tmp_path),
+    proc = subprocess.Popen([sys.executable, "-m", "hil", "run", "seed000", "--duration", "600", "--out", str(tmp_path),
                              "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline, rrd = time.monotonic() + 120, tmp_path / "run.rrd"
 
@@ -102,7 +102,7 @@ def test_sigint_before_the_run_loop_exits_cleanly(tmp_path):
     """Ctrl-C while the rig is still being built: no traceback, exit 130."""
     import signal
 
-    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", "seed000", "--out", str(tmp_path), "--quiet"],
+    proc = subprocess.Popen([sys.executable, "-m", "hil", "run", "seed000", "--out", str(tmp_path), "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     rrd = tmp_path / "run.rrd"
     while not rrd.exists() and proc.poll() is None:  # the recording is opened before the rig is built
@@ -113,6 +113,6 @@ def test_sigint_before_the_run_loop_exits_cleanly(tmp_path):
 
 
 def test_output_piped_into_head_ends_quietly():
-    proc = subprocess.run(f"{sys.executable} -m hil.cli can-analysis --bitrate 500000 | head -n 1", shell=True,
+    proc = subprocess.run(f"{sys.executable} -m hil can-analysis --bitrate 500000 | head -n 1", shell=True,
                           capture_output=True, text=True, timeout=120)
     assert proc.stdout.strip() and "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr

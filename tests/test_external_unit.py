@@ -22,7 +22,7 @@ FAILSAFE_HOLD_S = 0.1  # plant.failsafe.hold_s (cruise.toml keeps the default): 
 
 
 def start_rig(tmp_path: Path, run: str, *extra: str, quiet: bool = True) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--run", run,
+    return subprocess.Popen([sys.executable, "-m", "hil", "run", str(CRUISE), "--realtime", "--run", run,
                              "--duration", str(DURATION_S), "--ecus-per-process", "3", *(("--quiet",) if quiet else ()),
                              "--out", str(tmp_path / "r"), *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)

@@ -30,7 +30,7 @@ def tiny_fs():
 
 
 def hil_run(out: Path, *extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--duration", "120", "--out", str(out),
+    return subprocess.run([sys.executable, "-m", "hil", "run", "seed000", "--duration", "120", "--out", str(out),
                            "--quiet", *extra], capture_output=True, text=True, timeout=90, cwd=REPO)
 
 

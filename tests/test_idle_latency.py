@@ -89,7 +89,7 @@ def test_a_run_the_host_refuses_the_limit_fails_before_any_node_starts(tmp_path:
      "argument --idle-latency-us: 'low' is not auto, host or a whole number of microseconds"),
 ])
 def test_hil_run_refuses_a_limit_it_cannot_use(tmp_path: Path, argv: list[str], message: str) -> None:
-    out = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", *argv, "--out", str(tmp_path / "r")],
+    out = subprocess.run([sys.executable, "-m", "hil", "run", "seed000", *argv, "--out", str(tmp_path / "r")],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
     assert message in out.stderr

@@ -93,7 +93,7 @@ def test_node_names_cannot_forge_log_lines_and_unknown_flags_are_rejected(rt, se
 
 
 def test_bus_server_leaves_no_empty_run_directory(rt, tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "bus-server", "--run", "leftover", "--bus", "bus1",
+    proc = subprocess.run([sys.executable, "-m", "hil", "bus-server", "--run", "leftover", "--bus", "bus1",
                            "--duration", "0.5"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert not (runtime_root() / "leftover").exists()

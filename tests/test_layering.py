@@ -14,7 +14,7 @@ LAYERS: list[list[str]] = [
     ["hil"],  # the package root: its version
     ["hil.fmi"],  # the reference FMUs' sources and their build
     ["hil.scenario"],  # the data model, the loader, the train layout, which firmware each unit runs
-    ["hil.sample_table", "hil.reference_profile", "hil.radio", "hil.cli_values"],
+    ["hil.sample_table", "hil.reference_profile", "hil.radio", "hil.cli_values", "hil.deferred_mf4"],
     ["hil.can"],
     ["hil.record"],
     ["hil.plant"],
@@ -25,6 +25,7 @@ LAYERS: list[list[str]] = [
     ["hil.compare", "hil.sweep", "hil.testing", "hil.viewer"],
     ["hil.commands"],  # the sub-commands of `hil` (compare, sweep, can-analysis),
     ["hil.cli"],
+    ["hil.__main__"],  # the `hil` command: python-can with MF4 deferred, then the CLI
 ]
 
 

@@ -82,7 +82,7 @@ def watch(proc: subprocess.Popen, saved: Path, timeout_s: float) -> list[tuple[b
 @pytest.mark.slow  # about 10 s: 120 s simulated at ~30x
 def test_a_virtual_run_streams_to_a_viewer_as_the_simulation_goes(sink, tmp_path):
     url, saved = sink
-    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--duration", "120", "--quiet",
+    proc = subprocess.Popen([sys.executable, "-m", "hil", "run", str(CRUISE), "--duration", "120", "--quiet",
                              "--connect", url, "--out", str(tmp_path / "r")], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     seen = watch(proc, saved, 300)
@@ -99,7 +99,7 @@ def test_a_virtual_run_streams_to_a_viewer_as_the_simulation_goes(sink, tmp_path
 @pytest.mark.slow  # about 15 s: 6 s of real time
 def test_a_real_time_run_streams_to_a_viewer_on_the_wall_clock(sink, tmp_path):
     url, saved = sink
-    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "6",
+    proc = subprocess.Popen([sys.executable, "-m", "hil", "run", str(CRUISE), "--realtime", "--duration", "6",
                              "--ecus-per-process", "3", "--quiet", "--connect", url, "--out", str(tmp_path / "r")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     seen = watch(proc, saved, 300)
@@ -139,7 +139,7 @@ class SilentPeer:
 
 
 def _run_with_viewer(url: str, out: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--duration", "5", "--quiet",
+    return subprocess.run([sys.executable, "-m", "hil", "run", str(CRUISE), "--duration", "5", "--quiet",
                            "--connect", url, "--out", str(out)], capture_output=True, text=True, timeout=90)
 
 

@@ -283,7 +283,7 @@ def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):
 def test_sigterm_to_the_orchestrator_stops_everything_and_keeps_the_files(rt, tmp_path):
     out = tmp_path / "rt"
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", "seed000", "--realtime", "--out", str(out),
+    proc = subprocess.Popen([sys.executable, "-m", "hil", "run", "seed000", "--realtime", "--out", str(out),
                              "--pace", str(PACE), "--duration", "60", "--ecus-per-process", "6", "--quiet"],
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -70,7 +70,7 @@ def test_every_node_reports_the_policy_it_ran_under(tmp_path, monkeypatch, mode:
 
 
 def test_hil_run_refuses_scheduling_without_realtime(tmp_path) -> None:
-    out = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--scheduling", "fifo", "--out",
+    out = subprocess.run([sys.executable, "-m", "hil", "run", "seed000", "--scheduling", "fifo", "--out",
                           str(tmp_path / "r")], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
     assert "--scheduling only applies with --realtime" in out.stderr

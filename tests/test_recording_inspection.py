@@ -134,12 +134,12 @@ def test_real_time_recording_has_a_wall_clock_timeline_and_a_timing_tab(recorded
 def test_hil_view_prints_how_to_open_where_no_viewer_can_start(recorded, tmp_path):
     rrd, _, _ = recorded
     env = {k: v for k, v in __import__("os").environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "view", str(rrd.parent)], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "hil", "view", str(rrd.parent)], capture_output=True, text=True,
                           env=env, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "not starting a viewer here: there is no display" in proc.stdout
     assert str(rrd) in proc.stdout and "--bind 127.0.0.1" in proc.stdout and "CI=1" in proc.stdout
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "view", str(tmp_path / "nothing")], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "hil", "view", str(tmp_path / "nothing")], capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 2 and "no such run directory" in proc.stderr
 

@@ -23,13 +23,13 @@ CRUISE = ROOT / "examples" / "cruise.toml"
 
 
 def hil(*argv: str, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hil.cli", *argv], capture_output=True, text=True, timeout=120, **kw)
+    return subprocess.run([sys.executable, "-m", "hil", *argv], capture_output=True, text=True, timeout=120, **kw)
 
 
 @pytest.mark.slow  # about 15 s: start-up, 3 s of real time, the kill, the merge
 def test_a_killed_rig_is_recovered_from_its_nodes_files(tmp_path):
     out = tmp_path / "r"
-    rig = subprocess.Popen([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "60",
+    rig = subprocess.Popen([sys.executable, "-m", "hil", "run", str(CRUISE), "--realtime", "--duration", "60",
                             "--ecus-per-process", "3", "--quiet", "--out", str(out)],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     stream, row = out / "nodes" / "signals.bin", 8 * (3 + 5 * 6)

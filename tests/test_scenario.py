@@ -66,7 +66,7 @@ def test_bad_toml_and_unknown_names(tmp_path):
 
 def test_cli_reports_user_errors_without_traceback(tmp_path):
     path = write_variant(tmp_path, "bitrate = 500000", "bitrate = 300000")
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(path), "--out", str(tmp_path / "o")],
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", str(path), "--out", str(tmp_path / "o")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "can.bitrate" in proc.stderr and "Traceback" not in proc.stderr
@@ -74,7 +74,7 @@ def test_cli_reports_user_errors_without_traceback(tmp_path):
 
 def test_cli_set_overrides_fields(tmp_path):
     out = tmp_path / "o"
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--duration", "1", "--out", str(out), "--quiet",
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "seed000", "--duration", "1", "--out", str(out), "--quiet",
                            "--no-record", "--set", "can.bitrate=1000000", "--set", "controller.law=consensus",
                            "--set", "controller.params={}"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -82,6 +82,6 @@ def test_cli_set_overrides_fields(tmp_path):
 
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["per_bus"]["bus1"]["load_max"] < 0.3  # half the 500 kbit/s load
-    bad = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000", "--set", "radio.latency_s=-1"],
+    bad = subprocess.run([sys.executable, "-m", "hil", "run", "seed000", "--set", "radio.latency_s=-1"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "radio.latency_s" in bad.stderr

@@ -30,7 +30,7 @@ def test_socketcan_transport_needs_its_channels():
 def test_a_host_without_af_can_gets_a_clear_error_from_hil_run(tmp_path):
     import subprocess
 
-    proc = subprocess.run([sys.executable, "-m", "hil.cli", "run", "seed000-consensus", "--realtime", "--duration", "1",
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "seed000-consensus", "--realtime", "--duration", "1",
                            "--set", "can.transport=socketcan", "--set", 'can.socketcan_channels=["vcan0","vcan1","vcan2"]',
                            "--out", str(tmp_path), "--quiet"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr

@@ -305,9 +305,9 @@ def test_set_and_duration_adjust_every_run_of_a_sweep(tmp_path):
     for p in adjusted.points:
         assert (p.scenario.radio.latency_s, p.scenario.can.bitrate, p.scenario.duration_s) == (0.3, 250000, 1.5)
     assert not {p.run_id for p in adjusted.points} & {p.run_id for p in plain.points}  # never reuses other runs
-    bad = subprocess.run([sys.executable, "-m", "hil.cli", "sweep", str(path), "--duration", "-1"],
+    bad = subprocess.run([sys.executable, "-m", "hil", "sweep", str(path), "--duration", "-1"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--duration" in bad.stderr
-    typo = subprocess.run([sys.executable, "-m", "hil.cli", "sweep", str(path), "--set", "radio.latncy_s=0.3"],
+    typo = subprocess.run([sys.executable, "-m", "hil", "sweep", str(path), "--set", "radio.latncy_s=0.3"],
                           capture_output=True, text=True, timeout=120)
     assert typo.returncode == 2 and "radio.latncy_s" in typo.stderr and "Traceback" not in typo.stderr

@@ -120,11 +120,11 @@ def test_load_errors_name_the_field_the_module_and_the_exception(user_dir):
 
 
 def test_hil_run_takes_a_law_by_reference_and_reports_a_broken_one_without_traceback(user_dir):
-    ok = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--set", "controller.law=mylaw:Push",
+    ok = subprocess.run([sys.executable, "-m", "hil", "run", str(CRUISE), "--set", "controller.law=mylaw:Push",
                          "--duration", "0.5", "--no-record", "--quiet", "--out", "r"], capture_output=True, text=True,
                         timeout=300, cwd=user_dir)
     assert ok.returncode == 0, ok.stderr
-    bad = subprocess.run([sys.executable, "-m", "hil.cli", "run", str(CRUISE), "--set", "controller.law=broken:Law",
+    bad = subprocess.run([sys.executable, "-m", "hil", "run", str(CRUISE), "--set", "controller.law=broken:Law",
                           "--duration", "0.5", "--quiet"], capture_output=True, text=True, timeout=300, cwd=user_dir)
     assert bad.returncode == 2
     assert bad.stderr.strip() == (f"hil: error: {CRUISE}: controller.law: 'broken:Law': importing module 'broken' "
@@ -216,7 +216,7 @@ def test_hil_run_realtime_runs_the_users_law_from_their_own_folder(user_dir):
     for name in ("cantools", "numpy", "can", "scipy"):
         (user_dir / f"{name}.py").write_text(PLANTED)
     env = {**os.environ, "PLANTED_MARKER": str(marker)}
-    proc = subprocess.run([sys.executable, "-P", "-m", "hil.cli", "run", str(CRUISE), "--realtime", "--duration", "2",
+    proc = subprocess.run([sys.executable, "-P", "-m", "hil", "run", str(CRUISE), "--realtime", "--duration", "2",
                            "--ecus-per-process", "3", "--set", "controller.law=mylaw:Push",
                            "--set", "controller.params.force_n=2500.0", "--quiet", "--out", "rt"],
                           capture_output=True, text=True, timeout=300, cwd=user_dir, env=env)

@@ -16,6 +16,7 @@ from typing import Callable
 import can
 
 from hil.can.transmission import Transmission
+from hil.deferred_mf4 import enable_mf4
 
 TIME_NOTE = "trainhil {runtime}: timestamps are simulated seconds"
 LOG_FORMATS = ("asc", "blf", "mf4")
@@ -34,7 +35,7 @@ def log_format(can_log: str | bool | None) -> str | None:
         raise CanLogUnavailable(f"--can-log {can_log!r}: choose one of {', '.join(LOG_FORMATS)}")
     if fmt == "mf4":
         try:
-            import asammdf  # noqa: F401
+            enable_mf4()  # the `hil` command imported python-can without it (hil/deferred_mf4.py)
         except ImportError:
             raise CanLogUnavailable("--can-log mf4 needs asammdf: pip install 'trainhil[mf4]'") from None
     return fmt
