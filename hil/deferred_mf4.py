@@ -1,10 +1,11 @@
 """python-can without its MF4 support until a run writes MF4.
 
 python-can 4 imports asammdf as ``can`` is imported, wherever asammdf is installed (the ``mf4`` and ``dev``
-extras): about 0.9 s of CPU for pandas and sympy in every process, though only ``--can-log mf4`` uses it. The
-``hil`` command and the real-time rig's node processes therefore import python-can with asammdf held back
-(:func:`import_can_deferring_mf4`), and the run that writes MF4 loads it then (:func:`enable_mf4`, called by
-``hil.record.canlog.log_format``). Any other process (a user's script, pytest) imports python-can as usual.
+extras): 0.5-0.9 s of CPU for pandas (and sympy, where installed) in every process, though only
+``--can-log mf4`` uses it. The ``hil`` command and the real-time rig's node processes therefore import python-can
+with asammdf held back (:func:`import_can_deferring_mf4`), and the run that writes MF4 loads it then
+(:func:`enable_mf4`, called by ``hil.record.canlog.log_format``). Any other process (a user's script, pytest)
+imports python-can as usual.
 """
 from __future__ import annotations
 
