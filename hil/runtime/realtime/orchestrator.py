@@ -624,13 +624,15 @@ def _start_nodes(layout: TrainLayout, nodes_dir: Path, common: list[str], per_pr
 def launch_node(name: str, kind: str, argv: list[str], stderr_path: Path, env: dict[str, str] | None) -> Node:
     """Start one node process (``argv``: its module and arguments) with its stdout drained and its stderr to a file.
 
-    Through ``node_start``, which imports python-can without asammdf (a node writes no CAN log). ``python -P``: the working folder is not put on the node's ``sys.path``, so a module planted there (a
-    ``cantools.py``) is never imported in place of the real one; the user's own modules are found by the
-    documented rule (``ecu_sim.references``: after ``sys.path``). Its own session: a terminal's Ctrl-C reaches
-    only the orchestrator, which stops the nodes."""
+    Through ``node_start``, which imports python-can without asammdf (a node writes no CAN log). ``python -P``:
+    the working folder is not put on the node's ``sys.path``, so a module planted there (a ``cantools.py``) is
+    never imported in place of the real one; the user's own modules are found by the documented rule
+    (``ecu_sim.references``: after ``sys.path``). Its own session: a terminal's Ctrl-C reaches only the
+    orchestrator, which stops the nodes."""
+    command = [sys.executable, "-P", "-m", "hil.runtime.realtime.node_start", *argv]
     with open(stderr_path, "w") as fh:
-        proc = subprocess.Popen([sys.executable, "-P", "-m", "hil.runtime.realtime.node_start", *argv], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                stderr=fh, text=True, bufsize=1, env=env, start_new_session=True)
+        proc = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=fh, text=True,
+                                bufsize=1, env=env, start_new_session=True)
     node = Node(name, kind, proc, stderr_path)
     node.start_reader()
     return node
