@@ -13,8 +13,6 @@ from ecu_sim.references import ReferenceLoadError
 from hil.cli_values import positive_seconds
 from hil.record.canlog import CanLogUnavailable
 from hil.record.diskspace import DiskFullError
-from hil.record.metrics import dropped_by_node
-from hil.record.safety import ECU_FAILURE, violated
 from hil.record.out_dir import (OutputDirError, ensure_writable_dir, free_reserve, hold_folder, release_folder,
                                 reserve_space)
 from hil.scenario import ScenarioError, load_scenario, packaged_scenarios
@@ -86,6 +84,8 @@ def print_summary(metrics: dict, out: Path) -> None:
 
 def _drop_lines(per_bus: dict | None) -> list[str]:
     """Which nodes dropped frames (a full TX queue, bus-off, frames queued when they left), by bus; none: no line."""
+    from hil.record.metrics import dropped_by_node  # here: commands other than run start without the metrics
+
     drops = dropped_by_node(per_bus)
     return [f"{'frames dropped, by node':38s} " + ", ".join(f"{name} {n}" for name, n in drops.items())] if drops else []
 
@@ -94,6 +94,8 @@ def _safety_lines(safety: dict | None) -> list[str]:
     """One line per safety verdict that was violated (first time, count, total time), or 'safe'."""
     if not safety:
         return []
+    from hil.record.safety import ECU_FAILURE, violated
+
     verdicts = {k: v for k, v in safety.items() if isinstance(v, dict) and "violated" in v}
     bad = [f"{k}: {v['count']}x from t = {v['first_s']:.1f} s " + (
            f"({v['violations'][0]['where']}: {v['violations'][0]['text']})" if k == ECU_FAILURE
@@ -314,6 +316,8 @@ def _keep_serving(live) -> None:
 
 def unsafe_exit(metrics: dict) -> int:
     """``--check``: EXIT_UNSAFE, with the violated verdicts named on stderr, when the run was not safe; else 0."""
+    from hil.record.safety import violated
+
     bad = [f"{k} ({v['count']}x, first at t = {v['first_s']:.1f} s)"
            for k, v in violated(metrics.get("safety")).items()]
     if not bad:
@@ -424,7 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_fmu_parser(sub)
     add_silkit_parser(sub)
     add_bus_server_parser(sub)
-    from hil.runtime.realtime.recover import add_recover_parser
+    from hil.commands.recover import add_recover_parser
 
     add_recover_parser(sub)
     from hil.viewer import add_view_parser

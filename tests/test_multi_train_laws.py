@@ -10,7 +10,7 @@ from ecu_sim.controllers.potential import potential_force
 from ecu_sim.controllers.safe_range import wall_force
 from ecu_sim.observers import Eso
 from ecu_sim.view import AgentInfo, LocalView, NeighbourView, ReferenceView
-from hil.runtime.assembly import plant_info
+from hil.runtime.firmware import plant_info
 from hil.scenario import load_scenario
 from hil.scenario.model import TrackConfig
 

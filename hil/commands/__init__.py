@@ -1,2 +1,2 @@
-"""The sub-commands of `hil` that are experiments or analyses (compare, sweep, can-analysis): argument parsers and
-their handlers; `hil/cli.py` assembles them."""
+"""The sub-commands of `hil` besides run and scenarios (compare, sweep, can-analysis, fmu, silkit, recover): argument
+parsers and their handlers; `hil/cli.py` assembles them."""

@@ -8,25 +8,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
 from hil.scenario.layout import TrainLayout
 from hil.plant import Plant
 from hil.reference_profile import ReferenceProfile
-from hil.scenario.firmware import UnitFirmware, firmware_plan
+from hil.runtime.firmware import FirmwareParts, assemble_firmware
 from hil.scenario.model import Scenario
 
 
 @dataclass
-class Assembly:
-    """The network-independent parts of a run."""
+class Assembly(FirmwareParts):
+    """The network-independent parts of a run: the firmware's (layout, laws) and the plant's side."""
 
-    scenario: Scenario
-    layout: TrainLayout
     plant: Plant
     reference: ReferenceProfile
-    controllers: list[Controller]
-    firmware: list[UnitFirmware]  # per unit: law, params, ECU program, external (hil/runtime/firmware.py)
-    plant_info: PlantInfo
     seed: int
     streams: dict[str, np.random.Generator]
 
@@ -35,17 +29,6 @@ class Assembly:
         self.plant.close()
         for controller in self.controllers:
             controller.close()
-
-
-def plant_info(scenario: Scenario) -> PlantInfo:
-    """The nominal model knowledge a firmware is configured with."""
-    p = scenario.plant
-    return PlantInfo(
-        davis_c0=p.davis_c0, davis_c1=p.davis_c1, davis_c2=p.davis_c2,
-        coupler_stiffness=p.coupler_stiffness_n_per_m, coupler_damping=p.coupler_damping_ns_per_m,
-        spacing_m=scenario.trains.spacing_m, emergency_gap_m=scenario.trains.emergency_gap_m,
-        radio_range_m=scenario.radio.range_m, emergency_brake_mps2=p.failsafe.emergency_brake_mps2,
-    )
 
 
 def random_streams(seed: int) -> dict[str, np.random.Generator]:
@@ -75,16 +58,14 @@ def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     """Build layout, plant (at its initial state), reference and one controller per unit (its own law)."""
     seed = scenario.seed if seed is None else seed
     streams = random_streams(seed)
-    layout = TrainLayout.from_config(scenario.trains)
+    fw = assemble_firmware(scenario)
+    layout = fw.layout
     given = scenario.trains.initial_unit_positions  # per-unit start (uneven couplers), else couplers at rest
     x0 = np.array(given, dtype=float) if given is not None else layout.initial_positions(scenario.trains.head_positions_m)
     v0 = np.repeat(scenario.trains.initial_speeds_mps, layout.units_per_train).astype(float)
     plant = build_plant(scenario, layout, x0, v0, streams["plant"])
-    info = plant_info(scenario)
-    firmware = firmware_plan(scenario)
-    controllers = [build_controller(f.law, f.params, layout.agent_info(u), info) for u, f in enumerate(firmware)]
-    return Assembly(scenario, layout, plant, ReferenceProfile.from_config(scenario.reference), controllers, firmware,
-                    info, seed, streams)
+    return Assembly(scenario, layout, fw.controllers, fw.firmware, fw.plant_info, plant,
+                    ReferenceProfile.from_config(scenario.reference), seed, streams)
 
 
 def check_firmware(scenario: Scenario, *, ecus: bool = True) -> None:

@@ -8,15 +8,17 @@ The scenario says it all by name or reference (``controller.law``, ``ecu.program
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ecu_sim.codec import TrainDb
+from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
 from ecu_sim.programs import EcuSetup, get_program
 from ecu_sim.references import FirmwareBuildError, ReferenceLoadError, is_import_reference, module_root, one_line
 from ecu_sim.runtime import Ecu, NeighbourLink
 from hil.scenario.layout import TrainLayout
-from hil.scenario.firmware import firmware_plan
+from hil.scenario.firmware import UnitFirmware, firmware_plan
 from hil.scenario.model import Scenario
 
 
@@ -34,6 +36,39 @@ def import_roots(sc: Scenario) -> list[Path]:
                 if root is not None and root not in roots:
                     roots.append(root)
     return roots
+
+
+# ---------------------------------------------------------------------- what every unit's firmware is built from
+@dataclass
+class FirmwareParts:
+    """The parts of a run its ECUs are built from: the laws and the configuration, no plant. A real-time ECU node
+    builds only these, so it neither imports nor builds the plant (scipy, an FMU)."""
+
+    scenario: Scenario
+    layout: TrainLayout
+    controllers: list[Controller]  # one per flat unit, its own law
+    firmware: list[UnitFirmware]  # per unit: law, params, ECU program, external
+    plant_info: PlantInfo
+
+
+def plant_info(scenario: Scenario) -> PlantInfo:
+    """The nominal model knowledge a firmware is configured with."""
+    p = scenario.plant
+    return PlantInfo(
+        davis_c0=p.davis_c0, davis_c1=p.davis_c1, davis_c2=p.davis_c2,
+        coupler_stiffness=p.coupler_stiffness_n_per_m, coupler_damping=p.coupler_damping_ns_per_m,
+        spacing_m=scenario.trains.spacing_m, emergency_gap_m=scenario.trains.emergency_gap_m,
+        radio_range_m=scenario.radio.range_m, emergency_brake_mps2=p.failsafe.emergency_brake_mps2,
+    )
+
+
+def assemble_firmware(scenario: Scenario) -> FirmwareParts:
+    """The layout, one controller per unit (its own law) and the firmware plan."""
+    layout = TrainLayout.from_config(scenario.trains)
+    info = plant_info(scenario)
+    firmware = firmware_plan(scenario)
+    controllers = [build_controller(f.law, f.params, layout.agent_info(u), info) for u, f in enumerate(firmware)]
+    return FirmwareParts(scenario, layout, controllers, firmware, info)
 
 
 # ---------------------------------------------------------------------- building one unit's ECU
@@ -54,14 +89,14 @@ def neighbour_links(db: TrainDb, layout: TrainLayout, forward_aux: bool, u: int)
     return links
 
 
-def ecu_setup(parts, db: TrainDb, u: int) -> EcuSetup:
-    """What unit u's program is built from (``parts``: the run's :class:`~hil.runtime.assembly.Assembly`)."""
+def ecu_setup(parts: FirmwareParts, db: TrainDb, u: int) -> EcuSetup:
+    """What unit u's program is built from."""
     sc, layout = parts.scenario, parts.layout
     return EcuSetup(f"{layout.unit_name(u)}/ecu", u, layout.agent_info(u), parts.controllers[u], db,
                     neighbour_links(db, layout, sc.radio.forward_aux, u), sc.ecu, sc.can.sensor_period_s)
 
 
-def build_ecu(parts, db: TrainDb, u: int) -> Ecu:
+def build_ecu(parts: FirmwareParts, db: TrainDb, u: int) -> Ecu:
     """The firmware of flat unit u, as the scenario names it (both runtimes build every ECU here)."""
     program = parts.firmware[u].program
     factory = get_program(program)

@@ -31,8 +31,7 @@ from hil.runtime.realtime.paced_kernel import PacedKernel
 from hil.runtime.realtime.protocol import TURN_HOLD_MAX_S
 from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
-from hil.runtime.assembly import assemble
-from hil.runtime.firmware import build_ecu
+from hil.runtime.firmware import assemble_firmware, build_ecu
 from hil.runtime.train_db import bus_packing, load_train_db
 
 
@@ -45,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     set_timer_slack(1)
     scheduling = enter_role("ecu", args.fifo, args.cpus)
     sc = load_scenario_json(args.scenario_json)
-    parts = assemble(sc, args.seed)
+    parts = assemble_firmware(sc)  # no plant: not this process's
     layout, db = parts.layout, load_train_db(sc)
     for u in args.unit:
         if not 0 <= u < layout.n_units:

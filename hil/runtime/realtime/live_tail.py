@@ -12,7 +12,6 @@ from pathlib import Path
 
 from hil.scenario.layout import TrainLayout
 from hil.record.live import LIVE_FLUSH_WALL_S, LiveTarget
-from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import RunLog
 
 SIGNAL_STREAM = "signals.bin"  # in the nodes directory
@@ -23,6 +22,8 @@ class LiveTail:
 
     def __init__(self, target: LiveTarget, sc, layout: TrainLayout, nodes_dir: Path, wall_clock: tuple[float, float],
                  recording_id: str) -> None:
+        from hil.record.rerun_writer import RerunWriter  # rerun: not in the plant node, which imports SIGNAL_STREAM
+
         self.writer = RerunWriter(None, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m,
                                   sc.trains.emergency_gap_m, realtime=True, wall_clock=wall_clock, live=target,
                                   recording_id=recording_id)

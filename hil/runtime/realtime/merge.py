@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,10 +18,12 @@ from hil.runtime.realtime.live_tail import SIGNAL_STREAM
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, LOAD_WIDTH, spool_paths
 from hil.sample_table import row_chunks
 from hil.record import paths
-from hil.record.rerun_writer import RerunWriter
 from hil.record.runlog import BusLog, Event, RunLog
 from hil.reference_profile import ReferenceProfile
 from hil.scenario.model import Scenario
+
+if TYPE_CHECKING:  # rerun is imported when a recording is opened: a run without one (--no-record) never needs it
+    from hil.record.rerun_writer import RerunWriter
 
 
 def _read_json(path: Path) -> dict | None:
@@ -146,6 +148,8 @@ def open_recording(sc: Scenario, layout: TrainLayout, path: Path, wall_clock: tu
                    bus_names: list[str]) -> RerunWriter:
     """The run.rrd of a real-time run, for merge_nodes to stream into (``wall_clock`` = (T0 epoch s, pace), when
     the run got as far as its start: the wall-clock timeline)."""
+    from hil.record.rerun_writer import RerunWriter
+
     return RerunWriter(path, layout, sc.name, sc.plant.coupler_band_m, sc.trains.spacing_m, sc.trains.emergency_gap_m,
                        bus_names or None, realtime=True, wall_clock=wall_clock)
 

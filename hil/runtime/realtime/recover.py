@@ -164,23 +164,3 @@ def _stream_growing(nodes_dir: Path) -> bool:
         return path.stat().st_size != size
     except OSError:
         return False
-
-
-def add_recover_parser(subparsers) -> None:
-    """``hil recover RUN_DIR``."""
-    p = subparsers.add_parser("recover", help="rebuild run.rrd and metrics.json of a real-time run whose rig was killed",
-                              description=__doc__.split("\n\n")[1].replace("\n", " "))
-    p.add_argument("run_dir", help="the run's output directory (hil run --out)")
-    p.set_defaults(func=_cmd_recover)
-
-
-def _cmd_recover(args) -> int:
-    from hil.scenario import ScenarioError
-
-    try:
-        metrics = recover(Path(args.run_dir))
-    except RecoverError as exc:
-        raise ScenarioError(str(exc)) from None
-    print(f"recovered {args.run_dir}: {metrics['sim_time_s']:.1f} s simulated; run.rrd and metrics.json written "
-          f"(bus tables lost with the rig)")
-    return 0
