@@ -216,8 +216,6 @@ def _network_names(pairs: list[str]) -> dict[str, str]:
 
 def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict, silkit=None) -> int:
     """The run itself, into ``out`` (checked and held)."""
-    from hil.session import run_scenario
-
     from hil.faults.schedule import late_faults
 
     for warning in late_faults(scenario, scenario.duration_s if args.duration is None else args.duration):
@@ -230,6 +228,8 @@ def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict, silk
 
         result = run_realtime_from_args(args, scenario, out, live, _given(args, overrides))
     else:
+        from hil.session import run_scenario  # virtual time (and the ideal loop): not a real-time orchestrator's
+
         result = run_scenario(scenario, out, duration_s=args.duration, can_log=args.can_log, ideal=args.ideal,
                               record=not args.no_record, progress=not args.quiet, live=live,
                               overrides=_given(args, overrides), source=str(args.scenario), keep_signals=False,

@@ -55,6 +55,18 @@ def test_the_plant_node_and_the_orchestrator_import_rerun_only_to_record():
                           "pathlib.Path(tempfile.mkdtemp()) / 'run.rrd', None, ['bus1'])")["rerun"] is True
 
 
+def test_a_real_time_run_without_a_recording_never_imports_rerun(tmp_path):
+    """The orchestrator's process, start to metrics.json (its provenance names rerun's version without it)."""
+    out = tmp_path / "rt"
+    code = ("import contextlib, io\n"
+            "from hil.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            f"    assert main(['run', 'seed000', '--realtime', '--no-record', '--duration', '0.5', '--quiet', "
+            f"'--out', {str(out)!r}]) == 0")
+    assert imported_after(code)["rerun"] is False
+    assert json.loads((out / "metrics.json").read_text())["provenance"]["rerun_sdk"].startswith("0.")
+
+
 def test_the_firmware_parts_are_the_full_assembly_s_without_the_plant():
     """An ECU node builds its ECUs from ``assemble_firmware``: the same layout, laws and plan as the runtimes'."""
     sc = load_scenario("seed000")
