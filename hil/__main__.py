@@ -1,5 +1,5 @@
 """The ``hil`` command (also ``python -m hil``): the command line of ``hil.cli``, started with python-can's MF4
-support deferred until a run writes MF4 (``hil/deferred_mf4.py``: 0.5-0.9 s less at every start where asammdf is
+support deferred to its first use (a run that writes MF4) (``hil/deferred_mf4.py``: 0.5-0.9 s less at every start where asammdf is
 installed)."""
 from __future__ import annotations
 
