@@ -1,6 +1,6 @@
 """The ``hil`` command (also ``python -m hil``): the command line of ``hil.cli``, started with python-can's MF4
-support deferred to its first use (a run that writes MF4) (``hil/deferred_mf4.py``: 0.5-0.9 s less at every start where asammdf is
-installed)."""
+support deferred to its first use, a run that writes MF4 (``hil/deferred_mf4.py``: 0.5-0.9 s less at every start
+where asammdf is installed)."""
 from __future__ import annotations
 
 import sys

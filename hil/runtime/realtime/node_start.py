@@ -1,6 +1,6 @@
-"""How each node process of a real-time run starts: python-can imported with its MF4 support deferred to its first use (the
-rig's nodes write no CAN log; ``hil/deferred_mf4.py``: 0.5-0.9 s less per node where asammdf is installed), then the node's
-module run as ``__main__`` with the arguments after its name::
+"""How each node process of a real-time run starts: python-can imported with its MF4 support deferred to its
+first use (the rig's nodes write no CAN log; ``hil/deferred_mf4.py``: 0.5-0.9 s less per node where asammdf is
+installed), then the node's module run as ``__main__`` with the arguments after its name::
 
     python -P -m hil.runtime.realtime.node_start hil.runtime.realtime.ecu_node --run RUN ...
 """
