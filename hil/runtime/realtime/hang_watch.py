@@ -22,7 +22,7 @@ from ecu_sim.runtime import ECU_STOPPED
 from hil.record.runlog import Event
 from hil.runtime.realtime.pacing import HEARTBEAT_S
 
-HUNG_AFTER_S = 2.0  # wall seconds of silence that make a node hung (eight heartbeats)
+HUNG_AFTER_S = 2.0  # wall seconds of silence that make a node hung (four heartbeats)
 HUNG_AFTER_PERIODS = 20  # ... or this many of its periods at a slow pace, whichever is longer
 WATCHED_KINDS = ("ecu", "plant")
 

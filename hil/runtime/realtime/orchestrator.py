@@ -89,8 +89,10 @@ READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a 
 GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the message before sim time 0
 STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
 KILL_GRACE_S = 3.0
-SUPERVISE_S = 0.1  # wall seconds between the supervising loop's turns (exits, stop requests, spool, live view)
+SUPERVISE_S = 0.25  # wall seconds between the supervising loop's turns at most (exits, stop requests, spool, pumps,
+# live view); each turn wakes Python cold, some 200 µs of CPU here (docs/realtime-performance.md)
 FAULT_TICK_S = 0.01  # ... while faults are injected (their schedule is polled at each turn)
+END_POLL_S = 0.05  # ... once the run's time is over, while the nodes write their results and exit
 
 
 SIGNAL_NAMES = ("SIGINT", "SIGTERM", "SIGHUP")  # stop reasons that are a user's request, not a failure
@@ -377,7 +379,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                 hangs = HangWatch(hung_after_s(max(scenario.ecu.cycle_s, scenario.can.sensor_period_s), pace), t0)
                 stop_reason = _supervise(nodes, t0, pace, duration, stop, events, progress,
                                          _all_of(ticks) if ticks else None, join,
-                                         FAULT_TICK_S if faults is not None else SUPERVISE_S, hangs)
+                                         FAULT_TICK_S if faults is not None else min(SUPERVISE_S, spool.every_wall_s),
+                                         hangs)
                 run_wall = time.time() - t0  # from simulated t = 0 to the end (realtime_factor ~ pace)
             else:
                 stop_reason = stop.requested
@@ -665,8 +668,8 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                join: JoinWait | None = None, every_s: float = SUPERVISE_S,
                hangs: HangWatch | None = None) -> str | None:
     """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed).
-    The loop turns every ``every_s`` wall seconds (FAULT_TICK_S with fault injection, else SUPERVISE_S: the rig's
-    processes share two cores with it); ``on_tick(sim_now)`` runs every turn; ``join`` stops the run when an
+    The loop turns every ``every_s`` wall seconds (FAULT_TICK_S with fault injection, else SUPERVISE_S or a spool
+    period, the shorter: the rig's processes share two cores with it), every END_POLL_S once the run's time is over; ``on_tick(sim_now)`` runs every turn; ``join`` stops the run when an
     external unit has not joined in time; ``hangs`` kills the ECU and plant processes whose events stopped (a hung
     plant stops the run)."""
     end_wall = t0 + duration / pace
@@ -702,7 +705,7 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
             if now > end_wall + STOP_GRACE_S:
                 late = ", ".join(f"{n.kind} {n.name}" for n in nodes if n.proc.poll() is None)
                 return f"nodes did not finish: {late}"
-            time.sleep(every_s)
+            time.sleep(every_s if now < end_wall else min(every_s, END_POLL_S))
     finally:
         if bar is not None:
             bar.close()

@@ -27,7 +27,7 @@ __all__ = ["SimClock", "LatenessStats", "StopFlag", "Heartbeat", "drain", "freez
            "wait_until", "set_timer_slack"]
 PR_SET_TIMERSLACK = 29
 ALIVE_LINE = "alive"  # a node's stdout line while its event loop turns (the orchestrator's hang watch)
-HEARTBEAT_S = 0.25  # wall seconds between two of them at most
+HEARTBEAT_S = 0.5  # wall seconds between two of them at most (each wakes a reader thread of the orchestrator)
 
 
 def set_timer_slack(ns: int = 1) -> bool:
