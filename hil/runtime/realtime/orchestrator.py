@@ -89,8 +89,9 @@ READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a 
 GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the message before sim time 0
 STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
 KILL_GRACE_S = 3.0
-SUPERVISE_S = 0.25  # wall seconds between the supervising loop's turns at most (exits, stop requests, spool, pumps,
-# live view); each turn wakes Python cold, some 200 µs of CPU here (docs/realtime-performance.md)
+# wall seconds between the supervising loop's turns at most (exits, stop requests, spool, pumps, live view); each
+# turn wakes Python cold, some 200 µs of CPU here (docs/realtime-performance.md)
+SUPERVISE_S = 0.25
 FAULT_TICK_S = 0.01  # ... while faults are injected (their schedule is polled at each turn)
 END_POLL_S = 0.05  # ... once the run's time is over, while the nodes write their results and exit
 
@@ -669,9 +670,9 @@ def _supervise(nodes: list[Node], t0: float, pace: float, duration: float, stop:
                hangs: HangWatch | None = None) -> str | None:
     """Wait for the end of the run; report early exits. Returns why the run stopped early (None: completed).
     The loop turns every ``every_s`` wall seconds (FAULT_TICK_S with fault injection, else SUPERVISE_S or a spool
-    period, the shorter: the rig's processes share two cores with it), every END_POLL_S once the run's time is over; ``on_tick(sim_now)`` runs every turn; ``join`` stops the run when an
-    external unit has not joined in time; ``hangs`` kills the ECU and plant processes whose events stopped (a hung
-    plant stops the run)."""
+    period, the shorter: the rig's processes share two cores with it), every END_POLL_S once the run's time is
+    over; ``on_tick(sim_now)`` runs every turn; ``join`` stops the run when an external unit has not joined in
+    time; ``hangs`` kills the ECU and plant processes whose events stopped (a hung plant stops the run)."""
     end_wall = t0 + duration / pace
     bar = _progress_bar(duration) if progress else None
     try:
