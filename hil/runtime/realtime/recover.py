@@ -155,8 +155,6 @@ def _wait_for_plant(nodes_dir: Path, wait_s: float) -> None:
 
 def _stream_growing(nodes_dir: Path) -> bool:
     """True while the plant still appends to its signal stream (its rig died a moment ago)."""
-    from hil.runtime.realtime.live_tail import SIGNAL_STREAM
-
     path = nodes_dir / SIGNAL_STREAM
     try:
         size = path.stat().st_size
