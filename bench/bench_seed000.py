@@ -103,9 +103,11 @@ class TimedRig(VirtualRig):
         self._parts = parts
         super().__init__(sc)
         _time_laws_and_plant(parts, [e.controller for e in self.ecus], self.plant)
-        for bus in self.buses:  # the engine calls that encode and queue (ECU outputs; sensor and wayside frames)
+        for bus in self.buses:  # the engine calls that encode and queue (ECU and sensor outputs; wayside frames)
             bus.send_outputs = parts.wrap("send outputs", bus.send_outputs)  # type: ignore[method-assign]
             bus.send_frames = parts.wrap("send frames", bus.send_frames)  # type: ignore[method-assign]
+        sample = parts.wrap("sensor sampling", self.plant_io.sensor_outputs)
+        self.plant_io.sensor_outputs = sample  # type: ignore[method-assign]
 
     def _schedule(self) -> None:
         p = self._parts
@@ -136,16 +138,18 @@ def breakdown(sc, sim_s: float, repeat: int) -> None:
         if wall < net_wall:
             rig, net_wall, n = run, wall, parts
     engine_s = rig.net.busy_s  # type: ignore[attr-defined]
+    sensor_sends = n["sensors"] - n["sensor sampling"]  # the sensors' send_outputs calls
+    ecu_sends = n["send outputs"] - sensor_sends
     rows = [
         ("plant integration", i["plant integration"], n["plant integration"]),
         ("laws", i["law"], n["law"]),
         ("the loop's view building and commands", i["control step"] - i["law"], 0.0),
-        ("ECU firmware around the law (inputs, E2E, outputs)", 0.0, n["ECU task"] - n["law"] - n["send outputs"]),
-        ("engine: ECU outputs encoded and queued", 0.0, n["send outputs"]),
-        ("engine: sensor and wayside frames queued", 0.0, n["send frames"]),
+        ("ECU firmware around the law (inputs, E2E, outputs)", 0.0, n["ECU task"] - n["law"] - ecu_sends),
+        ("engine: ECU outputs encoded and queued", 0.0, ecu_sends),
+        ("engine: sensor and wayside frames encoded and queued", 0.0, sensor_sends + n["send frames"]),
         ("engine: event loop (arbitration, delivery, radio)", 0.0, engine_s - n["send outputs"] - n["send frames"]),
         ("commands applied to the plant", 0.0, n["commands"]),
-        ("sensor and wayside sampling and encoding", 0.0, n["sensors"] + n["wayside"] - n["send frames"]),
+        ("sensor sampling, wayside sampling and encoding", 0.0, n["sensor sampling"] + n["wayside"] - n["send frames"]),
         ("plant task: the rest (recording)", 0.0,
          n["plant task"] - n["plant integration"] - n["commands"] - n["sensors"]),
     ]

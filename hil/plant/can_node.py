@@ -11,6 +11,7 @@ from __future__ import annotations
 import trainhil_engine as engine
 
 from ecu_sim.codec import TrainDb
+from ecu_sim.runtime import Output
 from ecu_sim.view import BrakeMode
 from hil.scenario.layout import TrainLayout
 from hil.plant.command_streams import CommandStreams
@@ -90,13 +91,15 @@ class PlantCanNode:
         """Commands refused for their sequence, per unit name (metrics.json ``plant_command_rejects``)."""
         return self.streams.report([self.layout.unit_name(u) for u in range(self.layout.n_units)])
 
-    def sensor_frames(self) -> list[tuple[int, int, int, bytes]]:
-        """Sample every unit now: (train, unit index, frame id, data) per unit, numbered by sample."""
+    def sensor_outputs(self) -> list[list[Output]]:
+        """Sample every unit now: per train bus, its units' Sensor frames in unit order, not yet encoded (message,
+        (x, v), sample number), which the engine encodes and sends in one call per bus, as it does an ECU's."""
         xs, vs = self.plant.measure()
-        counters, out = self.sensor_counter, []
+        counters = self.sensor_counter
+        out: list[list[Output]] = [[] for _ in range(self.layout.n_trains)]
         for u, ((train, codec), x, v) in enumerate(zip(self._sensor_out, xs.tolist(), vs.tolist())):
             counters[u] = c = (counters[u] + 1) & 0xF
-            out.append((train, u, codec.frame_id, codec.encode((x, v), c)))
+            out[train].append((codec, (x, v), c))
         return out
 
     def reference_frames(self, t: float) -> list[tuple[int, bytes]]:

@@ -177,11 +177,8 @@ class VirtualRig:
             self.plant_io.refuse(self._command_train[table], frame_id, data, t_ns * 1e-9)
 
     def _publish_sensors(self) -> None:
-        per_train: list[list[tuple[int, bytes]]] = [[] for _ in self.buses]
-        for train, _, frame_id, data in self.plant_io.sensor_frames():
-            per_train[train].append((frame_id, data))
-        for bus, node, frames in zip(self.buses, self._plant_nodes, per_train):
-            bus.send_frames(node, frames)
+        for bus, node, outputs in zip(self.buses, self._plant_nodes, self.plant_io.sensor_outputs()):
+            bus.send_outputs(node, outputs)
 
     def _wayside_tick(self, t_ns: int) -> None:
         frames = self.plant_io.reference_frames(t_ns * 1e-9)

@@ -154,14 +154,12 @@ class PlantNode:
 
     # ---- sending
     def publish_sensors(self, t: float) -> None:
-        per_train: list[list[tuple[int, bytes]]] = [[] for _ in self.buses]
-        samples: list[list[tuple[int, int]]] = [[] for _ in self.buses]  # (unit, sample counter): for the latency
-        for train, u, frame_id, data in self.io.sensor_frames():
-            samples[train].append((u, data[1] & 0xF))
-            per_train[train].append((frame_id, data))
-        for train, frames in enumerate(per_train):
-            self.inboxes[train].published(t, samples[train])
-            self.frames.send(train, frames, end_turn=True)
+        """Every unit's Sensor frame, one engine call per train bus; each unit's sample number noted for the
+        sensor-to-actuator latency."""
+        for train, outputs in enumerate(self.io.sensor_outputs()):
+            first = self.layout.index(train, 0)
+            self.inboxes[train].published(t, [(first + k, counter) for k, (_, _, counter) in enumerate(outputs)])
+            self.frames.send_outputs(train, outputs, end_turn=True)
 
     def publish_reference(self, t: float) -> None:
         frames = self.io.reference_frames(t)
