@@ -388,7 +388,7 @@ def main() -> None:
             virtual, virtual_loop = virtual_run(sc, args.duration)
             print(f"{r['ecus']:5d} {r['per_process']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['misses']:7d} "
                   f"{r['skipped']:7d} {r['plant_p99_ms']:9.2f} {r['e2e_p99_ms']:8.1f} {r['lost']:6d} "
-                  f"{r['cpu_per_sim_s']:11.3f}  {'yes' if r['keeps_up'] else 'no'}"
+                  f"{r['cpu_per_sim_s']:11.4f}  {'yes' if r['keeps_up'] else 'no'}"
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
                   f"  ({r['scheduling']})"
@@ -418,7 +418,7 @@ def main() -> None:
                   f"{r['overshoot_mps']:.2f} m/s, coupler max {r['coupler_max_m']:.3f} m")
             print("      " + loop_comparison(r["loop"], virtual_loop))
             print("      " + stall_line(r["stalls"], r["misses_in_stalls"], r["plant_misses_in_stalls"]))
-            print(f"      virtual time, same scenario: {virtual:.3f} CPU s/sim s; real time costs "
+            print(f"      virtual time, same scenario: {virtual:.4f} CPU s/sim s; real time costs "
                   f"{r['cpu_per_sim_s'] / virtual:.2f} x that   (target <= 4)")
             if r["keeps_up"]:
                 best = max(best, n)
