@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from ecu_sim.codec import TrainDb
 from ecu_sim.controllers.base import Controller, PlantInfo, build_controller
@@ -20,9 +19,6 @@ from ecu_sim.runtime import Ecu, NeighbourLink
 from hil.scenario.layout import TrainLayout
 from hil.scenario.firmware import UnitFirmware, firmware_plan
 from hil.scenario.model import Scenario
-
-
-EcuFactory = Callable[[Any, TrainDb, int], Ecu]  # (assembly, db, flat unit) -> the unit's ECU
 
 
 def import_roots(sc: Scenario) -> list[Path]:
@@ -49,6 +45,9 @@ class FirmwareParts:
     controllers: list[Controller]  # one per flat unit, its own law
     firmware: list[UnitFirmware]  # per unit: law, params, ECU program, external
     plant_info: PlantInfo
+
+
+EcuFactory = Callable[[FirmwareParts, TrainDb, int], Ecu]  # (the parts, or the whole assembly; db; flat unit) -> ECU
 
 
 def plant_info(scenario: Scenario) -> PlantInfo:
