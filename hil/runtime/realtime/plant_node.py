@@ -157,8 +157,8 @@ class PlantNode:
         """Every unit's Sensor frame, one engine call per train bus; each unit's sample number noted for the
         sensor-to-actuator latency."""
         for train, outputs in enumerate(self.io.sensor_outputs()):
-            first = self.layout.index(train, 0)
-            self.inboxes[train].published(t, [(first + k, counter) for k, (_, _, counter) in enumerate(outputs)])
+            samples = [(u, counter) for u, (_, _, counter) in zip(self.train_units(train), outputs)]
+            self.inboxes[train].published(t, samples)
             self.frames.send_outputs(train, outputs, end_turn=True)
 
     def publish_reference(self, t: float) -> None:
