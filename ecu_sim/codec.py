@@ -187,13 +187,31 @@ def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
                         int(attr.value), specs, [s.unit or "" for s in payload])
 
 
+_PARSED: dict[tuple[str, bytes], cantools.database.can.Database] = {}  # (path, contents) -> cantools' model
+_PARSED_KEPT = 8
+
+
+def _parsed_dbc(path: Path) -> cantools.database.can.Database:
+    """cantools' model of the DBC at ``path``, parsed once per process for each content of the file: parsing takes
+    about 0.1 s, and a run's checks, its rig and a test suite load the same DBC again and again. The model is
+    shared, so it is read only (each ``TrainDb`` compiles its own codecs, with their own saturation counts)."""
+    key = (str(path.resolve()), path.read_bytes())
+    database = _PARSED.get(key)
+    if database is None:
+        database = cantools.database.load_file(path, strict=True)
+        if len(_PARSED) >= _PARSED_KEPT:
+            del _PARSED[next(iter(_PARSED))]  # the oldest
+        _PARSED[key] = database
+    return database
+
+
 class TrainDb:
     """The train DBC: cantools' object model plus one compiled codec per message."""
 
     def __init__(self, path: Path, database: cantools.database.can.Database, codecs: Sequence[MessageCodec],
                  max_units: int, containers: Sequence[Container] = ()) -> None:
         self.path = path
-        self.database = database  # cantools object model (not used per frame)
+        self.database = database  # cantools object model (not used per frame; shared by loads of one file: read only)
         self.max_units = max_units
         self.containers: tuple[Container, ...] = tuple(containers)
         self.container_by_id: dict[int, Container] = {c.frame_id: c for c in containers}
@@ -208,7 +226,7 @@ class TrainDb:
         if not path.is_file():
             raise FileNotFoundError(f"train DBC not found: {path}")
         try:
-            database = cantools.database.load_file(path, strict=True)
+            database = _parsed_dbc(path)
         except cantools.errors.Error as exc:
             raise DbcMismatchError(f"DBC {path}: cantools cannot load it: {exc}") from exc
         every = {m.name: m for m in database.messages}

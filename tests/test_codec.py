@@ -231,3 +231,21 @@ def test_dbc_mismatch_is_a_clear_error(tmp_path, kind, message) -> None:
 def test_missing_file_names_it(tmp_path) -> None:
     with pytest.raises(FileNotFoundError, match="nope.dbc"):
         TrainDb.load(tmp_path / "nope.dbc")
+
+
+def test_a_dbc_is_parsed_once_per_content_and_each_load_counts_its_own_saturations(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "train.dbc"
+    path.write_text(REPO_DBC.read_text())
+    parses = []
+    parse = codec_mod.cantools.database.load_file
+    monkeypatch.setattr(codec_mod.cantools.database, "load_file", lambda *a, **k: parses.append(a) or parse(*a, **k))
+    first, second = TrainDb.load(path), TrainDb.load(path)
+    assert len(parses) == 1 and second.database is first.database
+    first.traction_cmd(0).encode((0, 1e12), 1)  # saturates the force in the first load's codec only
+    assert first.total_saturations() == {"TractionCmd_U01.Force": 1} and second.total_saturations() == {}
+    path.write_text(REPO_DBC.read_text().replace('CM_ BO_ ', 'CM_ BO_  ', 1))  # the same model, other bytes
+    third = TrainDb.load(path)
+    assert len(parses) == 2 and third.database is not first.database
+    path.write_text(corrupt(REPO_DBC.read_text(), "no_crc"))  # and an edit the cached model must not hide
+    with pytest.raises(DbcMismatchError, match="E2E signal CRC is missing"):
+        TrainDb.load(path)
