@@ -199,9 +199,10 @@ def _parsed_dbc(path: Path) -> cantools.database.can.Database:
     database = _PARSED.get(key)
     if database is None:
         database = cantools.database.load_file(path, strict=True)
-        if len(_PARSED) >= _PARSED_KEPT:
-            del _PARSED[next(iter(_PARSED))]  # the oldest
-        _PARSED[key] = database
+        if path.read_bytes() == key[1]:  # the content parsed is the one read
+            if len(_PARSED) >= _PARSED_KEPT:
+                del _PARSED[next(iter(_PARSED))]  # the oldest
+            _PARSED[key] = database
     return database
 
 

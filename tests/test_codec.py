@@ -249,3 +249,21 @@ def test_a_dbc_is_parsed_once_per_content_and_each_load_counts_its_own_saturatio
     path.write_text(corrupt(REPO_DBC.read_text(), "no_crc"))  # and an edit the cached model must not hide
     with pytest.raises(DbcMismatchError, match="E2E signal CRC is missing"):
         TrainDb.load(path)
+
+
+def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_first(tmp_path, monkeypatch) -> None:
+    good = REPO_DBC.read_text()
+    path = tmp_path / "train.dbc"
+    path.write_text(good)
+    parse = codec_mod.cantools.database.load_file
+
+    def saved_anew_before_the_parse(*args, **kwargs):
+        path.write_text(corrupt(good, "no_crc"))  # between the read of the content and its parse
+        return parse(*args, **kwargs)
+
+    monkeypatch.setattr(codec_mod.cantools.database, "load_file", saved_anew_before_the_parse)
+    with pytest.raises(DbcMismatchError, match="E2E signal CRC is missing"):
+        TrainDb.load(path)  # what it parsed is what the file holds now
+    monkeypatch.setattr(codec_mod.cantools.database, "load_file", parse)
+    path.write_text(good)
+    assert TrainDb.load(path).max_units > 0  # the good content is parsed, not the other one taken for it
