@@ -187,15 +187,16 @@ def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
                         int(attr.value), specs, [s.unit or "" for s in payload])
 
 
-_PARSED: dict[tuple[str, bytes], cantools.database.can.Database] = {}  # (path, contents) -> cantools' model
+_PARSED: dict[tuple[str, bytes], cantools.database.can.Database] = {}  # (suffix, contents) -> cantools' model
 _PARSED_KEPT = 8
 
 
 def _parsed_dbc(path: Path) -> cantools.database.can.Database:
-    """cantools' model of the DBC at ``path``, parsed once per process for each content of the file: parsing takes
-    about 0.1 s, and a run's checks, its rig and a test suite load the same DBC again and again. The model is
-    shared, so it is read only (each ``TrainDb`` compiles its own codecs, with their own saturation counts)."""
-    key = (str(path.resolve()), path.read_bytes())
+    """cantools' model of the DBC at ``path``, parsed once per process for each content (and file suffix, which
+    cantools reads the format from): parsing takes about 0.1 s, and a run's checks, its rig and a test suite load the
+    same DBC again and again, often copied. The model is shared, so it is read only (each ``TrainDb`` compiles its
+    own codecs, with their own saturation counts)."""
+    key = (path.suffix.lower(), path.read_bytes())
     database = _PARSED.get(key)
     if database is None:
         database = cantools.database.load_file(path, strict=True)

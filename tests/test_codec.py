@@ -234,13 +234,16 @@ def test_missing_file_names_it(tmp_path) -> None:
 
 
 def test_a_dbc_is_parsed_once_per_content_and_each_load_counts_its_own_saturations(tmp_path, monkeypatch) -> None:
-    path = tmp_path / "train.dbc"
+    path, copy = tmp_path / "train.dbc", tmp_path / "copy" / "train.dbc"
     path.write_text(REPO_DBC.read_text())
+    copy.parent.mkdir()
+    copy.write_text(REPO_DBC.read_text())
     parses = []
     parse = codec_mod.cantools.database.load_file
+    monkeypatch.setattr(codec_mod, "_PARSED", {})  # nothing parsed yet in this process
     monkeypatch.setattr(codec_mod.cantools.database, "load_file", lambda *a, **k: parses.append(a) or parse(*a, **k))
-    first, second = TrainDb.load(path), TrainDb.load(path)
-    assert len(parses) == 1 and second.database is first.database
+    first, second = TrainDb.load(path), TrainDb.load(copy)
+    assert len(parses) == 1 and second.database is first.database and second.path == copy
     first.traction_cmd(0).encode((0, 1e12), 1)  # saturates the force in the first load's codec only
     assert first.total_saturations() == {"TractionCmd_U01.Force": 1} and second.total_saturations() == {}
     path.write_text(REPO_DBC.read_text().replace('CM_ BO_ ', 'CM_ BO_  ', 1))  # the same model, other bytes
@@ -261,6 +264,7 @@ def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_f
         path.write_text(corrupt(good, "no_crc"))  # between the read of the content and its parse
         return parse(*args, **kwargs)
 
+    monkeypatch.setattr(codec_mod, "_PARSED", {})  # nothing parsed yet in this process
     monkeypatch.setattr(codec_mod.cantools.database, "load_file", saved_anew_before_the_parse)
     with pytest.raises(DbcMismatchError, match="E2E signal CRC is missing"):
         TrainDb.load(path)  # what it parsed is what the file holds now
