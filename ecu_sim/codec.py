@@ -213,7 +213,7 @@ class TrainDb:
     def __init__(self, path: Path, database: cantools.database.can.Database, codecs: Sequence[MessageCodec],
                  max_units: int, containers: Sequence[Container] = ()) -> None:
         self.path = path
-        self.database = database  # cantools object model (not used per frame; shared by loads of one file: read only)
+        self.database = database  # cantools object model (not used per frame; shared by loads of one content: read only)
         self.max_units = max_units
         self.containers: tuple[Container, ...] = tuple(containers)
         self.container_by_id: dict[int, Container] = {c.frame_id: c for c in containers}
