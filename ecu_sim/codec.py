@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import re
 import sys
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,6 +190,7 @@ def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
 
 _PARSED: dict[tuple[str, bytes], cantools.database.can.Database] = {}  # (suffix, contents) -> cantools' model
 _PARSED_KEPT = 8
+_PARSED_LOCK = threading.Lock()  # a sweep's threads load DBCs at once
 
 
 def _parsed_dbc(path: Path) -> cantools.database.can.Database:
@@ -197,13 +199,14 @@ def _parsed_dbc(path: Path) -> cantools.database.can.Database:
     same DBC again and again, often copied. The model is shared, so it is read only (each ``TrainDb`` compiles its
     own codecs, with their own saturation counts)."""
     key = (path.suffix.lower(), path.read_bytes())
-    database = _PARSED.get(key)
-    if database is None:
-        database = cantools.database.load_file(path, strict=True)
-        if path.read_bytes() == key[1]:  # the content parsed is the one read
-            if len(_PARSED) >= _PARSED_KEPT:
-                del _PARSED[next(iter(_PARSED))]  # the oldest
-            _PARSED[key] = database
+    with _PARSED_LOCK:
+        database = _PARSED.get(key)
+        if database is None:
+            database = cantools.database.load_file(path, strict=True)
+            if path.read_bytes() == key[1]:  # the content parsed is the one read
+                if len(_PARSED) >= _PARSED_KEPT:
+                    del _PARSED[next(iter(_PARSED))]  # the oldest
+                _PARSED[key] = database
     return database
 
 

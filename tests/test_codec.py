@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import random
 import re
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -271,3 +272,16 @@ def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_f
     monkeypatch.setattr(codec_mod.cantools.database, "load_file", parse)
     path.write_text(good)
     assert TrainDb.load(path).max_units > 0  # the good content is parsed, not the other one taken for it
+
+
+def test_threads_loading_one_dbc_at_once_share_one_parse(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "train.dbc"
+    path.write_text(REPO_DBC.read_text())
+    parses = []
+    parse = codec_mod.cantools.database.load_file
+    monkeypatch.setattr(codec_mod, "_PARSED", {})  # nothing parsed yet in this process
+    monkeypatch.setattr(codec_mod.cantools.database, "load_file", lambda *a, **k: parses.append(a) or parse(*a, **k))
+    with ThreadPoolExecutor(8) as pool:  # a sweep's threads, each building its rig
+        loaded = list(pool.map(lambda _: TrainDb.load(path), range(8)))
+    assert len(parses) == 1 and all(db.database is loaded[0].database for db in loaded)
+    assert len({id(db.by_name["TractionCmd_U01"]) for db in loaded}) == 8  # each load's own codecs
