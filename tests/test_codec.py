@@ -234,15 +234,21 @@ def test_missing_file_names_it(tmp_path) -> None:
         TrainDb.load(tmp_path / "nope.dbc")
 
 
-def test_a_dbc_is_parsed_once_per_content_and_each_load_counts_its_own_saturations(tmp_path, monkeypatch) -> None:
+@pytest.fixture()
+def parses(monkeypatch) -> list[tuple]:
+    """cantools' parses of a DBC from now on (their arguments), with nothing parsed yet in this process."""
+    seen: list[tuple] = []
+    parse = codec_mod.cantools.database.load_file
+    monkeypatch.setattr(codec_mod, "_PARSED", {})
+    monkeypatch.setattr(codec_mod.cantools.database, "load_file", lambda *a, **k: seen.append(a) or parse(*a, **k))
+    return seen
+
+
+def test_a_dbc_is_parsed_once_per_content_and_each_load_counts_its_own_saturations(tmp_path, parses) -> None:
     path, copy = tmp_path / "train.dbc", tmp_path / "copy" / "train.dbc"
     path.write_text(REPO_DBC.read_text())
     copy.parent.mkdir()
     copy.write_text(REPO_DBC.read_text())
-    parses = []
-    parse = codec_mod.cantools.database.load_file
-    monkeypatch.setattr(codec_mod, "_PARSED", {})  # nothing parsed yet in this process
-    monkeypatch.setattr(codec_mod.cantools.database, "load_file", lambda *a, **k: parses.append(a) or parse(*a, **k))
     first, second = TrainDb.load(path), TrainDb.load(copy)
     assert len(parses) == 1 and second.database is first.database and second.path == copy
     first.traction_cmd(0).encode((0, 1e12), 1)  # saturates the force in the first load's codec only
@@ -255,7 +261,8 @@ def test_a_dbc_is_parsed_once_per_content_and_each_load_counts_its_own_saturatio
         TrainDb.load(path)
 
 
-def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_first(tmp_path, monkeypatch) -> None:
+def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_first(tmp_path, monkeypatch,
+                                                                                     parses) -> None:
     good = REPO_DBC.read_text()
     path = tmp_path / "train.dbc"
     path.write_text(good)
@@ -265,7 +272,6 @@ def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_f
         path.write_text(corrupt(good, "no_crc"))  # between the read of the content and its parse
         return parse(*args, **kwargs)
 
-    monkeypatch.setattr(codec_mod, "_PARSED", {})  # nothing parsed yet in this process
     monkeypatch.setattr(codec_mod.cantools.database, "load_file", saved_anew_before_the_parse)
     with pytest.raises(DbcMismatchError, match="E2E signal CRC is missing"):
         TrainDb.load(path)  # what it parsed is what the file holds now
@@ -274,13 +280,9 @@ def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_f
     assert TrainDb.load(path).max_units > 0  # the good content is parsed, not the other one taken for it
 
 
-def test_threads_loading_one_dbc_at_once_share_one_parse(tmp_path, monkeypatch) -> None:
+def test_threads_loading_one_dbc_at_once_share_one_parse(tmp_path, parses) -> None:
     path = tmp_path / "train.dbc"
     path.write_text(REPO_DBC.read_text())
-    parses = []
-    parse = codec_mod.cantools.database.load_file
-    monkeypatch.setattr(codec_mod, "_PARSED", {})  # nothing parsed yet in this process
-    monkeypatch.setattr(codec_mod.cantools.database, "load_file", lambda *a, **k: parses.append(a) or parse(*a, **k))
     with ThreadPoolExecutor(8) as pool:  # a sweep's threads, each building its rig
         loaded = list(pool.map(lambda _: TrainDb.load(path), range(8)))
     assert len(parses) == 1 and all(db.database is loaded[0].database for db in loaded)
