@@ -13,6 +13,7 @@ lists the messages they carry in byte order, and whose signals are those message
 """
 from __future__ import annotations
 
+import io
 import math
 import re
 import sys
@@ -191,6 +192,7 @@ def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
 _PARSED: dict[tuple[str, bytes], cantools.database.can.Database] = {}  # (suffix, contents) -> cantools' model
 _PARSED_KEPT = 8
 _PARSED_LOCK = threading.Lock()  # a sweep's threads load DBCs at once
+_CP1252_FORMATS = ("dbc", "sym")  # cantools' load_file reads these as cp1252, every other format as UTF-8
 
 
 def _parsed_dbc(path: Path) -> cantools.database.can.Database:
@@ -202,12 +204,22 @@ def _parsed_dbc(path: Path) -> cantools.database.can.Database:
     with _PARSED_LOCK:
         database = _PARSED.get(key)
         if database is None:
-            database = cantools.database.load_file(path, strict=True)
-            if path.read_bytes() == key[1]:  # the content parsed is the one read
-                if len(_PARSED) >= _PARSED_KEPT:
-                    del _PARSED[next(iter(_PARSED))]  # the oldest
-                _PARSED[key] = database
+            database = _parse(*key)
+            if len(_PARSED) >= _PARSED_KEPT:
+                del _PARSED[next(iter(_PARSED))]  # the oldest
+            _PARSED[key] = database
     return database
+
+
+def _parse(suffix: str, content: bytes) -> cantools.database.can.Database:
+    """cantools' model of ``content``, read as its ``load_file`` reads a file of that suffix. Parsing the bytes
+    already read means the model is always the content it is remembered by (a file saved anew meanwhile is parsed
+    at its next load), and never goes through cantools' pickled disk cache, which ``CANTOOLS_CACHE_DIR`` would
+    turn on and anyone who can write to that folder could fill."""
+    database_format = suffix[1:]
+    encoding = "cp1252" if database_format in _CP1252_FORMATS else "utf-8"
+    text = io.TextIOWrapper(io.BytesIO(content), encoding=encoding, errors="replace").read()  # as open() reads it
+    return cantools.database.load_string(text, database_format=database_format, strict=True)
 
 
 class TrainDb:

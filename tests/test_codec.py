@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import random
 import re
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -238,9 +239,9 @@ def test_missing_file_names_it(tmp_path) -> None:
 def parses(monkeypatch) -> list[tuple]:
     """cantools' parses of a DBC from now on (their arguments), with nothing parsed yet in this process."""
     seen: list[tuple] = []
-    parse = codec_mod.cantools.database.load_file
+    parse = codec_mod.cantools.database.load_string
     monkeypatch.setattr(codec_mod, "_PARSED", {})
-    monkeypatch.setattr(codec_mod.cantools.database, "load_file", lambda *a, **k: seen.append(a) or parse(*a, **k))
+    monkeypatch.setattr(codec_mod.cantools.database, "load_string", lambda *a, **k: seen.append(a) or parse(*a, **k))
     return seen
 
 
@@ -261,23 +262,45 @@ def test_a_dbc_is_parsed_once_per_content_and_each_load_counts_its_own_saturatio
         TrainDb.load(path)
 
 
-def test_a_dbc_saved_anew_as_it_is_read_is_not_remembered_for_the_content_read_first(tmp_path, monkeypatch,
-                                                                                     parses) -> None:
+def test_a_dbc_saved_anew_during_a_load_is_loaded_as_read_and_parsed_again_at_the_next(tmp_path, monkeypatch,
+                                                                                       parses) -> None:
     good = REPO_DBC.read_text()
     path = tmp_path / "train.dbc"
     path.write_text(good)
-    parse = codec_mod.cantools.database.load_file
+    read_bytes = Path.read_bytes
 
-    def saved_anew_before_the_parse(*args, **kwargs):
-        path.write_text(corrupt(good, "no_crc"))  # between the read of the content and its parse
-        return parse(*args, **kwargs)
+    def read_then_saved_anew(self: Path) -> bytes:
+        content = read_bytes(self)
+        if self == path:
+            path.write_text(corrupt(good, "no_crc"))  # between the read of the content and its parse
+        return content
 
-    monkeypatch.setattr(codec_mod.cantools.database, "load_file", saved_anew_before_the_parse)
+    monkeypatch.setattr(Path, "read_bytes", read_then_saved_anew)
+    assert TrainDb.load(path).max_units > 0  # the content it read, not the file's new one
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
     with pytest.raises(DbcMismatchError, match="E2E signal CRC is missing"):
-        TrainDb.load(path)  # what it parsed is what the file holds now
-    monkeypatch.setattr(codec_mod.cantools.database, "load_file", parse)
-    path.write_text(good)
-    assert TrainDb.load(path).max_units > 0  # the good content is parsed, not the other one taken for it
+        TrainDb.load(path)  # the new content is parsed, not the first one's model taken for it
+    assert len(parses) == 2
+
+
+def test_a_dbc_is_read_as_cantools_reads_the_file(tmp_path, parses) -> None:
+    """cp1252 text and CRLF line ends, as cantools' ``load_file`` opens a .dbc."""
+    path = tmp_path / "train.dbc"
+    text = REPO_DBC.read_text().replace("Wayside/ATO node", "Wayside/ATO node \u00e9", 1)
+    path.write_bytes(text.replace("\n", "\r\n").encode("cp1252"))
+    assert TrainDb.load(path).database.get_node_by_name("Wayside").comment.startswith("Wayside/ATO node \u00e9:")
+
+
+def test_a_dbc_load_never_goes_through_cantools_disk_cache(tmp_path, monkeypatch, parses) -> None:
+    """``CANTOOLS_CACHE_DIR`` turns on cantools' pickled cache, which whoever can write to that folder could fill."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("CANTOOLS_CACHE_DIR", str(cache))
+    path = tmp_path / "train.dbc"
+    path.write_text(REPO_DBC.read_text())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # cantools warns that the cache needs diskcache, where it is not installed
+        TrainDb.load(path)
+    assert len(parses) == 1 and not cache.exists()
 
 
 def test_threads_loading_one_dbc_at_once_share_one_parse(tmp_path, parses) -> None:
