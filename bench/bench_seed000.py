@@ -9,6 +9,11 @@ makes per frame, timed in isolation.
 Targets: network <= 2x the ideal loop, >= 40x real time on one core, engine cost <= 1 us per frame; a group of
 3 trains x 8 units at 1 Mbit/s >= 20x real time (--units 8 --bitrate 1000000).
     python bench/bench_seed000.py [--sim 30] [--trains 3 --units 4 --bitrate 500000] [--python-model] [--profile]
+                                  [--breakdown] [--floor]
+
+``--floor`` also runs the rig with a bare firmware around each law (``bare_cycle``: the same reads, alignment, law
+and outputs, none of the flags, stale handling, guard or monitors), a bound on what any Python firmware could cost,
+and says whether its loop is the standard firmware's.
 """
 from __future__ import annotations
 
@@ -19,10 +24,15 @@ import pstats
 import sys
 import time
 import timeit
+from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' oracles (the Python network)
 
+from ecu_sim.runtime import Ecu, Output  # noqa: E402
+from ecu_sim.view import BrakeMode  # noqa: E402
 from hil.runtime.ideal import IdealLoop  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
@@ -119,6 +129,80 @@ class TimedRig(VirtualRig):
         super()._schedule()
 
 
+def bare_cycle(ecu: Ecu) -> Callable[[float], list[Output]]:
+    """Not firmware, a bound: the least an ECU's cycle does for the same loop. One read per input slot, the
+    neighbours aligned to our own sample, the law, the three outputs; no flags, stale-data modes, guard around the
+    law, monitors or counters. Reads the ECU's internals; a nominal run needs none of what it leaves out."""
+    mb, view, law, mass = ecu.mailbox, ecu.view, ecu.controller, ecu.agent.mass_kg
+    out_cmd, out_state, out_aux = ecu.sent_messages()
+    sensor, samples, window, neighbours = ecu._sensor.index, ecu._samples, ecu._align_window_s, ecu._neighbour_io
+    ref_slots = None if ecu._ref is None else (ecu._ref.index, ecu._ref_aux.index)  # type: ignore[union-attr]
+    timeout, ref_timeout = ecu._timeouts[0], ecu._timeouts[1]
+    read, counter = mb.read, [0]
+
+    def cycle_outputs(t: float) -> list[Output]:
+        view.t = t
+        mb.refresh()
+        counter[0] = c = (counter[0] + 1) & 0xF
+        ok, _, values, k, t_good = read(sensor, t, timeout)
+        if not ok:
+            return [(out_cmd, (int(BrakeMode.SERVICE), 0.0), c)]
+        x, v = view.x, view.v = values
+        samples[k] = (x, v, t_good)
+        for nv, state, aux in neighbours:
+            nv.valid, nv.age_s, values, kn, tn = read(state, t, timeout)
+            if nv.valid:
+                nv.x, nv.v = values
+                own = samples[kn]
+                if own is not None and 0.0 <= tn - own[2] < window:
+                    nv.x, nv.v = nv.x + x - own[0], nv.v + v - own[1]
+                if aux >= 0 and (aux_read := read(aux, t, timeout))[0] and aux_read[2]:
+                    nv.a, nv.u = aux_read[2]
+        if ref_slots is not None:
+            ref = view.ref
+            ref.valid, ref.age_s, values, _, _ = read(ref_slots[0], t, ref_timeout)
+            if ref.valid:
+                ref.x, ref.v = values
+                ref.a = (mb.values(ref_slots[1]) or (0.0,))[0]
+        cmd = law.step(view)
+        accel = cmd.accel_mps2 if cmd.accel_mps2 == cmd.accel_mps2 else cmd.force_n / mass
+        return [(out_cmd, (int(cmd.mode), cmd.force_n), c), (out_state, (x, v), k), (out_aux, (accel, cmd.force_n), k)]
+    return cycle_outputs
+
+
+class BareFirmwareRig(VirtualRig):
+    """The rig with ``bare_cycle`` in place of every ECU's standard cycle (their engine sends unchanged)."""
+
+    def __init__(self, sc) -> None:
+        super().__init__(sc)
+        for ecu in self.ecus:
+            ecu.cycle_outputs = bare_cycle(ecu)  # type: ignore[method-assign, assignment]
+
+
+def same_loop(a: VirtualRig, b: VirtualRig) -> bool:
+    """Whether two runs of one scenario left the plant in the same state to the last bit."""
+    return bool(np.array_equal(a.plant.x, b.plant.x) and np.array_equal(a.plant.v, b.plant.v))
+
+
+def floor(sc, sim_s: float, repeat: int) -> None:
+    """The network run with the standard firmware and with ``bare_cycle``, against the ideal loop (interleaved,
+    the fastest of ``repeat`` runs of each)."""
+    walls = {"ideal loop": float("inf"), "network, standard firmware": float("inf"),
+             "network, bare firmware": float("inf")}
+    builds = {"ideal loop": lambda: IdealLoop(sc), "network, standard firmware": lambda: VirtualRig(sc),
+              "network, bare firmware": lambda: BareFirmwareRig(sc)}
+    runs: dict[str, object] = {}
+    for _ in range(repeat):
+        for name, build in builds.items():
+            runs[name], wall = timed(build, sim_s)
+            walls[name] = min(walls[name], wall)
+    print("the firmware's floor: a bare cycle around each law (bare_cycle), a bound, not firmware:")
+    for name, wall in walls.items():
+        print(f"  {name:28s} {sim_s / wall:6.1f} x real time   {wall / walls['ideal loop']:5.2f} x the ideal loop")
+    same = same_loop(runs["network, standard firmware"], runs["network, bare firmware"])  # type: ignore[arg-type]
+    print(f"  the bare firmware's loop is the standard one's (plant state at the end): {'yes' if same else 'NO'}")
+
+
 def timed_parts(build, sim_s: float) -> tuple[object, float, dict[str, float]]:
     """(runner, wall seconds to run sim_s, the wall seconds of its timed parts) of ``build(parts)``."""
     parts = PartTimes()
@@ -175,6 +259,8 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true", help="print the top Python functions of the engine run")
     ap.add_argument("--breakdown", action="store_true",
                     help="print where the ideal loop's and the network run's time goes, part by part")
+    ap.add_argument("--floor", action="store_true",
+                    help="also run the rig with a bare firmware around each law: a bound on any Python firmware's cost")
     args = ap.parse_args()
     overrides: dict[str, object] = {}
     if args.trains or args.units:  # the trains then start one slot apart at seed000's first speed
@@ -218,6 +304,8 @@ def main() -> None:
               f"{py_wall / net_wall:.2f} x the engine run's cost")
     if args.breakdown:
         breakdown(sc, args.sim, max(1, args.repeat))
+    if args.floor:
+        floor(sc, args.sim, max(1, args.repeat))
     if args.profile:
         prof = cProfile.Profile()
         rig = VirtualRig(sc)
