@@ -13,7 +13,8 @@ Targets: network <= 2x the ideal loop, >= 40x real time on one core, engine cost
 
 ``--floor`` also runs the rig with a bare firmware around each law (``bare_cycle``: the same reads, alignment, law
 and outputs, none of the flags, stale handling, guard or monitors), a bound on what any Python firmware could cost,
-and says whether its loop is the standard firmware's.
+and with each ECU's outputs replayed from a standard run (no firmware, no law: what the bus, the plant and the rig
+around them cost), and says whether each loop is the standard firmware's.
 """
 from __future__ import annotations
 
@@ -179,28 +180,61 @@ class BareFirmwareRig(VirtualRig):
             ecu.cycle_outputs = bare_cycle(ecu)  # type: ignore[method-assign, assignment]
 
 
+def recorded_outputs(sc, sim_s: float) -> dict[str, list[list[Output]]]:
+    """Every ECU's outputs, cycle by cycle, in a standard run of ``sim_s``."""
+    rig = VirtualRig(sc)
+    tapes: dict[str, list[list[Output]]] = {}
+    for ecu in rig.ecus:
+        ecu.cycle_outputs = recording(ecu.cycle_outputs, tapes.setdefault(ecu.name, []))  # type: ignore
+    rig.run(sim_s)
+    return tapes
+
+
+def recording(cycle_outputs: Callable[[float], list[Output]], tape: list[list[Output]]):
+    """``cycle_outputs`` with each cycle's outputs also appended to ``tape``."""
+    def recorded(t: float) -> list[Output]:
+        tape.append(cycle_outputs(t))
+        return tape[-1]
+    return recorded
+
+
+class ReplayedOutputsRig(VirtualRig):
+    """The rig with every ECU's outputs replayed from a standard run (``recorded_outputs``): no firmware and no law,
+    the same frames at the same instants, so what is left is the bus, the plant and the rig around them."""
+
+    def __init__(self, sc, tapes: dict[str, list[list[Output]]]) -> None:
+        super().__init__(sc)
+        for ecu in self.ecus:
+            ecu.cycle_outputs = lambda t, tape=iter(tapes[ecu.name]): next(tape)  # type: ignore
+
+
 def same_loop(a: VirtualRig, b: VirtualRig) -> bool:
     """Whether two runs of one scenario left the plant in the same state to the last bit."""
     return bool(np.array_equal(a.plant.x, b.plant.x) and np.array_equal(a.plant.v, b.plant.v))
 
 
 def floor(sc, sim_s: float, repeat: int) -> None:
-    """The network run with the standard firmware and with ``bare_cycle``, against the ideal loop (interleaved,
-    the fastest of ``repeat`` runs of each)."""
-    walls = {"ideal loop": float("inf"), "network, standard firmware": float("inf"),
-             "network, bare firmware": float("inf")}
-    builds = {"ideal loop": lambda: IdealLoop(sc), "network, standard firmware": lambda: VirtualRig(sc),
-              "network, bare firmware": lambda: BareFirmwareRig(sc)}
+    """The network run with the standard firmware, with ``bare_cycle``, and with its outputs replayed (no firmware,
+    no law), against the ideal loop (interleaved, the fastest of ``repeat`` runs of each)."""
+    tapes = recorded_outputs(sc, sim_s)
+    builds: dict[str, Callable[[], object]] = {
+        "ideal loop": lambda: IdealLoop(sc), "network, standard firmware": lambda: VirtualRig(sc),
+        "network, bare firmware": lambda: BareFirmwareRig(sc),
+        "network, outputs replayed": lambda: ReplayedOutputsRig(sc, tapes)}
+    walls = dict.fromkeys(builds, float("inf"))
     runs: dict[str, object] = {}
     for _ in range(repeat):
         for name, build in builds.items():
             runs[name], wall = timed(build, sim_s)
             walls[name] = min(walls[name], wall)
-    print("the firmware's floor: a bare cycle around each law (bare_cycle), a bound, not firmware:")
+    print("the firmware's floor (bounds, not firmware): a bare cycle around each law (bare_cycle), and the ECUs'")
+    print("outputs replayed from a standard run (no firmware, no law: the bus, the plant and the rig around them):")
     for name, wall in walls.items():
         print(f"  {name:28s} {sim_s / wall:6.1f} x real time   {wall / walls['ideal loop']:5.2f} x the ideal loop")
-    same = same_loop(runs["network, standard firmware"], runs["network, bare firmware"])  # type: ignore[arg-type]
-    print(f"  the bare firmware's loop is the standard one's (plant state at the end): {'yes' if same else 'NO'}")
+    standard = runs["network, standard firmware"]
+    for name in ("network, bare firmware", "network, outputs replayed"):
+        same = same_loop(standard, runs[name])  # type: ignore[arg-type]
+        print(f"  {name}: its loop is the standard one's (plant state at the end): {'yes' if same else 'NO'}")
 
 
 def timed_parts(build, sim_s: float) -> tuple[object, float, dict[str, float]]:
