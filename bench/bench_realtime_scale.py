@@ -59,18 +59,25 @@ from hil.runtime.realtime.idle_latency import IdleLatencySetting, latency_us  # 
 from hil.runtime.realtime.scheduling import SCHEDULING_MODES, SchedulingMode  # noqa: E402
 from hil.runtime.realtime.cpu_layout import CPU_LAYOUT_MODES, CpuLayoutMode  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
+from bench.null_firmware import REFERENCE as NULL_FIRMWARE  # noqa: E402
 from bench.stall_watch import LATE_S, SLEEP_S, read_stalls, steal_s  # noqa: E402
 
 CYCLE_S = 0.01
 
 
-def scenario_for(n_ecus: int, name: str | None):
-    """The packaged scenario ``name`` unchanged (its own ECU count), or seed000-consensus scaled to ``n_ecus``."""
-    return load_scenario(name) if name else scaled_scenario(n_ecus)
+FIRMWARES = {"standard": {}, "null": {"ecu.program": NULL_FIRMWARE}}  # --firmware: the scenario's overrides
 
 
-def scaled_scenario(n_ecus: int):
-    """seed000-consensus with n_ecus units: as few trains as fit 16 units per bus, 3 km apart, 1 Mbit/s buses."""
+def scenario_for(n_ecus: int, name: str | None, firmware: str = "standard"):
+    """The packaged scenario ``name`` (its own ECU count), or seed000-consensus scaled to ``n_ecus``; with the
+    ``firmware`` of ``FIRMWARES`` (standard: the scenario's own)."""
+    overrides = FIRMWARES[firmware]
+    return load_scenario(name, overrides) if name else scaled_scenario(n_ecus, overrides)
+
+
+def scaled_scenario(n_ecus: int, overrides: dict | None = None):
+    """seed000-consensus with n_ecus units: as few trains as fit 16 units per bus, 3 km apart, 1 Mbit/s buses (and
+    ``overrides`` besides)."""
     trains = max(1, -(-n_ecus // 16))
     if n_ecus % trains:
         raise SystemExit(f"--ecus {n_ecus}: must split evenly into {trains} trains of at most 16 units")
@@ -79,7 +86,7 @@ def scaled_scenario(n_ecus: int):
     return load_scenario("seed000-consensus", {
         "trains.count": trains, "trains.units": units, "trains.head_positions_m": heads,
         "trains.speeds_kmh": [316.0] * trains, "reference.x0_m": 200_000.0, "can.bitrate": 1_000_000,
-        "ecu.phase_s": 0.005,
+        "ecu.phase_s": 0.005, **(overrides or {}),
     })
 
 
@@ -361,6 +368,9 @@ def main() -> None:
     ap.add_argument("--turns", nargs="+", choices=TURNS_MODES, default=["auto"],
                     help="the nodes' turns (hil run --turns): on (frames at their instants, the bus waiting for them), "
                          "off, or auto (the default: on faster than real time); several: side by side, alternated")
+    ap.add_argument("--firmware", nargs="+", choices=tuple(FIRMWARES), default=["standard"],
+                    help="the ECUs' firmware: standard (the scenario's), or null (bench/null_firmware.py: the same "
+                         "frames, nothing read or run: what the rig around the firmware costs); several: side by side")
     ap.add_argument("--scenario", help="run this packaged scenario as it is (e.g. seed000) instead of the scaled ones")
     ap.add_argument("--keep", type=Path, help="keep each run's files under this directory (one folder per run)")
     args = ap.parse_args()
@@ -375,14 +385,14 @@ def main() -> None:
     print(head)
     best = 0
     for n in args.ecus:
-        for k, spin, radio, mode, idle, cpus, turns in [
-                (k, spin, radio, mode, idle, cpus, turns) for k in args.per_process for spin in args.plant_spin_us
+        for k, spin, radio, mode, idle, cpus, turns, fw in [
+                (k, spin, radio, mode, idle, cpus, turns, fw) for k in args.per_process for spin in args.plant_spin_us
                 for radio in args.radio for mode in args.scheduling for idle in args.idle_latency_us
-                for cpus in args.cpu_layout for turns in args.turns]:
+                for cpus in args.cpu_layout for turns in args.turns for fw in args.firmware]:
             t = time.monotonic()
-            sc = scenario_for(n, args.scenario)
-            keep = (args.keep / f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}-cpus{cpus}-turns{turns}"
-                    if args.keep is not None else None)
+            sc = scenario_for(n, args.scenario, fw)
+            run_name = f"{n}ecus-{k}perproc-spin{spin:g}-{radio}-{mode}-idle{idle}-cpus{cpus}-turns{turns}-{fw}"
+            keep = args.keep / run_name if args.keep is not None else None
             r = one(sc, k or None, args.duration, args.pace, spin, radio, keep, mode, idle, cpus, turns)
             r["per_process"] = k or default_ecus_per_process(n, units_per_train=sc.trains.units, pace=args.pace)
             virtual, virtual_loop = virtual_run(sc, args.duration)
@@ -391,6 +401,7 @@ def main() -> None:
                   f"{r['cpu_per_sim_s']:11.4f}  {'yes' if r['keeps_up'] else 'no'}"
                   f"{f'  (plant spin {spin:g} us)' if len(args.plant_spin_us) > 1 else ''}"
                   f"{f'  (radio: {radio})' if len(args.radio) > 1 else ''}"
+                  f"{f'  (firmware: {fw})' if len(args.firmware) > 1 else ''}"
                   f"  ({r['scheduling']})"
                   f"  ({held_text(r['idle_latency_us'])})"
                   f"  (cpu layout: {'none' if r['cpu_layout'] is None else 'ECUs on ' + str(r['cpu_layout']['ecus'])})"
