@@ -15,7 +15,8 @@ REFERENCE = "bench.null_firmware:NullFirmware"
 
 
 class NullFirmware(Ecu):
-    """The standard three frames a cycle, no force, numbered like the standard firmware's; nothing read or run."""
+    """The standard three frames a cycle, no force, all three numbered by the cycle (the standard firmware numbers
+    AgentState and AgentAux by its sensor's sample, which this one never reads); nothing read or run."""
 
     def cycle_outputs(self, t: float) -> list[Output]:
         self.counters.cycles += 1
