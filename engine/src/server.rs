@@ -48,6 +48,11 @@ const FIRST_CLIENT_FD: usize = 4;
 pub const TURNS_BEHIND_MAX: u64 = 20;
 /// The window TURNS_BEHIND_MAX is counted in, in wall seconds (a window starts at the first turn let go at once).
 pub const TURNS_BEHIND_WINDOW_S: f64 = 1.0;
+/// How far behind now (wall seconds) a lazy reader's backlog may hold a turn's bus time (`backlog_limit`): a host
+/// that held the server this long, or a node whose stamps lag further, has its frames queued when read. A node that
+/// keeps its socket full of stamps just inside it can keep its bus that far behind the wall clock, no more (any
+/// node can starve a CAN bus with frames of a low ID).
+const BACKLOG_MAX_S: f64 = 1.0;
 
 /// Read and forget the bytes that woke the loop (its own wake-up pipe, the bell).
 pub(crate) fn drain_wake_ups(source: &mut impl Read) {
@@ -275,6 +280,9 @@ pub struct Server {
     bell_routes: bool,
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
+    /// The last instant a lazy reader's records read this turn reach (bus ns), when it sent more than one turn
+    /// reads: the bus runs no further this turn, so the rest are queued at their stamps (`backlog_at`).
+    backlog_at: Option<u64>,
     /// The lazy readers' sockets, looked at without waiting in each turn (`lazy_readable`).
     lazy_wait: PollWait,
     /// The turns let go at once in the current window of TURNS_BEHIND_WINDOW_S: (its start, bus ns; how many).
@@ -424,7 +432,8 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
         floor: 0, arbitrate_at: None, least_frame_ns, timing, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
-        more_waiting: false, behind_window: (0, 0), turn_hold: None, held: false, lazy_wait: PollWait::new(),
+        more_waiting: false, backlog_at: None, behind_window: (0, 0), turn_hold: None, held: false,
+        lazy_wait: PollWait::new(),
         done: done.clone(),
     };
     descriptors_changed();
@@ -640,11 +649,12 @@ impl Server {
         }
         let n_clients = self.clients.len();
         let lazy_ready = self.lazy_readable();
+        let mut full = Vec::new();
         for (k, pfd) in fds.iter().enumerate().skip(FIRST_CLIENT_FD).take(n_clients) {
             let i = k - FIRST_CLIENT_FD;
             let readable = pfd.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 || lazy_ready[i];
-            if readable && !self.clients[i].closed {
-                self.receive(shared, i);
+            if readable && !self.clients[i].closed && self.receive(shared, i) && self.clients[i].lazy {
+                full.push(i);
             }
         }
         if fds[1].revents != 0 {
@@ -654,6 +664,8 @@ impl Server {
             self.accept(shared, true);
         }
         let now = self.now();
+        self.backlog_at = self.backlog_limit(&full, now);
+        self.more_waiting |= self.backlog_at.is_some(); // the rest of the backlog: turn again at once
         self.take_radio();
         if let Some(r) = &self.radio {
             // before any server of the radio looks ahead this turn (`least_frame`): a new connection counts at once
@@ -1186,15 +1198,15 @@ impl Server {
     }
 
     /// Read what a node sent into its buffer (at most READ_RECORDS records a turn: a babbling node cannot stall
-    /// the loop); a closed connection drops it.
-    fn receive(&mut self, shared: &mut Shared, i: usize) {
+    /// the loop); a closed connection drops it. Returns whether it read that many (the node may have sent more).
+    fn receive(&mut self, shared: &mut Shared, i: usize) -> bool {
         let mut chunk = [0u8; READ_RECORDS * RECORD_SIZE];
         let n = match self.clients[i].stream.read(&mut chunk) {
             Ok(n) => n,
-            Err(e) if e.kind() == ErrorKind::WouldBlock || e.kind() == ErrorKind::Interrupted => return,
+            Err(e) if e.kind() == ErrorKind::WouldBlock || e.kind() == ErrorKind::Interrupted => return false,
             Err(e) => {
                 self.drop_client(shared, i, &format!("receive failed: {e}"));
-                return;
+                return false;
             }
         };
         if n == 0 {
@@ -1207,12 +1219,30 @@ impl Server {
             }
             self.process_client(shared, i); // its whole records still count
             self.drop_client(shared, i, "disconnected");
-            return;
+            return false;
         }
         self.clients[i].rx.extend_from_slice(&chunk[..n]);
         if n == chunk.len() && self.clients[i].quiet {
             self.more_waiting = true; // the rest would otherwise wait for a wake-up it does not cause
         }
+        n == chunk.len()
+    }
+
+    /// How far the bus may run this turn for the lazy readers that sent more than it read (`full`): to the last
+    /// stamp among their FRAME records read, the earliest of those. The records still in their sockets come at or
+    /// after it; past it they would be queued at the floor, all at once, rather than at their stamps (a server
+    /// held up by the host finds a node's records of that while). A stamp at or before the floor holds nothing
+    /// (those frames are late whatever the bus does), nor one further from now than `max_ahead_ns` ahead or
+    /// BACKLOG_MAX_S behind (not believed).
+    fn backlog_limit(&self, full: &[usize], now: u64) -> Option<u64> {
+        let behind_max = (BACKLOG_MAX_S * 1e9 * self.cfg.pace) as u64;
+        full.iter().filter_map(|&i| {
+            let c = &self.clients[i];
+            let whole = (c.rx.len() - c.rx_off) / RECORD_SIZE * RECORD_SIZE;
+            let last = c.rx[c.rx_off..c.rx_off + whole].chunks_exact(RECORD_SIZE).rev().find(|r| r[0] == KIND_FRAME)?;
+            let t = self.bus_ns(stamp_of(last))?;
+            (t > self.floor && t <= now + self.max_ahead_ns() && t + behind_max >= now).then_some(t)
+        }).min()
     }
 
     /// Every whole record of one node, at once (a node that is leaving).
@@ -1510,12 +1540,14 @@ pub(crate) fn turn_together(turns: &mut [(&mut Server, &[libc::pollfd])]) {
 }
 
 /// The servers' nows (`walls`: their wall-clock bus times) held back to just before the earliest open turn among
-/// them, in the radio's time (their buses run together, so one node's turn holds them all); each is told whether
-/// it is held.
+/// them, or to the end of a node's backlog read so far (`backlog_at`), in the radio's time (their buses run
+/// together, so one node's turn holds them all); each is told whether it is held.
 fn hold_for_turns(turns: &mut [(&mut Server, &[libc::pollfd])], walls: &[u64]) -> Vec<u64> {
-    let hold = turns.iter().filter_map(|(s, _)| s.turn_hold.map(|r| r as i64 + s.origin_ns())).min();
+    let turn = turns.iter().filter_map(|(s, _)| s.turn_hold.map(|r| r as i64 + s.origin_ns() - 1));
+    let backlog = turns.iter().filter_map(|(s, _)| s.backlog_at.map(|t| t as i64 + s.origin_ns()));
+    let hold = turn.chain(backlog).min();
     turns.iter_mut().zip(walls).map(|((s, _), &wall)| {
-        let now = hold.map_or(wall, |h| wall.min((h - s.origin_ns() - 1).max(0) as u64));
+        let now = hold.map_or(wall, |h| wall.min((h - s.origin_ns()).max(0) as u64));
         s.held = now < wall;
         now
     }).collect()
@@ -2189,6 +2221,40 @@ mod tests {
             assert_eq!((rec[0], u32_at(&rec, 4), rec[16]), (KIND_FRAME, 0x100, data));
         }
         assert!(handle.running(), "the serving thread died");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A server that could not run for a while (a host held its CPU) finds more of a lazy node's frames than one
+    /// turn reads, stamped at their instants in that while: each still goes on the bus at its stamp, so none is
+    /// queued late beside the others and none is lost at the node's TX queue (8 deep here).
+    #[test]
+    fn a_lazy_nodes_backlog_longer_than_a_turn_reads_goes_on_the_bus_at_its_stamps() {
+        let (mut handle, path, dir) = serve_with("backlog", 500_000, 500_000, Format::Classical, Policy::Priority,
+                                                 1_000_000_000, None, None);
+        let mut sender = connect_node(&path, "S", OPTION_LAZY);
+        let mut eager = connect_node(&path, "E", 0);
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let now = || epoch0 + handle.now_ns() as f64 * 1e-9;
+        std::thread::sleep(Duration::from_millis(150)); // the server sleeps to its load window's end meanwhile
+        let n = 3 * READ_RECORDS;
+        let first = now() - 0.1;
+        let stamps: Vec<f64> = (0..n).map(|k| first + k as f64 * 0.001).collect(); // all before the server reads
+        let batch: Vec<u8> = stamps.iter().flat_map(|&t| pack_frame(0x100, &[1; 8], 0, t)).collect();
+        sender.write_all(&batch).unwrap();
+        let timing = BitTiming::new(500_000, 500_000).unwrap();
+        let one_frame = timing.frame_ns(0x100, &[1; 8], false, false, false).unwrap() as f64 * 1e-9;
+        let mut late = Vec::new();
+        for (k, t) in stamps.iter().enumerate() {
+            let mut rec = [0u8; RECORD_SIZE];
+            eager.read_exact(&mut rec).unwrap_or_else(|e| panic!("frame {k} of {n} not heard: {e}"));
+            let end = stamp_of(&rec);
+            if (end - (t + one_frame)).abs() > 2e-6 {
+                late.push((k, end - t - one_frame));
+            }
+        }
+        assert_eq!(handle.shared.lock().unwrap().bus.frames_dropped(), 0);
+        assert!(late.is_empty(), "{} of {n} frames off their instants: {:?}", late.len(), &late[..late.len().min(5)]);
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }
