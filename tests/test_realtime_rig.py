@@ -259,6 +259,28 @@ def test_a_plant_the_machine_stalls_publishes_the_latest_sample_and_loses_no_fra
     assert m["frames_lost"] == 0, m["per_bus"]
 
 
+def test_with_turns_a_plant_the_machine_stalls_past_a_turn_hold_skips_to_the_latest_sample(rt, tmp_path):
+    """With turns, a plant late by less than a turn's hold publishes every sample (its buses waited). Stalled 0.4 s
+    it is far past that: its turns were let go, so it skips to the latest sample as without turns, rather than send
+    40 stale ones back to back into a TX queue of 64 (160 Sensor frames per bus)."""
+    stop, stop_timers = signal_plant_at(1.0, 1.0, signal.SIGSTOP)
+    resume, resume_timers = signal_plant_at(1.4, 1.0, signal.SIGCONT)
+
+    def on_start(t0: float) -> None:
+        stop(t0)
+        resume(t0)
+
+    res = run_realtime(load_scenario("seed000"), tmp_path / "rt", pace=1.0, duration_s=3.0, ecus_per_process=6,
+                       on_start=on_start, record=False, turns="on")
+    for timer in stop_timers + resume_timers:
+        timer.join()
+    m = res.metrics
+    plant = m["realtime"]["plant"]
+    assert plant["cycles"] + plant["cycles_skipped"] == 300, plant
+    assert plant["cycles_skipped"] >= 20 and m["plant_deadline_misses"] >= 1, plant
+    assert m["frames_lost"] == 0, m["per_bus"]
+
+
 def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):
     """A plant whose step never returns (SIGSTOP here: silent as a model stuck in its solver) used to leave the rig
     running to its end and then waiting for it. Its heartbeat falls silent: within about 2 s (HUNG_AFTER_S) it is

@@ -14,7 +14,8 @@ taken during integration. A command that reaches the plant after it already inte
 arrival (the plant was late) is applied at once and counted (``late_commands``). The integration never skips; the
 publications do, by the ECUs' rule: a plant more than a publication period late (the machine stalled it) publishes
 only the latest sample due, counted as skipped, instead of a burst of stale ones that would overflow its TX queues
-(``late_publication``). With turns it never skips: the buses wait for each publication.
+(``late_publication``). With turns it skips only when also later than a turn's hold (``TURN_HOLD_MAX_S`` of wall
+time): until then its buses wait for each publication, past it they went on without it, as an ECU's do.
 If commands stop, the Plant's own fail-safe acts and logs it. The commands of external units (``ecu.external``)
 are watched (hil/runtime/realtime/external.py): the node prints ``joined <unit> <t>`` on stdout at the first valid one.
 
@@ -52,6 +53,7 @@ from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_afte
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
+from hil.runtime.realtime.protocol import TURN_HOLD_MAX_S
 from hil.runtime.realtime.streamed_series import StreamedSeries
 from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import (Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger,
@@ -205,6 +207,7 @@ class PlantNode:
             self.frames.sends_at_least(len(self.buses) + k, self.io.reference_bytes())
         self.kernel = PacedKernel(clock, self.frames, stop, None, spin_s,
                                   heartbeat=Heartbeat())  # silent when a step never returns: hung
+        self.hold_sim_s = TURN_HOLD_MAX_S * clock.pace  # how late a turn may be and its buses still wait
         step = self.sc.plant.step_s
         self.publish_every = publication_steps(self.every)
         self.stats = LatenessStats(self.publish_every * step, clock.pace,
@@ -225,7 +228,7 @@ class PlantNode:
         step, stats = self.sc.plant.step_s, self.stats
         assert stats is not None  # set by _schedule
         deadline = target * step
-        if not self.turns:
+        if not self.turns or self.clock.now() - deadline > self.hold_sim_s:  # no bus waits for it any more
             late = late_publication(target, self.publish_every, self.n_steps, self.clock.now() / step)
             stats.skipped += (late - target) // self.publish_every
             self.target = target = late  # commands that arrived meanwhile act at their own steps, up to it
