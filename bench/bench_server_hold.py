@@ -2,8 +2,9 @@
 
 On a virtual machine the host now and then takes a virtual CPU for milliseconds; whatever runs there stops. This
 bench stops one of the rig's processes on purpose (``bench/process_hold.py``: SIGSTOP, then SIGCONT) a few times
-in a run and prints, per run, the holds as measured, the frames each bus dropped by node, and the plant's late
-publications. The nodes go on meanwhile, and what they sent waits in their sockets until the servers read it.
+in a run and prints, per run, the holds as measured, the frames each bus dropped by node, and the plant's
+publications that missed their deadline and those skipped. The nodes go on meanwhile, and what they sent waits in
+their sockets until the servers read it.
 
     python bench/bench_server_hold.py [--hold serving plant ecus] [--hold-ms 100] [--pace 10] [--holds 4]
                                       [--firmware standard null] [--scenario seed000]
@@ -55,12 +56,14 @@ def run_held(sc, which: str, hold_ms: float, pace: float, holds: int) -> tuple[d
 
 
 def report(which: str, firmware: str, metrics: dict, buses: list, lengths: list[float]) -> str:
-    """One run's line: what was held and how long, the frames lost by bus and node, the plant's late publications."""
+    """One run's line: what was held and how long, the frames lost by bus and node, the plant's late and skipped
+    publications."""
     by_bus = "; ".join(f"{b.name} " + (", ".join(f"{n} {k}" for n, k in sorted(b.dropped_by_node.items())) or "none")
                        for b in buses)
     held = ", ".join(f"{x:.1f}" for x in lengths) or "none (the run ended first)"
+    skipped = metrics["realtime"]["plant"]["cycles_skipped"]
     return (f"{which:8s} {firmware:8s} held {held} ms: {metrics['frames_lost']} frames lost ({by_bus}); "
-            f"{metrics['plant_deadline_misses']} plant publications late")
+            f"{metrics['plant_deadline_misses']} plant publications late, {skipped} skipped (the latest due sent)")
 
 
 def main() -> None:
