@@ -1,4 +1,5 @@
-"""Hold processes of a real-time run still for a while, as a host that takes their CPU does (bench/bench_server_hold.py).
+"""Hold processes of a real-time run still for a while, as a host that takes their CPU does
+(bench/bench_server_hold.py).
 
     python bench/process_hold.py <orchestrator pid> <serving|plant|ecus> <hold ms> <go epoch s> <offset s>...
 
