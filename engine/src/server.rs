@@ -281,7 +281,7 @@ pub struct Server {
     /// A quiet reader wrote more than one turn reads: turn again at once.
     more_waiting: bool,
     /// The last instant a lazy reader's records read this turn reach (bus ns), when it sent more than one turn
-    /// reads: the bus runs no further this turn, so the rest are queued at their stamps (`backlog_at`).
+    /// reads: the bus runs no further this turn, so the rest are queued at their stamps (`backlog_limit`).
     backlog_at: Option<u64>,
     /// The lazy readers' sockets, looked at without waiting in each turn (`lazy_readable`).
     lazy_wait: PollWait,
@@ -1736,7 +1736,7 @@ mod tests {
         let (mut handle, path, dir) = serve_with("senders", 10_000, 10_000, Format::Classical, Policy::Fifo, 100_000_000, None, None);
         let connect = |name: &str| connect_node(&path, name, 0);
         let (mut host, mut reader) = (connect("H"), connect("R"));
-        host.write_all(&pack_frame(0x400, &[1], 0, 0.0)).unwrap(); // on the wire for about 6 ms at 10 kbit/s
+        host.write_all(&pack_frame(0x400, &[1; 8], 0, 0.0)).unwrap(); // on the wire for about 13 ms at 10 kbit/s
         std::thread::sleep(Duration::from_millis(2));
         let mut batch = Vec::new();
         batch.extend_from_slice(&pack_frame(0x300, &[2], 0, 0.0));
