@@ -9,7 +9,8 @@ their sockets until the servers read it.
     python bench/bench_server_hold.py [--hold serving plant ecus] [--hold-ms 100] [--pace 10] [--holds 4]
                                       [--firmware standard null] [--scenario seed000]
 
-``--hold serving``: the orchestrator, whose native thread serves every bus. ``--firmware null``: the ECUs run
+``--hold serving``: the orchestrator, whose native thread serves every bus; ``serving,plant``: both at once, as
+when they share the CPU the host holds. ``--firmware null``: the ECUs run
 ``bench.null_firmware`` (as in ``bench/bench_realtime_scale.py``). One hold every 1.5 s of wall time from 1 s; the
 run lasts until 2 s after the last. The rig's default settings otherwise.
 """
@@ -26,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.bench_realtime_scale import FIRMWARES, scenario_for  # noqa: E402
+from bench.process_hold import KINDS  # noqa: E402
 from hil.runtime.realtime.orchestrator import run_realtime  # noqa: E402
 from hil.scenario.loader import ScenarioError  # noqa: E402
 
@@ -66,9 +68,17 @@ def report(which: str, firmware: str, metrics: dict, buses: list, lengths: list[
             f"{metrics['plant_deadline_misses']} plant publications late, {skipped} skipped (the latest due sent)")
 
 
+def hold_kinds(text: str) -> str:
+    """``--hold``'s value: one of process_hold's KINDS, or several comma-separated."""
+    if not text or not set(text.split(",")) <= set(KINDS):
+        raise argparse.ArgumentTypeError(f"{text!r}: not {', '.join(KINDS)}, or several of them comma-separated")
+    return text
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--hold", nargs="+", choices=["serving", "plant", "ecus"], default=["serving", "plant", "ecus"])
+    ap.add_argument("--hold", nargs="+", type=hold_kinds, default=["serving", "plant", "ecus"],
+                    help="serving, plant or ecus; several comma-separated (serving,plant): held together")
     ap.add_argument("--hold-ms", type=float, default=100.0)
     ap.add_argument("--pace", type=float, default=10.0)
     ap.add_argument("--holds", type=int, default=4)

@@ -1,11 +1,12 @@
 """Hold processes of a real-time run still for a while, as a host that takes their CPU does
 (bench/bench_server_hold.py).
 
-    python bench/process_hold.py <orchestrator pid> <serving|plant|ecus> <hold ms> <go epoch s> <offset s>...
+    python bench/process_hold.py <orchestrator pid> <serving|plant|ecus>[,...] <hold ms> <go epoch s> <offset s>...
 
 At each offset (wall seconds after ``go``) it stops the processes asked for (SIGSTOP), waits the hold, and lets
 them go on (SIGCONT); it prints one line per hold, ``<start epoch s> <end epoch s>``, as measured. ``serving``: the
-orchestrator, whose native thread serves every bus; ``plant`` and ``ecus``: its node processes of that kind. Unlike
+orchestrator, whose native thread serves every bus; ``plant`` and ``ecus``: its node processes of that kind;
+several, comma-separated: all of them at once, as when they share the held CPU. Unlike
 ``bench/machine_stall.py``'s busy loop, which the rig's other threads can leave for another CPU, a stopped process
 does nothing at all until it is let go, as on a CPU the host holds.
 """
@@ -31,8 +32,11 @@ def children(pid: int) -> list[int]:
     return found
 
 
+KINDS = ("serving", *NODE_MODULES)
+
+
 def targets(orchestrator: int, which: str) -> list[int]:
-    """The processes ``which`` names: the orchestrator itself, or its node processes of one kind."""
+    """The processes ``which`` (one of KINDS) names: the orchestrator itself, or its node processes of one kind."""
     if which == "serving":
         return [orchestrator]
     module = NODE_MODULES[which].encode()
@@ -62,11 +66,12 @@ def hold(pids: list[int], length_s: float) -> tuple[float, float]:
 
 def main() -> None:
     orchestrator, which, length_ms, go = int(sys.argv[1]), sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
-    if which != "serving" and which not in NODE_MODULES:
-        raise SystemExit(f"process_hold: {which!r} is not serving, plant or ecus")
+    kinds = which.split(",")
+    if not set(kinds) <= set(KINDS):
+        raise SystemExit(f"process_hold: {which!r} is not a comma-separated list of {', '.join(KINDS)}")
     for offset in (float(a) for a in sys.argv[5:]):
         time.sleep(max(0.0, go + offset - time.time()))
-        start, end = hold(targets(orchestrator, which), length_ms / 1e3)
+        start, end = hold([pid for kind in kinds for pid in targets(orchestrator, kind)], length_ms / 1e3)
         print(f"{start!r} {end!r}", flush=True)
 
 
