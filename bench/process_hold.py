@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 NODE_MODULES = {"plant": "hil.runtime.realtime.plant_node", "ecus": "hil.runtime.realtime.ecu_node"}
+KINDS = ("serving", *NODE_MODULES)  # what it can hold: the orchestrator, or the node processes of one kind
 
 
 def children(pid: int) -> list[int]:
@@ -30,9 +31,6 @@ def children(pid: int) -> list[int]:
         except OSError:
             pass  # the thread ended meanwhile
     return found
-
-
-KINDS = ("serving", *NODE_MODULES)
 
 
 def targets(orchestrator: int, which: str) -> list[int]:

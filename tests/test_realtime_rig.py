@@ -26,7 +26,7 @@ import pytest
 from tests.oracle.python_server import PythonBusServer as BusServer
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.runtime.realtime.sockets import remove_run_dir
-from hil.runtime.realtime.pacing import LatenessStats, SimClock
+from hil.runtime.realtime.pacing import LatenessStats, SimClock, turn_waited
 from hil.runtime.realtime.plant_node import late_publication
 from hil.record import paths
 from hil.runtime.virtual import run_virtual
@@ -86,6 +86,14 @@ def test_a_late_plant_publishes_the_latest_publication_due():
     assert late_publication(20, 10, 300, 60.0) == 60  # four periods late
     assert late_publication(280, 10, 300, 420.0) == 290  # never past the run's last publication
     assert late_publication(280, 10, 295, 420.0) == 290
+
+
+def test_a_turn_is_waited_for_up_to_its_hold_of_wall_time():
+    """With turns a node late by up to TURN_HOLD_MAX_S of wall time (2 ms; 20 simulated ms at pace 10) skips
+    nothing: its buses waited. Later, or without turns, it skips as a late node does."""
+    assert turn_waited(True, 0.002, 1.0) and turn_waited(True, 0.02, 10.0)
+    assert not turn_waited(True, 0.0021, 1.0) and not turn_waited(True, 0.021, 10.0)
+    assert not turn_waited(False, 0.0, 1.0)
 
 
 def test_bus_server_pace_stretches_frames_in_wall_time(rt):

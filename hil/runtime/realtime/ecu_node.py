@@ -28,9 +28,9 @@ from hil.record.integrity import write_json_atomic
 from hil.runtime.realtime.node import load_scenario_json, node_parser, open_bus
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
-from hil.runtime.realtime.protocol import TURN_HOLD_MAX_S
 from hil.runtime.realtime.scheduling import enter_role
-from hil.runtime.realtime.pacing import Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger, set_timer_slack
+from hil.runtime.realtime.pacing import (Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger,
+                                         set_timer_slack, turn_waited)
 from hil.runtime.firmware import assemble_firmware, build_ecu
 from hil.runtime.train_db import bus_packing, load_train_db
 
@@ -150,7 +150,6 @@ class UnitCycles:
         phase = {u: layout.train_unit(u)[1] * sc.ecu.stagger_s for u in ecus}
         self.ends_turn = {u: turns and not any(v != u and bus_of[v] == bus_of[u] and phase[v] == phase[u] for v in ecus)
                           for u in ecus}
-        self.hold_sim_s = TURN_HOLD_MAX_S * kernel.clock.pace  # how late a turn may be and its bus still wait
         self.sender = senders(ecus, bus_of)
         self.cycle_s = sc.ecu.cycle_s
         self.stats = {u: LatenessStats(self.cycle_s, kernel.clock.pace, None if out is None else out / timing_name(layout, u))
@@ -171,7 +170,7 @@ class UnitCycles:
         if self.watchdog is not None:
             _watch(self.watchdog, self.ecus, u, at)
         overrun = self.stats[u].add(now - deadline, deadline)
-        if self.turns and now - deadline <= self.hold_sim_s:
+        if turn_waited(self.turns, now - deadline, self.kernel.clock.pace):
             overrun = 0  # its bus still waits for this turn: the next one follows, as in virtual time
         self.stats[u].skipped += overrun
         self.schedule(u, deadline + (1 + overrun) * self.cycle_s)

@@ -21,6 +21,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from hil.runtime.realtime.protocol import TURN_HOLD_MAX_S
 from hil.runtime.realtime.streamed_series import StreamedSeries, series_table
 
 __all__ = ["SimClock", "LatenessStats", "StopFlag", "Heartbeat", "drain", "freeze_setup_heap", "handshake", "linger",
@@ -66,6 +67,13 @@ def periods_overrun(late: float, period: float) -> int:
     """The whole periods a cycle ``late`` overran: 0 unless it is more than a period late (a deadline miss, whose
     overrun cycles are skipped). The ECUs' and the plant's rule, in any unit."""
     return int(late // period) if late > period else 0
+
+
+def turn_waited(turns: bool, late_s: float, pace: float) -> bool:
+    """Whether a node's buses still waited for its turn when it acts ``late_s`` simulated seconds after the turn's
+    instant: with turns, up to TURN_HOLD_MAX_S of wall time. Such a cycle or publication skips none after it, however
+    late: those still find the bus at their instants. The ECUs' and the plant's rule."""
+    return turns and late_s <= TURN_HOLD_MAX_S * pace
 
 
 class LatenessStats:

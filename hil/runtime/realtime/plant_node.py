@@ -53,11 +53,10 @@ from hil.runtime.realtime.external import JOIN_LINE, ExternalWatch, missing_afte
 from hil.runtime.realtime.frame_io import EngineFrames, PythonCanFrames, node_frames
 from hil.runtime.kernel import to_ns
 from hil.runtime.realtime.paced_kernel import PacedKernel
-from hil.runtime.realtime.protocol import TURN_HOLD_MAX_S
 from hil.runtime.realtime.streamed_series import StreamedSeries
 from hil.runtime.realtime.scheduling import enter_role
 from hil.runtime.realtime.pacing import (Heartbeat, LatenessStats, SimClock, StopFlag, handshake, linger,
-                                         periods_overrun, set_timer_slack)
+                                         periods_overrun, set_timer_slack, turn_waited)
 from hil.plant.can_node import VALID_MODES, PlantCanNode
 from hil.record.runlog import RunLog
 from hil.runtime.assembly import assemble
@@ -207,7 +206,6 @@ class PlantNode:
             self.frames.sends_at_least(len(self.buses) + k, self.io.reference_bytes())
         self.kernel = PacedKernel(clock, self.frames, stop, None, spin_s,
                                   heartbeat=Heartbeat())  # silent when a step never returns: hung
-        self.hold_sim_s = TURN_HOLD_MAX_S * clock.pace  # how late a turn may be and its buses still wait
         step = self.sc.plant.step_s
         self.publish_every = publication_steps(self.every)
         self.stats = LatenessStats(self.publish_every * step, clock.pace,
@@ -228,8 +226,9 @@ class PlantNode:
         step, stats = self.sc.plant.step_s, self.stats
         assert stats is not None  # set by _schedule
         deadline = target * step
-        if not self.turns or self.clock.now() - deadline > self.hold_sim_s:  # no bus waits for it any more
-            late = late_publication(target, self.publish_every, self.n_steps, self.clock.now() / step)
+        now = self.clock.now()
+        if not turn_waited(self.turns, now - deadline, self.clock.pace):  # no bus waits for it any more
+            late = late_publication(target, self.publish_every, self.n_steps, now / step)
             stats.skipped += (late - target) // self.publish_every
             self.target = target = late  # commands that arrived meanwhile act at their own steps, up to it
         t = target * step
