@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import importlib.metadata
 import json
+import logging
 import os
 import signal
 import socket
@@ -267,7 +268,8 @@ def test_notifier_with_asyncio_loop_uses_the_fd_and_gets_every_frame(server):
     assert asyncio.run(run()) == [0x10, 0x11, 0x12]
 
 
-def test_a_node_that_disconnects_loses_its_queue_and_does_not_disturb_others(server):
+def test_a_node_that_disconnects_loses_its_queue_and_does_not_disturb_others(server, caplog):
+    caplog.set_level(logging.INFO, logger="hil.runtime.realtime.bus_server")
     with node("rx") as rx, node("other") as other:
         with node("quitter") as q:
             for k in range(5):  # the first goes on the wire (~26 ms), four wait in its TX queue
@@ -280,6 +282,34 @@ def test_a_node_that_disconnects_loses_its_queue_and_does_not_disturb_others(ser
         stats = server.stats
     assert (stats.frames, stats.frames_dropped, stats.clients) == (2, 4, 2)
     assert stats.dropped_by_node == {"quitter": 4}
+    # the loss is a warning that names the node and the count; a node that leaves with nothing queued is not
+    left = {r.getMessage().split(" node ")[1].split(" ")[0]: r for r in caplog.records if " left (" in r.getMessage()}
+    assert left["quitter"].levelno == logging.WARNING
+    assert left["quitter"].getMessage().endswith("; 4 queued frames dropped")
+    server.close()
+    rx_left = [r for r in caplog.records if " node rx " in r.getMessage() and " left (" in r.getMessage()]
+    assert [r.levelno for r in rx_left] == [logging.INFO]
+
+
+def test_the_rig_records_a_nodes_lost_queue_as_a_warning_event_from_its_bus(rt):
+    """The real-time rig hands its servers' warnings to the run's events (summary, metrics, recording): here a node
+    that leaves with four frames queued, reported while the run's clock reads t = 1.5 s."""
+    from hil.record.runlog import Event
+    from hil.runtime.realtime.native_server import NativeBusServer
+    from hil.runtime.realtime.orchestrator import record_bus_warnings
+
+    events: list[Event] = []
+    with NativeBusServer("r1", "bus1", SLOW) as srv:
+        record_bus_warnings(srv, events, "bus1", {"t0": time.time() - 0.75}, 2.0)
+        with node("rx") as rx:
+            with node("quitter") as q:
+                for k in range(5):
+                    q.send(can.Message(arbitration_id=0x300 + k, data=DATA8, is_extended_id=False))
+            assert rx.recv(3.0).arbitration_id == 0x300
+            srv.stats  # reports the server's messages so far
+    assert [(e.level, e.source) for e in events] == [("WARN", "bus1")], events
+    assert "node quitter" in events[0].text and events[0].text.endswith("; 4 queued frames dropped")
+    assert 1.5 <= events[0].t < 10.0
 
 
 def test_protocol_violation_disconnects_only_the_offender(server):

@@ -1507,8 +1507,10 @@ impl Server {
         self.rx_cache.clear();
         if let Some(node) = c.node {
             let lost = shared.bus.detach(node) + c.senders.iter().map(|&n| shared.bus.detach(n)).sum::<usize>();
-            shared.messages.push(("INFO".into(), format!("bus {}: node {} (#{}) left ({why}); {lost} queued frames dropped",
-                                                         self.cfg.channel, c.name, c.cid)));
+            let level = if lost > 0 { "WARNING" } else { "INFO" }; // frames lost: a warning the rig records
+            let text = format!("bus {}: node {} (#{}) left ({why}); {lost} queued frames dropped", self.cfg.channel,
+                               c.name, c.cid);
+            shared.messages.push((level.into(), text));
         }
     }
 }
@@ -2221,6 +2223,42 @@ mod tests {
             assert_eq!((rec[0], u32_at(&rec, 4), rec[16]), (KIND_FRAME, 0x100, data));
         }
         assert!(handle.running(), "the serving thread died");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A node that leaves with frames in its TX queue loses them: the server says so as a warning that names the
+    /// node and the count (the rig records it as an event); a node that leaves with nothing queued, as information.
+    #[test]
+    fn a_node_that_leaves_with_queued_frames_is_a_warning_naming_it_and_the_count() {
+        let (mut handle, path, dir) = serve("quitter", 10_000, 10_000, Format::Classical);
+        let mut quitter = connect_node(&path, "Q", 0);
+        let idle = connect_node(&path, "I", 0);
+        let batch: Vec<u8> = (0..4).flat_map(|k| pack_frame(0x300 + k, &[1; 8], 0, 0.0)).collect();
+        quitter.write_all(&batch).unwrap(); // the first on the wire for about 11 ms, three queued behind it
+        std::thread::sleep(Duration::from_millis(3));
+        quitter.shutdown(std::net::Shutdown::Both).unwrap();
+        idle.shutdown(std::net::Shutdown::Both).unwrap();
+        let left = |name: &str| -> Option<(String, String)> {
+            let deadline = Instant::now() + Duration::from_secs(2);
+            while Instant::now() < deadline {
+                let shared = handle.shared.lock().unwrap();
+                let of_it =
+                    |(_, text): &&(String, String)| text.contains(&format!("node {name} (")) && text.contains(" left (");
+                if let Some(m) = shared.messages.iter().find(of_it) {
+                    return Some(m.clone());
+                }
+                drop(shared);
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            None
+        };
+        let (level, text) = left("Q").expect("no message for the quitter's leave");
+        assert_eq!(level, "WARNING", "{text}");
+        assert!(text.ends_with("; 3 queued frames dropped"), "{text}");
+        let (level, text) = left("I").expect("no message for the idle node's leave");
+        assert_eq!(level, "INFO", "{text}");
+        assert!(text.ends_with("; 0 queued frames dropped"), "{text}");
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -658,8 +658,8 @@ class PythonBusServer:
         if c.node is not None:
             lost = self.model.detach(c.node)
             del self._by_node[c.node]
-            LOG.info("bus %s: node %s (#%d) left (%s); %d queued frames dropped",
-                     self.channel, c.name, c.cid, why, lost)
+            LOG.log(logging.WARNING if lost else logging.INFO,  # frames lost: a warning
+                    "bus %s: node %s (#%d) left (%s); %d queued frames dropped", self.channel, c.name, c.cid, why, lost)
 
     # ---- statistics
     @property

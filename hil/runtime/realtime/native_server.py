@@ -4,10 +4,10 @@ native thread outside the interpreter lock (``trainhil_engine.BusServerCore``, e
 This side makes the sockets exactly as ``BusServer`` does (owner-only run directory, the socket bound under a
 temporary name, chmod 0o600 and linked into place; optional loopback TCP with a per-run token file) and the bell
 its quiet readers ring (``<bus>.bell``, ``sockets.make_bell``), and hands their file descriptors to the engine. A
-few times a second ``pump`` reports the engine's log lines through ``logging``, feeds ``frame_listeners`` (CAN logs)
-and takes over the new log rows: from a small thread of its own, or from its owner's loop (the rig's supervising
-loop: one thread fewer to wake per bus). CAN error confinement, the bus fault injectors and the guardian run in the
-engine's bus (``enable_bus_errors`` ..., driven by ``hil.faults.bus.EngineBusFaults``).
+few times a second ``pump`` reports the engine's log lines through ``logging`` (and ``on_message``), feeds
+``frame_listeners`` (CAN logs) and takes over the new log rows: from a small thread of its own, or from its owner's
+loop (the rig's supervising loop: one thread fewer to wake per bus). CAN error confinement, the bus fault injectors
+and the guardian run in the engine's bus (``enable_bus_errors`` ..., driven by ``hil.faults.bus.EngineBusFaults``).
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import logging
 import os
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import trainhil_engine as engine
 
@@ -85,6 +85,7 @@ class NativeBusServer:
             tcp_sock.close()
         self._tcp = tcp
         self.frame_listeners: list = []
+        self.on_message: Callable[[str, str], None] | None = None  # (level, text) of each log line as reported
         self._tracing = False
         self._stop = threading.Event()
         self._pump: threading.Thread | None = None
@@ -214,6 +215,8 @@ class NativeBusServer:
     def _report(self) -> None:
         for level, text in self._core.take_messages():
             LOG.log(logging.WARNING if level == "WARNING" else logging.INFO, "%s", text)
+            if self.on_message is not None:
+                self.on_message(level, text)
 
     def _feed_listeners(self) -> None:
         with self._lock:

@@ -335,6 +335,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                                     radio=radio.port(i) if radio is not None else None, serving_thread=serving)
                 if fmt is not None:
                     asc.append(_attach_can_log(server, i, out_dir, clock, pace, fmt))
+                record_bus_warnings(server, events, f"bus{i + 1}", clock, pace)
                 servers.append(server.start(pump_thread=False))  # pumped by the supervising loop
             faults = _faults(scenario, layout, servers, seed, db, radio)
             spool = BusSpool(servers, nodes_dir, pace)  # the servers' frame rows to files as the run goes
@@ -526,6 +527,18 @@ def node_environment(sc: Scenario) -> dict[str, str]:
     if roots:
         env[USER_PATH_ENV] = os.pathsep.join([*roots, *filter(None, [env.get(USER_PATH_ENV)])])
     return env
+
+
+def record_bus_warnings(server: NativeBusServer, events: list[Event], bus: str, clock: dict, pace: float) -> None:
+    """Make the server's warnings the run's WARN events from ``bus``: a node that left with frames in its TX queue
+    (how many were lost), a frame the bus cannot carry, bad input. Each is timed when the server reports it (its
+    pump turns a few times a second, so up to that much after it happened), before t = 0 at 0."""
+    def on_message(level: str, text: str) -> None:
+        if level == "WARNING":
+            t0 = clock["t0"]
+            events.append(Event(max(0.0, (time.time() - t0) * pace) if math.isfinite(t0) else 0.0, "WARN", bus, text))
+
+    server.on_message = on_message
 
 
 def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace: float, fmt: str):
