@@ -310,6 +310,8 @@ def one(sc, per_process: int | None, duration: float, pace: float, plant_spin_us
             "plant_p99_ms": 1e3 * (m["plant_lateness_p99_s"] or 0), "e2e_p99_ms": 1e3 * (m["e2e_latency_p99_s"] or 0),
             "lost": m["frames_lost"], "lost_on_buses": [b.frames_dropped for b in res.log.buses],
             "lost_by_node": dropped_by_node(m["per_bus"]),
+            "bus_warnings": [f"t = {e.t:.1f} s {e.text}" for e in res.log.events
+                             if e.level == "WARN" and e.source.startswith("bus")],  # a node's queue lost as it left
             "cpu_per_sim_s": (cpu_seconds() - cpu0[0] - by_role.sampler_s) / duration, "keeps_up": keeps_up,
             "sampler_per_sim_s": by_role.sampler_s / duration,
             "interrupted": m["interrupted"], "steal_s": steal, "stalls": stalls,
@@ -421,6 +423,8 @@ def main() -> None:
                 by_node = ", ".join(f"{name} {n}" for name, n in r["lost_by_node"].items())
                 print(f"      lost: {on_buses} dropped from TX queues (by bus {r['lost_on_buses']}; by node: {by_node}), "
                       f"{r['lost'] - on_buses} offered to the radio and not delivered")
+            for warning in r["bus_warnings"]:
+                print(f"      bus warning: {warning}")
             print(f"      host steal time during the run: {r['steal_s']:.2f} s"
                   f"{f'; files in {keep}' if keep is not None else ''}")
             print(f"      plant: {r['plant_misses']} of {r['publications']} publications missed their deadline, "
