@@ -293,23 +293,26 @@ def test_a_node_that_disconnects_loses_its_queue_and_does_not_disturb_others(ser
 
 def test_the_rig_records_a_nodes_lost_queue_as_a_warning_event_from_its_bus(rt):
     """The real-time rig hands its servers' warnings to the run's events (summary, metrics, recording): here a node
-    that leaves with four frames queued, reported while the run's clock reads t = 1.5 s."""
+    that leaves with four frames queued, reported while the run's clock reads t = 1.5 s. Past the limit one more
+    says the rest are not recorded, and then nothing: nodes that come and go cannot fill the orchestrator's memory."""
     from hil.record.runlog import Event
     from hil.runtime.realtime.native_server import NativeBusServer
     from hil.runtime.realtime.orchestrator import record_bus_warnings
 
     events: list[Event] = []
     with NativeBusServer("r1", "bus1", SLOW) as srv:
-        record_bus_warnings(srv, events, "bus1", {"t0": time.time() - 0.75}, 2.0)
+        record_bus_warnings(srv, events, "bus1", {"t0": time.time() - 0.75}, 2.0, limit=1)
         with node("rx") as rx:
-            with node("quitter") as q:
-                for k in range(5):
-                    q.send(can.Message(arbitration_id=0x300 + k, data=DATA8, is_extended_id=False))
-            assert rx.recv(3.0).arbitration_id == 0x300
-            srv.stats  # reports the server's messages so far
-    assert [(e.level, e.source) for e in events] == [("WARN", "bus1")], events
+            for name in ("quitter", "second", "third"):
+                with node(name) as q:
+                    for k in range(5):
+                        q.send(can.Message(arbitration_id=0x300 + k, data=DATA8, is_extended_id=False))
+                assert rx.recv(3.0).arbitration_id == 0x300  # its frame on the wire ends; the rest were dropped
+                srv.stats  # reports the server's messages so far
+    assert [(e.level, e.source) for e in events] == [("WARN", "bus1")] * 2, events
     assert "node quitter" in events[0].text and events[0].text.endswith("; 4 queued frames dropped")
     assert 1.5 <= events[0].t < 10.0
+    assert events[1].text.startswith("more than 1 warnings from this bus: the rest are not recorded")
 
 
 def test_protocol_violation_disconnects_only_the_offender(server):

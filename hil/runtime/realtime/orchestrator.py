@@ -87,6 +87,7 @@ from hil.scenario.model import Scenario
 
 READY_TIMEOUT_S = 60.0  # importing numpy/scipy/cantools in many processes on a loaded 2-core machine is slow
 GO_MARGIN_S = 0.3  # wall seconds between "go" and T0, so every node has the message before sim time 0
+BUS_WARNINGS_MAX = 100  # a bus's warnings recorded as the run's events, at most (record_bus_warnings)
 STOP_GRACE_S = 10.0  # after the end (or a stop), how long nodes get to write their results
 KILL_GRACE_S = 3.0
 # wall seconds between the supervising loop's turns at most (exits, stop requests, spool, pumps, live view); each
@@ -529,14 +530,24 @@ def node_environment(sc: Scenario) -> dict[str, str]:
     return env
 
 
-def record_bus_warnings(server: NativeBusServer, events: list[Event], bus: str, clock: dict, pace: float) -> None:
+def record_bus_warnings(server: NativeBusServer, events: list[Event], bus: str, clock: dict, pace: float,
+                        limit: int = BUS_WARNINGS_MAX) -> None:
     """Make the server's warnings the run's WARN events from ``bus``: a node that left with frames in its TX queue
     (how many were lost), a frame the bus cannot carry, bad input. Each is timed when the server reports it (its
-    pump turns a few times a second, so up to that much after it happened), before t = 0 at 0."""
+    pump turns a few times a second, so up to that much after it happened), before t = 0 at 0. The first ``limit``
+    are recorded, then one that says the rest are not (a client that reconnects again and again cannot fill memory;
+    the server's counters still count everything)."""
+    said = [0]
+
     def on_message(level: str, text: str) -> None:
-        if level == "WARNING":
-            t0 = clock["t0"]
-            events.append(Event(max(0.0, (time.time() - t0) * pace) if math.isfinite(t0) else 0.0, "WARN", bus, text))
+        if level != "WARNING" or said[0] > limit:
+            return
+        said[0] += 1
+        t0 = clock["t0"]
+        t = max(0.0, (time.time() - t0) * pace) if math.isfinite(t0) else 0.0
+        if said[0] > limit:
+            text = f"more than {limit} warnings from this bus: the rest are not recorded (its counters have them)"
+        events.append(Event(t, "WARN", bus, text))
 
     server.on_message = on_message
 
