@@ -293,25 +293,35 @@ def test_a_node_that_disconnects_loses_its_queue_and_does_not_disturb_others(ser
 
 def test_the_rig_records_a_nodes_lost_queue_as_a_warning_event_from_its_bus(rt):
     """The real-time rig hands its servers' warnings to the run's events (summary, metrics, recording): here a node
-    that leaves with four frames queued, reported while the run's clock reads t = 1.5 s. Past the limit one more
-    says the rest are not recorded, and then nothing: nodes that come and go cannot fill the orchestrator's memory."""
+    that leaves with four frames queued while the run's clock reads about t = 1.5 s, timed when it left though
+    reported a simulated second later. Past the limit one more says the rest are not recorded, and then nothing:
+    nodes that come and go cannot fill the orchestrator's memory."""
     from hil.record.runlog import Event
     from hil.runtime.realtime.native_server import NativeBusServer
     from hil.runtime.realtime.orchestrator import record_bus_warnings
 
     events: list[Event] = []
-    with NativeBusServer("r1", "bus1", SLOW) as srv:
-        record_bus_warnings(srv, events, "bus1", {"t0": time.time() - 0.75}, 2.0, limit=1)
+    pace, clock = 2.0, {"t0": time.time() - 0.75}
+    srv = NativeBusServer("r1", "bus1", SLOW).start(pump_thread=False)  # reported only when asked
+    try:
+        record_bus_warnings(srv, events, "bus1", clock, pace, limit=1)
         with node("rx") as rx:
+            left_at = []
             for name in ("quitter", "second", "third"):
                 with node(name) as q:
                     for k in range(5):
                         q.send(can.Message(arbitration_id=0x300 + k, data=DATA8, is_extended_id=False))
+                left_at.append((time.time() - clock["t0"]) * pace)
                 assert rx.recv(3.0).arbitration_id == 0x300  # its frame on the wire ends; the rest were dropped
-                srv.stats  # reports the server's messages so far
+            time.sleep(0.5)
+            reported_at = (time.time() - clock["t0"]) * pace
+            srv.stats  # reports the server's messages so far
+    finally:
+        srv.close()
     assert [(e.level, e.source) for e in events] == [("WARN", "bus1")] * 2, events
     assert "node quitter" in events[0].text and events[0].text.endswith("; 4 queued frames dropped")
-    assert 1.5 <= events[0].t < 10.0
+    assert reported_at - left_at[0] > 1.0
+    assert left_at[0] - 0.05 <= events[0].t <= left_at[0] + 0.2, (left_at, events[0].t)
     assert events[1].text.startswith("more than 1 warnings from this bus: the rest are not recorded")
 
 

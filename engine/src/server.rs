@@ -138,7 +138,16 @@ pub struct Shared {
     /// TURNS_BEHIND_WINDOW_S (None: it takes them still): from then on its nodes' read times are plain reads.
     pub turns_given_up_s: Option<f64>,
     /// Log lines for the owner to report (bad input, joins and leaves).
-    pub messages: Vec<(String, String)>,
+    pub messages: Vec<LogLine>,
+}
+
+/// A line of a server's log: its level ("INFO" or "WARNING"), its text, and the model time at which it happened (ns
+/// since the server's zero), so the owner can time it exactly however late it reports it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LogLine {
+    pub level: &'static str,
+    pub text: String,
+    pub t_ns: u64,
 }
 
 enum Stream {
@@ -1100,6 +1109,11 @@ impl Server {
         }
     }
 
+    /// A line for the owner's log, stamped with the model time now.
+    fn say(&self, shared: &mut Shared, level: &'static str, text: String) {
+        shared.messages.push(LogLine { level, text, t_ns: self.now() });
+    }
+
     fn bad_input(&self, shared: &mut Shared, kind: &str, text: String) {
         let counter = match kind {
             "protocol_errors" => &mut shared.bad.protocol_errors,
@@ -1110,7 +1124,7 @@ impl Server {
         *counter += 1;
         let n = *counter;
         if n <= LOG_FIRST || n % 1000 == 0 {
-            shared.messages.push(("WARNING".into(), format!("bus {}: {text} ({kind} #{n})", self.cfg.channel)));
+            self.say(shared, "WARNING", format!("bus {}: {text} ({kind} #{n})", self.cfg.channel));
         }
     }
 
@@ -1377,9 +1391,9 @@ impl Server {
                         c.rejected += 1;
                         shared.rejected += 1;
                         if c.rejected == 1 {
-                            shared.messages.push(("WARNING".into(), format!(
-                                "bus {}: node {} sent a frame the bus cannot carry ({why}); dropped and counted",
-                                self.cfg.channel, c.name)));
+                            let text = format!("bus {}: node {} sent a frame the bus cannot carry ({why}); dropped and \
+                                                counted", self.cfg.channel, c.name);
+                            self.say(shared, "WARNING", text);
                         }
                     }
                 }
@@ -1465,7 +1479,8 @@ impl Server {
         }
         let c = &self.clients[i];
         self.rx_cache.clear();
-        shared.messages.push(("INFO".into(), format!("bus {}: node {} (#{}) joined", self.cfg.channel, c.name, c.cid)));
+        let text = format!("bus {}: node {} (#{}) joined", self.cfg.channel, c.name, c.cid);
+        self.say(shared, "INFO", text);
         Ok(())
     }
 
@@ -1510,7 +1525,7 @@ impl Server {
             let level = if lost > 0 { "WARNING" } else { "INFO" }; // frames lost: a warning the rig records
             let text = format!("bus {}: node {} (#{}) left ({why}); {lost} queued frames dropped", self.cfg.channel,
                                c.name, c.cid);
-            shared.messages.push((level.into(), text));
+            self.say(shared, level, text);
         }
     }
 }
@@ -2228,7 +2243,8 @@ mod tests {
     }
 
     /// A node that leaves with frames in its TX queue loses them: the server says so as a warning that names the
-    /// node and the count (the rig records it as an event); a node that leaves with nothing queued, as information.
+    /// node and the count (the rig records it as an event), stamped with the model time of the leave however late
+    /// it is read; a node that leaves with nothing queued, as information.
     #[test]
     fn a_node_that_leaves_with_queued_frames_is_a_warning_naming_it_and_the_count() {
         let (mut handle, path, dir) = serve("quitter", 10_000, 10_000, Format::Classical);
@@ -2237,14 +2253,15 @@ mod tests {
         let batch: Vec<u8> = (0..4).flat_map(|k| pack_frame(0x300 + k, &[1; 8], 0, 0.0)).collect();
         quitter.write_all(&batch).unwrap(); // the first on the wire for about 11 ms, three queued behind it
         std::thread::sleep(Duration::from_millis(3));
+        let t_leave = handle.now_ns();
         quitter.shutdown(std::net::Shutdown::Both).unwrap();
         idle.shutdown(std::net::Shutdown::Both).unwrap();
-        let left = |name: &str| -> Option<(String, String)> {
+        std::thread::sleep(Duration::from_millis(300)); // read well after the leave
+        let left = |name: &str| -> Option<LogLine> {
             let deadline = Instant::now() + Duration::from_secs(2);
             while Instant::now() < deadline {
                 let shared = handle.shared.lock().unwrap();
-                let of_it =
-                    |(_, text): &&(String, String)| text.contains(&format!("node {name} (")) && text.contains(" left (");
+                let of_it = |m: &&LogLine| m.text.contains(&format!("node {name} (")) && m.text.contains(" left (");
                 if let Some(m) = shared.messages.iter().find(of_it) {
                     return Some(m.clone());
                 }
@@ -2253,12 +2270,13 @@ mod tests {
             }
             None
         };
-        let (level, text) = left("Q").expect("no message for the quitter's leave");
-        assert_eq!(level, "WARNING", "{text}");
-        assert!(text.ends_with("; 3 queued frames dropped"), "{text}");
-        let (level, text) = left("I").expect("no message for the idle node's leave");
-        assert_eq!(level, "INFO", "{text}");
-        assert!(text.ends_with("; 0 queued frames dropped"), "{text}");
+        let q = left("Q").expect("no message for the quitter's leave");
+        assert_eq!(q.level, "WARNING", "{}", q.text);
+        assert!(q.text.ends_with("; 3 queued frames dropped"), "{}", q.text);
+        assert!((t_leave..t_leave + 100_000_000).contains(&q.t_ns), "left at {t_leave} ns, stamped {}", q.t_ns);
+        let i = left("I").expect("no message for the idle node's leave");
+        assert_eq!(i.level, "INFO", "{}", i.text);
+        assert!(i.text.ends_with("; 0 queued frames dropped"), "{}", i.text);
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -259,9 +259,12 @@ impl BusServerCore {
         errors_summary(py, &s.bus)
     }
 
-    /// Log lines since the last call: [(level, text)].
-    fn take_messages(&self) -> Vec<(String, String)> {
-        self.handle.as_ref().map_or_else(Vec::new, |h| std::mem::take(&mut h.shared.lock().unwrap().messages))
+    /// Log lines since the last call: [(level, text, t_ns)], t_ns the model time each happened (ns since the
+    /// server's zero).
+    fn take_messages(&self) -> Vec<(&'static str, String, u64)> {
+        let Some(h) = self.handle.as_ref() else { return Vec::new() };
+        let lines = std::mem::take(&mut h.shared.lock().unwrap().messages);
+        lines.into_iter().map(|m| (m.level, m.text, m.t_ns)).collect()
     }
 
     /// Stop serving (disconnects every node) and join the thread; idempotent.

@@ -85,7 +85,8 @@ class NativeBusServer:
             tcp_sock.close()
         self._tcp = tcp
         self.frame_listeners: list = []
-        self.on_message: Callable[[str, str], None] | None = None  # (level, text) of each log line as reported
+        # (level, text, t_ns) of each log line as reported; t_ns: the model time it happened (ns since epoch0)
+        self.on_message: Callable[[str, str, int], None] | None = None
         self._tracing = False
         self._stop = threading.Event()
         self._pump: threading.Thread | None = None
@@ -213,10 +214,10 @@ class NativeBusServer:
             self.pump()
 
     def _report(self) -> None:
-        for level, text in self._core.take_messages():
+        for level, text, t_ns in self._core.take_messages():
             LOG.log(logging.WARNING if level == "WARNING" else logging.INFO, "%s", text)
             if self.on_message is not None:
-                self.on_message(level, text)
+                self.on_message(level, text, t_ns)
 
     def _feed_listeners(self) -> None:
         with self._lock:

@@ -533,18 +533,18 @@ def node_environment(sc: Scenario) -> dict[str, str]:
 def record_bus_warnings(server: NativeBusServer, events: list[Event], bus: str, clock: dict, pace: float,
                         limit: int = BUS_WARNINGS_MAX) -> None:
     """Make the server's warnings the run's WARN events from ``bus``: a node that left with frames in its TX queue
-    (how many were lost), a frame the bus cannot carry, bad input. Each is timed when the server reports it (its
-    pump turns a few times a second, so up to that much after it happened), before t = 0 at 0. The first ``limit``
-    are recorded, then one that says the rest are not (a client that reconnects again and again cannot fill memory;
-    the server's counters still count everything)."""
+    (how many were lost), a frame the bus cannot carry, bad input. Each is timed when it happened (the engine stamps
+    it; one before t = 0 at 0), though reported up to a pump period later. The first ``limit`` are recorded, then one
+    that says the rest are not (a client that reconnects again and again cannot fill memory; the server's counters
+    still count everything)."""
     said = [0]
+    to_seconds = sim_seconds(server, clock, pace)
 
-    def on_message(level: str, text: str) -> None:
+    def on_message(level: str, text: str, t_ns: int) -> None:
         if level != "WARNING" or said[0] > limit:
             return
         said[0] += 1
-        t0 = clock["t0"]
-        t = max(0.0, (time.time() - t0) * pace) if math.isfinite(t0) else 0.0
+        t = max(0.0, to_seconds(t_ns)) if math.isfinite(clock["t0"]) else 0.0
         if said[0] > limit:
             text = f"more than {limit} warnings from this bus: the rest are not recorded (its counters have them)"
         events.append(Event(t, "WARN", bus, text))
@@ -552,15 +552,22 @@ def record_bus_warnings(server: NativeBusServer, events: list[Event], bus: str, 
     server.on_message = on_message
 
 
-def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace: float, fmt: str):
-    """Log every frame of ``server`` to ``bus<i+1>.<fmt>`` in simulated seconds (written by the server's thread)."""
+def sim_seconds(server: BusServer, clock: dict, pace: float) -> Callable[[int], float]:
+    """The run's simulated seconds of a time the server stamps (ns since its zero): it happened at wall time
+    ``epoch0 + t_ns / pace``, and the run's simulated time is (wall - t0) x pace (t0: ``clock["t0"]``, read at each
+    call, as it is set when the run goes)."""
     epoch0 = server.epoch0
 
-    def to_seconds(t_end_ns: int) -> float:  # the server stamps epoch0 + t_end / pace; sim t = (stamp - t0) * pace
-        return (epoch0 + t_end_ns * 1e-9 / pace - clock["t0"]) * pace
+    def to_seconds(t_ns: int) -> float:
+        return (epoch0 + t_ns * 1e-9 / pace - clock["t0"]) * pace
 
+    return to_seconds
+
+
+def _attach_can_log(server: BusServer, i: int, out_dir: Path, clock: dict, pace: float, fmt: str):
+    """Log every frame of ``server`` to ``bus<i+1>.<fmt>`` in simulated seconds (written by the server's thread)."""
     writer = open_can_log(out_dir, f"bus{i + 1}", i, "real time", fmt)
-    server.frame_listeners.append(frame_listener(writer, i, to_seconds))
+    server.frame_listeners.append(frame_listener(writer, i, sim_seconds(server, clock, pace)))
     return writer
 
 
