@@ -9,6 +9,7 @@ the wrong length instead of decoding them.
 from __future__ import annotations
 
 import logging
+import re
 import socket
 import struct
 import time
@@ -151,6 +152,23 @@ def test_abrupt_disconnect_with_queued_frames_counts_them(rt, server_cls):
             stats = srv.stats
             assert stats.frames_dropped >= 5 and stats.clients == 1
             still_works(srv, 2)
+
+
+def test_a_nodes_first_frame_refused_by_its_full_tx_queue_is_one_warning(rt, server_cls, caplog):
+    """A node that sends faster than its bus overflows its TX queue: every frame refused is counted, and the first
+    is a warning that names the node, the frame and the cause (in a rig run, a WARN event at its time), so a loss
+    can be found; the rest are not logged, so a flood cannot flood the log."""
+    caplog.set_level(logging.INFO)
+    with server_cls("r1", "bus1", 5000, depth=4) as srv:  # slow bus: 26 ms per frame
+        s = raw(srv, b"".join(frame_record(0x200 + k, 8) for k in range(10)), hello="flooder", close=False)
+        assert wait_for(lambda: srv.stats.frames_dropped >= 5)  # four queued, one on the wire at most
+        s.sendall(b"".join(frame_record(0x210 + k, 8) for k in range(5)))
+        assert wait_for(lambda: srv.stats.frames_dropped >= 9)
+        s.close()
+    said = [r for r in caplog.records if " dropped frame " in r.getMessage()]
+    assert [r.levelno for r in said] == [logging.WARNING], [r.getMessage() for r in said]
+    assert re.fullmatch(r"bus \S+: node flooder dropped frame 0x20[45] \(its TX queue of 4 is full\); its later "
+                        r"drops are only counted", said[0].getMessage()), said[0].getMessage()
 
 
 def test_a_connection_that_never_says_hello_is_dropped(server):

@@ -268,6 +268,9 @@ pub struct Server {
     next_window: u64,
     ended: Vec<u64>,
     rx_cache: std::collections::HashMap<(u32, bool), Vec<usize>>,
+    /// The bus nodes that have had a frame refused (a full TX queue, bus-off): the first is a warning, the rest
+    /// are counted only.
+    refused: std::collections::HashSet<usize>,
     /// Bus time up to which the bus has been run: arrivals are queued at or after it.
     floor: u64,
     /// A frame was queued on an idle bus at this time: arbitrate there.
@@ -440,6 +443,7 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
+        refused: Default::default(),
         floor: 0, arbitrate_at: None, least_frame_ns, timing, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
         more_waiting: false, backlog_at: None, behind_window: (0, 0), turn_hold: None, held: false,
         lazy_wait: PollWait::new(),
@@ -615,10 +619,27 @@ impl Server {
     fn radio_send(&mut self, shared: &mut Shared, t: u64) {
         let Some(r) = self.radio.as_mut() else { return };
         let Some(d) = r.pending.pop_front() else { return };
-        let format = shared.bus.format;
-        if shared.bus.enqueue_as(r.node, d.frame_id, d.data.as_slice(), t, None, format) && shared.bus.current.is_none() {
+        let (node, format) = (r.node, shared.bus.format);
+        if self.enqueue(shared, node, d.frame_id, d.data.as_slice(), t, None, format) && shared.bus.current.is_none() {
             self.arbitrate_at.get_or_insert(t);
         }
+    }
+
+    /// Queue a frame in `node`'s TX queue (false: refused, counted by the bus). A node's first refused frame is a
+    /// warning with its time and cause, so a run's loss can be found on its timeline; the rest are counted only.
+    #[allow(clippy::too_many_arguments)]
+    fn enqueue(&mut self, shared: &mut Shared, node: usize, can_id: u32, data: &[u8], t: u64, extended: Option<bool>,
+               format: Format) -> bool {
+        let queued = shared.bus.enqueue_as(node, can_id, data, t, extended, format);
+        if !queued && self.refused.insert(node) {
+            let n = &shared.bus.nodes[node];
+            let why =
+                if n.bus_off { "it is bus-off".to_string() } else { format!("its TX queue of {} is full", shared.bus.depth) };
+            let text = format!("bus {}: node {} dropped frame 0x{can_id:X} ({why}); its later drops are only counted",
+                               self.cfg.channel, n.name);
+            self.say(shared, "WARNING", text);
+        }
+        queued
     }
 
     /// Before a turn: its descriptors onto the serving thread's poll set (FIRST_CLIENT_FD of its own, then one per
@@ -1358,8 +1379,8 @@ impl Server {
                     if !long.keep {
                         return Ok(());
                     }
-                    shared.bus.enqueue_as(long.node, long.can_id, &long.data, long.t, Some(long.flags & FLAG_EXTENDED != 0),
-                                          record_format(long.flags));
+                    let ext = Some(long.flags & FLAG_EXTENDED != 0);
+                    self.enqueue(shared, long.node, long.can_id, &long.data, long.t, ext, record_format(long.flags));
                     if shared.bus.current.is_none() {
                         self.arbitrate_at.get_or_insert(long.t); // else it competes at the end of the frame on the wire
                     }
@@ -1377,8 +1398,8 @@ impl Server {
                         self.clients[i].long = Some(LongFrame { can_id, flags, len: dlc as usize, data: r[16..24].to_vec(), keep: true, t: now, node });
                     }
                     None => {
-                        shared.bus.enqueue_as(node, can_id, &r[16..16 + dlc as usize], now, Some(flags & FLAG_EXTENDED != 0),
-                                              record_format(flags));
+                        let ext = Some(flags & FLAG_EXTENDED != 0);
+                        self.enqueue(shared, node, can_id, &r[16..16 + dlc as usize], now, ext, record_format(flags));
                         if shared.bus.current.is_none() {
                             self.arbitrate_at.get_or_insert(now);
                         }
@@ -2238,6 +2259,37 @@ mod tests {
             assert_eq!((rec[0], u32_at(&rec, 4), rec[16]), (KIND_FRAME, 0x100, data));
         }
         assert!(handle.running(), "the serving thread died");
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Frames a full TX queue refuses are counted; the node's first is also a warning naming it, the frame and the
+    /// cause, stamped with its time, and its later ones are not (a node that floods cannot flood the log).
+    #[test]
+    fn a_nodes_first_frame_refused_by_its_full_tx_queue_is_one_warning_with_its_time() {
+        let (mut handle, path, dir) = serve("overflow", 10_000, 10_000, Format::Classical);
+        let mut flooder = connect_node(&path, "F", 0);
+        let t_send = handle.now_ns();
+        let batch: Vec<u8> = (0..12).flat_map(|k| pack_frame(0x300 + k, &[1; 8], 0, 0.0)).collect();
+        flooder.write_all(&batch).unwrap(); // taken in one turn: eight queued, four refused
+        let deadline = Instant::now() + Duration::from_secs(2);
+        while handle.shared.lock().unwrap().bus.frames_dropped() < 4 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        // the first is on the wire for about 11 ms now: one more fits, the other is refused and counted only
+        let two: Vec<u8> = [0x3FE, 0x3FF].iter().flat_map(|&id| pack_frame(id, &[1; 8], 0, 0.0)).collect();
+        flooder.write_all(&two).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        let shared = handle.shared.lock().unwrap();
+        assert_eq!(shared.bus.frames_dropped(), 5);
+        let said: Vec<&LogLine> = shared.messages.iter().filter(|m| m.text.contains(" dropped frame ")).collect();
+        assert_eq!(said.len(), 1, "{said:?}");
+        assert_eq!(said[0].level, "WARNING");
+        assert!(said[0].text.starts_with("bus t/b: node F dropped frame 0x308 (its TX queue of 8 is full)"), "{}",
+                said[0].text);
+        let t = said[0].t_ns;
+        assert!((t_send..t_send + 100_000_000).contains(&t), "sent at {t_send} ns, stamped {t}");
+        drop(shared);
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }
