@@ -362,6 +362,7 @@ def test_a_participant_killed_mid_run_is_recorded_and_the_fail_safe_holds_its_un
               and "train 1" in e.text]
     assert braked, "the plant's fail-safe did not act on the lost unit"
     assert metrics["coupler_max_abs_m"] < 5.0 and not metrics["safety"]["collision"]["violated"]
+    assert metrics["silkit"]["controllers"]["bus1"] == 1  # it took part, though gone by the end
     report = check_run_dir(tmp_path, expect_complete=True)
     assert report.ok, report.problems
 

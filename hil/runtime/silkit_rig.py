@@ -170,7 +170,8 @@ class SilKitRig(VirtualRig):
             "system_controller": self.options.system_controller, "external": self.external_names,
             "lost": [{"participant": name, "t_s": t * 1e-9} for name, t in self._lost],
             "networks": [n.network for n in self.networks],
-            "controllers": {n.network: len(n.controllers) for n in self.networks},
+            # the controllers that took part, also those whose participant left before the report
+            "controllers": {n.network: n.controllers_seen for n in self.networks},
             "tx_queue_full": sum(n.queue_full for n in self.networks),
             "format_refused": sum(n.format_refused for n in self.networks),
             "bitrate_mismatches": sum(n.bitrate_mismatches for n in self.networks)}

@@ -82,7 +82,8 @@ class CanNetworkSimulator:
             raise ValueError(f"grid_ns = {grid_ns}: the participants' step must be a positive, even number of ns")
         self.lib, self.network, self.grid_ns, self.bitrate = lib, network, grid_ns, bitrate
         self.step_ns = grid_ns // 2  # the simulator's own step (see the module docstring)
-        self.controllers: dict[int, SimulatedController] = {}
+        self.controllers: dict[int, SimulatedController] = {}  # those on the network now
+        self.controllers_seen = 0  # every controller SIL Kit gave the network, also those since removed
         self.queue_full = 0
         self.format_refused = 0  # frames whose CAN format the bus does not carry (see _fits)
         self.bitrate_mismatches = 0
@@ -124,6 +125,7 @@ class CanNetworkSimulator:
     def _provide(self, out_controller: Any, out_functions: Any, descriptor: int, network: Any) -> None:
         with self._lock:
             self.controllers[descriptor] = SimulatedController(descriptor)
+            self.controllers_seen += 1
         out_controller[0] = ctypes.c_void_p(descriptor)  # our handle for it is its descriptor
         out_functions[0] = ctypes.cast(ctypes.pointer(self._controller_functions), ctypes.c_void_p)
 
