@@ -123,6 +123,9 @@ def test_engine_and_python_model_give_the_same_frames_and_signals(name, override
     assert py_log.e2e == en_log.e2e and py_log.radio_stats == en_log.radio_stats
     assert py_log.frames_lost == en_log.frames_lost and py_log.codec_saturations == en_log.codec_saturations
     assert same_events(py_log, en_log)
+    for bus in en_log.buses:  # each node that dropped frames said so once, at its first (the same in both)
+        said = [e.text.split()[1] for e in en_log.events if e.source == bus.name and " dropped frame " in e.text]
+        assert sorted(said) == sorted(bus.dropped_by_node), (bus.name, said, bus.dropped_by_node)
 
 
 def _faults_with_every_bus_fault() -> Scenario:

@@ -319,7 +319,7 @@ def test_the_rig_records_a_nodes_lost_queue_as_a_warning_event_from_its_bus(rt):
     finally:
         srv.close()
     assert [(e.level, e.source) for e in events] == [("WARN", "bus1")] * 2, events
-    assert "node quitter" in events[0].text and events[0].text.endswith("; 4 queued frames dropped")
+    assert events[0].text.startswith("node quitter (#") and events[0].text.endswith("; 4 queued frames dropped")
     assert reported_at - left_at[0] > 1.0
     assert left_at[0] - 0.05 <= events[0].t <= left_at[0] + 0.2, (left_at, events[0].t)
     assert events[1].text.startswith("more than 1 warnings from this bus: the rest are not recorded")

@@ -269,6 +269,19 @@ def test_a_plant_the_machine_stalls_publishes_the_latest_sample_and_loses_no_fra
     assert m["frames_lost"] == 0, m["per_bus"]
 
 
+def test_each_node_whose_tx_queue_overflows_is_a_warn_event_from_its_bus_at_its_first_drop(rt, tmp_path):
+    """TX queues of two frames: the plant's four Sensor frames a publication and an ECU's three a cycle overflow
+    them from the first. Each node that dropped frames is a WARN event from its bus, timed at its first drop (the
+    first cycle here, before the orchestrator first reports), naming the frame and the cause; the rest are counted."""
+    sc = load_scenario("seed000", {"can.tx_queue_depth": 2})
+    res = run_realtime(sc, tmp_path / "rt", pace=1.0, duration_s=1.0, ecus_per_process=12, record=False)
+    for bus, stats in res.metrics["per_bus"].items():
+        said = {e.text.split()[1]: e for e in res.log.events if e.source == bus and " dropped frame " in e.text}
+        assert stats["frames_dropped"] >= 100 and set(said) == set(stats["frames_dropped_by_node"]), (said, stats)
+        assert said["Plant"].level == "WARN" and "(its TX queue of 2 is full)" in said["Plant"].text
+        assert all(0.0 <= e.t < 0.1 for e in said.values()), said
+
+
 def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):
     """A plant whose step never returns (SIGSTOP here: silent as a model stuck in its solver) used to leave the rig
     running to its end and then waiting for it. Its heartbeat falls silent: within about 2 s (HUNG_AFTER_S) it is

@@ -199,6 +199,9 @@ class Network:
     def dropped_by_node(self, bus: int) -> dict[str, int]:
         """The frames each node of a bus dropped (full TX queue, bus-off, queued when it left), by node name; nodes
         that dropped none left out."""
+    def take_refusals(self, bus: int) -> list[tuple[int, str]]:
+        """Each node's first frame refused on a bus (a full TX queue, bus-off) since the last call, as (t_ns, what
+        happened); its later drops are counted only."""
     def detach(self, bus: int, node: int) -> int:
         """Take a node off its bus (its queued frames dropped and counted: how many); its index stays taken."""
     def attached(self, bus: int, node: int) -> bool: ...

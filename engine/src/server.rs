@@ -268,9 +268,6 @@ pub struct Server {
     next_window: u64,
     ended: Vec<u64>,
     rx_cache: std::collections::HashMap<(u32, bool), Vec<usize>>,
-    /// The bus nodes that have had a frame refused (a full TX queue, bus-off): the first is a warning, the rest
-    /// are counted only.
-    refused: std::collections::HashSet<usize>,
     /// Bus time up to which the bus has been run: arrivals are queued at or after it.
     floor: u64,
     /// A frame was queued on an idle bus at this time: arbitrate there.
@@ -443,7 +440,6 @@ pub fn start(cfg: ServerConfig, listener_fd: RawFd, tcp_fd: Option<RawFd>, bell:
     let server = Server {
         next_window: cfg.load_window_ns, cfg, shared: shared.clone(), stop: stop.clone(), listener, tcp, wake: wake_r,
         clients: Vec::new(), next_cid: 1, mono0, epoch0_ns, ended: Vec::new(), rx_cache: Default::default(),
-        refused: Default::default(),
         floor: 0, arbitrate_at: None, least_frame_ns, timing, longest_frame_ns, radio, bell, bell_every: true, bell_routes: true,
         more_waiting: false, backlog_at: None, behind_window: (0, 0), turn_hold: None, held: false,
         lazy_wait: PollWait::new(),
@@ -626,18 +622,16 @@ impl Server {
     }
 
     /// Queue a frame in `node`'s TX queue (false: refused, counted by the bus). A node's first refused frame is a
-    /// warning with its time and cause, so a run's loss can be found on its timeline; the rest are counted only.
+    /// warning with its time and cause (`Bus::take_refusals`), so a run's loss can be found on its timeline.
     #[allow(clippy::too_many_arguments)]
     fn enqueue(&mut self, shared: &mut Shared, node: usize, can_id: u32, data: &[u8], t: u64, extended: Option<bool>,
                format: Format) -> bool {
         let queued = shared.bus.enqueue_as(node, can_id, data, t, extended, format);
-        if !queued && self.refused.insert(node) {
-            let n = &shared.bus.nodes[node];
-            let why =
-                if n.bus_off { "it is bus-off".to_string() } else { format!("its TX queue of {} is full", shared.bus.depth) };
-            let text = format!("bus {}: node {} dropped frame 0x{can_id:X} ({why}); its later drops are only counted",
-                               self.cfg.channel, n.name);
-            self.say(shared, "WARNING", text);
+        if !queued {
+            for (t_ns, text) in shared.bus.take_refusals() {
+                let text = format!("bus {}: {text}", self.cfg.channel);
+                shared.messages.push(LogLine { level: "WARNING", text, t_ns });
+            }
         }
         queued
     }

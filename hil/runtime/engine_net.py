@@ -161,6 +161,10 @@ class EngineBus:
         self.log.frames_sent, self.log.frames_dropped = sent, dropped
         self.collect_frames()
 
+    def take_refusals(self) -> list[tuple[int, str]]:
+        """Each node's first frame refused (a full TX queue, bus-off) since the last call: (t_ns, what happened)."""
+        return self.net.take_refusals(self.index)
+
     def collect_frames(self) -> None:
         """Hand the traced frames completed since the last call to the listeners (without the statistics)."""
         if self._tracing:

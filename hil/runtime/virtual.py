@@ -243,6 +243,14 @@ class VirtualRig:
         self._apply_commands()
         for bus in self.buses:
             bus.collect()
+        self._log_refusals()
+
+    def _log_refusals(self) -> None:
+        """Each node's first frame refused (a full TX queue, bus-off) as a WARN event from its bus at its time: where
+        and when a loss began (the rest are counted only, in ``frames_dropped_by_node``)."""
+        for bus in self.buses:
+            for t_ns, text in bus.take_refusals():
+                self.log.event(t_ns * 1e-9, "WARN", bus.name, text)
 
     def _finish_network(self, now: int) -> None:
         """The network's last events to ``now`` and its statistics into the log."""

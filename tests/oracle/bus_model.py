@@ -52,6 +52,7 @@ class CanNode:
         self.sent = 0
         self.dropped = 0
         self.bus_off = False  # set by tests.oracle.bus_errors (fault confinement): a bus-off node neither sends nor receives
+        self.refused = False  # a frame of it was refused: its first is in the bus's refusals, the rest counted only
 
 
 class CanBusModel:
@@ -88,6 +89,7 @@ class CanBusModel:
         self.frame_listeners: list[Callable[[Transmission], None]] = []  # e.g. CAN log writers
         self.errors = None  # tests.oracle.bus_errors.BusErrors when faults or errors are modelled (None: error-free fast path)
         self.packing = None  # trainhil_engine.Packing: CAN FD containers, unpacked at the receivers (set_packing)
+        self._refusals: list[tuple[int, str]] = []  # each node's first refused frame: (t_ns, what happened)
 
     # ---- topology
     def attach(self, name: str, on_rx: RxCallback | None = None, rx_ids: set[int] | None = None,
@@ -113,6 +115,11 @@ class CanBusModel:
         self._listeners.clear()
         self._catch_all = [n for n in self.nodes if n.on_rx is not None and n.rx_ids is None]
         return lost
+
+    def take_refusals(self) -> list[tuple[int, str]]:
+        """Each node's first frame refused (a full TX queue, bus-off) since the last call: (t_ns, what happened)."""
+        out, self._refusals = self._refusals, []
+        return out
 
     def set_packing(self, packing) -> None:
         """Unpack this CAN FD bus's container frames (a ``trainhil_engine.Packing``) at its receivers, which accept
@@ -143,6 +150,11 @@ class CanBusModel:
         classical frames only)."""
         if node.queued >= node.depth or (node.bus_off and not self.errors.admits(node, t)):
             node.dropped += 1
+            if not node.refused:
+                node.refused = True
+                why = "it is bus-off" if node.bus_off else f"its TX queue of {node.depth} is full"
+                self._refusals.append((t, f"node {node.name} dropped frame 0x{frame_id:X} ({why}); its later drops "
+                                          "are only counted"))
             return False
         node.queued += 1
         self._seq += 1

@@ -80,11 +80,12 @@ class PythonNetworkRig(VirtualRig):
         pass
 
     def _collect(self) -> None:
-        pass
+        self._log_refusals()
 
     def _finish_network(self, now: int) -> None:
         for bus in self.buses:
             bus.finish(now)
+        self._log_refusals()
 
 
 class PythonNetworkFaults(VirtualFaults):

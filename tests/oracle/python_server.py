@@ -216,7 +216,6 @@ class PythonBusServer:
         self._frames = 0
         self._rejected = 0
         self._overruns = 0
-        self._refused: set[int] = set()  # ids of the bus nodes that had a frame refused (said once)
         self._lateness = _Histogram()
         self._latency = _Histogram()
         self._lock = threading.Lock()
@@ -609,14 +608,10 @@ class PythonBusServer:
 
     def _enqueue(self, c: _Client, can_id: int, data: bytes, flags: int, now: int) -> None:
         """Queue a frame of ``c``'s; its first refused (a full TX queue, bus-off) is a warning, the rest counted."""
-        node = c.node
-        if self.model.enqueue(node, can_id, data, now, bool(flags & FLAG_EXTENDED), bool(flags & FLAG_FD),
-                              bool(flags & FLAG_BRS)) or id(node) in self._refused:
-            return
-        self._refused.add(id(node))
-        why = "it is bus-off" if node.bus_off else f"its TX queue of {node.depth} is full"
-        LOG.warning("bus %s: node %s dropped frame 0x%X (%s); its later drops are only counted", self.channel,
-                    node.name, can_id, why)
+        if not self.model.enqueue(c.node, can_id, data, now, bool(flags & FLAG_EXTENDED), bool(flags & FLAG_FD),
+                                  bool(flags & FLAG_BRS)):
+            for _, text in self.model.take_refusals():
+                LOG.warning("bus %s: %s", self.channel, text)
 
     def _frame_data(self, c: _Client, buf: bytes, off: int, now: int) -> None:
         """One FRAME_DATA record of a CAN FD frame above 8 bytes; the last one queues the frame."""

@@ -150,6 +150,18 @@ pub struct Node {
     pub attached: bool,
     /// Bus-off (fault confinement, `errors`): the node neither sends nor receives until it recovers.
     pub bus_off: bool,
+    /// A frame of it was refused (a full TX queue, bus-off): its first is in `Bus::refusals`, the rest counted only.
+    pub refused: bool,
+}
+
+/// A node's first frame refused at its TX queue (full, or the node bus-off), for the driver to report with its time:
+/// where and when a loss began.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refusal {
+    pub node: usize,
+    pub frame_id: u32,
+    pub t_ns: u64,
+    pub bus_off: bool,
 }
 
 impl Node {
@@ -216,6 +228,8 @@ pub struct Bus {
     pub guardian: Option<Guardian>,
     /// What the error model and the guardian reported, in order, for the driver to take.
     pub events: Vec<BusEvent>,
+    /// Each node's first refused frame, in order, for the driver to take (`take_refusals`).
+    pub refusals: Vec<Refusal>,
 }
 
 impl Bus {
@@ -224,14 +238,14 @@ impl Bus {
             name: name.to_string(), timing, policy, depth, extended, format: Format::Classical, nodes: Vec::new(), heap: BinaryHeap::new(), seq: 0,
             receivers_std: vec![None; 1 << 11], receivers_ext: HashMap::new(), busy_until: 0, current: None, window_ns: load_window_ns,
             window_end: load_window_ns, window_busy: 0, stats: BusStats::default(), trace: None, packing: None,
-            errors: None, guardian: None, events: Vec::new(),
+            errors: None, guardian: None, events: Vec::new(), refusals: Vec::new(),
         }
     }
 
     /// Attach a node; returns its index on this bus.
     pub fn attach(&mut self, name: &str, sink: Sink, rx_ids: Option<Vec<u32>>, receive_own: bool) -> usize {
         self.nodes.push(Node { name: name.to_string(), sink, rx_ids, receive_own, queued: 0, fifo: VecDeque::new(), sent: 0,
-                               dropped: 0, attached: true, bus_off: false });
+                               dropped: 0, attached: true, bus_off: false, refused: false });
         self.refresh_receivers();
         self.nodes.len() - 1
     }
@@ -302,7 +316,13 @@ impl Bus {
     pub fn enqueue_as(&mut self, node: usize, frame_id: u32, data: &[u8], t: u64, extended: Option<bool>, format: Format) -> bool {
         let n = &self.nodes[node];
         if n.queued >= self.depth || !n.attached || (n.bus_off && !self.admits(node, t)) {
-            self.nodes[node].dropped += 1;
+            let n = &mut self.nodes[node];
+            n.dropped += 1;
+            if n.attached && !n.refused {
+                n.refused = true;
+                let bus_off = n.bus_off;
+                self.refusals.push(Refusal { node, frame_id, t_ns: t, bus_off });
+            }
             return false;
         }
         let n = &mut self.nodes[node];
@@ -517,6 +537,18 @@ impl Bus {
         lost
     }
 
+    /// The first refused frame of each node since the last call, each as (its time, what happened): "node N dropped
+    /// frame 0x... (its TX queue of 64 is full); its later drops are only counted".
+    pub fn take_refusals(&mut self) -> Vec<(u64, String)> {
+        let refusals = std::mem::take(&mut self.refusals);
+        refusals.into_iter().map(|r| {
+            let why =
+                if r.bus_off { "it is bus-off".to_string() } else { format!("its TX queue of {} is full", self.depth) };
+            let name = &self.nodes[r.node].name;
+            (r.t_ns, format!("node {name} dropped frame 0x{:X} ({why}); its later drops are only counted", r.frame_id))
+        }).collect()
+    }
+
     /// Frames dropped at full TX queues, over all nodes.
     pub fn frames_dropped(&self) -> u64 {
         self.nodes.iter().map(|n| n.dropped).sum()
@@ -676,6 +708,28 @@ mod tests {
         assert!(b.enqueue(a, 2, &[], 0, None));
         assert!(!b.enqueue(a, 3, &[], 0, None));
         assert_eq!(b.frames_dropped(), 1);
+    }
+
+    #[test]
+    fn each_nodes_first_refused_frame_is_taken_once_with_its_time_and_cause() {
+        let mut b = bus(Policy::Priority); // TX queues of two frames
+        let a = b.attach("A", Sink::None, None, false);
+        let c = b.attach("C", Sink::None, None, false);
+        for (t, id) in [(10, 1), (10, 2), (10, 3), (20, 4)] {
+            b.enqueue(a, id, &[], t, None); // 3 and 4 refused
+        }
+        b.enqueue(c, 5, &[], 30, None);
+        let said = b.take_refusals();
+        let text = "node A dropped frame 0x3 (its TX queue of 2 is full); its later drops are only counted";
+        assert_eq!(said, vec![(10, text.to_string())]);
+        b.enqueue(c, 6, &[], 40, None);
+        b.enqueue(c, 7, &[], 50, None); // refused: C's first
+        b.enqueue(a, 8, &[], 60, None); // refused: A's again, counted only
+        let said = b.take_refusals();
+        assert_eq!(said.len(), 1);
+        assert!(said[0].0 == 50 && said[0].1.starts_with("node C dropped frame 0x7 "), "{said:?}");
+        assert!(b.take_refusals().is_empty());
+        assert_eq!(b.frames_dropped(), 4);
     }
 
     #[test]

@@ -333,6 +333,13 @@ impl Network {
         Ok(b.dropped_by_node().into_iter().collect())
     }
 
+    /// Each node's first frame refused on a bus (a full TX queue, bus-off) since the last call, as (t_ns, what
+    /// happened): where and when a loss began; its later drops are counted only.
+    fn take_refusals(&mut self, bus: usize) -> PyResult<Vec<(u64, String)>> {
+        let b = self.core.buses.get_mut(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))?;
+        Ok(b.take_refusals())
+    }
+
     /// (name, sent, dropped, queued) of every node of a bus, in attach order.
     fn nodes(&self, bus: usize) -> PyResult<Vec<(String, u64, u64, usize)>> {
         let b = self.core.buses.get(bus).ok_or_else(|| PyIndexError::new_err(format!("no bus {bus}")))?;

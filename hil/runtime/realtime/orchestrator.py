@@ -547,7 +547,7 @@ def record_bus_warnings(server: NativeBusServer, events: list[Event], bus: str, 
         t = max(0.0, to_seconds(t_ns)) if math.isfinite(clock["t0"]) else 0.0
         if said[0] > limit:
             text = f"more than {limit} warnings from this bus: the rest are not recorded (its counters have them)"
-        events.append(Event(t, "WARN", bus, text))
+        events.append(Event(t, "WARN", bus, re.sub(r"^bus \S+: ", "", text)))  # the source names the bus
 
     server.on_message = on_message
 
