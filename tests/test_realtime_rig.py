@@ -282,6 +282,19 @@ def test_each_node_whose_tx_queue_overflows_is_a_warn_event_from_its_bus_at_its_
         assert all(0.0 <= e.t < 0.1 for e in said.values()), said
 
 
+def test_hil_run_prints_a_buses_warnings_as_hil_warning_lines(rt, tmp_path):
+    """``hil run --realtime`` writes its bus servers' warnings on stderr as ``hil: warning:`` lines as they come
+    (Python alone would print them bare, between the progress bar's redraws)."""
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "seed000", "--realtime", "--duration", "0.5",
+                           "--set", "can.tx_queue_depth=2", "--no-record", "--quiet", "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.splitlines()
+    said = [line for line in lines if " dropped frame " in line]
+    assert len(said) >= 3 and all(line.startswith("hil: warning: bus ") for line in said), proc.stderr
+    assert any("/bus1: node Plant dropped frame 0xC2 (its TX queue of 2 is full)" in line for line in said)
+
+
 def test_a_hung_plant_is_killed_and_ends_the_run_early(rt, tmp_path):
     """A plant whose step never returns (SIGSTOP here: silent as a model stuck in its solver) used to leave the rig
     running to its end and then waiting for it. Its heartbeat falls silent: within about 2 s (HUNG_AFTER_S) it is

@@ -198,12 +198,38 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
             validate_name(args.run_name, "--run")
         except ValueError as exc:
             raise ScenarioError(str(exc)) from None
-    return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
-                        record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
-                        run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
-                        source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto",
-                        idle_latency_us="auto" if args.idle_latency_us is None else args.idle_latency_us,
-                        cpu_layout=args.cpu_layout or "auto", turns=args.turns or "auto")
+    with WarningLines():
+        return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
+                            record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
+                            run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
+                            source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto",
+                            idle_latency_us="auto" if args.idle_latency_us is None else args.idle_latency_us,
+                            cpu_layout=args.cpu_layout or "auto", turns=args.turns or "auto")
+
+
+class WarningLines(logging.Handler):
+    """For a ``hil run --realtime``: the rig's logged warnings (its bus servers': a node's first frame dropped, a
+    leave that lost frames, bad input from a client) as ``hil: warning:`` lines on stderr, written above the
+    progress bar as they come; they are the run's WARN events as well. Without it Python would print them bare."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        line = f"hil: warning: {record.getMessage()}"
+        if sys.stderr.isatty():  # above the bar, which a terminal redraws in place
+            from tqdm import tqdm
+
+            tqdm.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr, flush=True)
+
+    def __enter__(self) -> "WarningLines":
+        logging.getLogger("hil").addHandler(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        logging.getLogger("hil").removeHandler(self)
 
 
 def print_channels(channels) -> None:
