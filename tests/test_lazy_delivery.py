@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 import can
+import numpy as np
 import pytest
 import trainhil_engine as engine
 
@@ -224,34 +225,47 @@ def test_each_ecu_a_process_hosts_sends_from_its_own_tx_queue(rt):
 def test_a_reader_synced_before_its_read_time_acts_at_it(rt):
     """While a frame is on the wire no other can end, so the server syncs a read time before that frame's end at
     once, milliseconds early here (a slow bus); the reader acts then, as at its read time (``act_at``): the frame
-    it sends is queued at the read time exactly, not at the instant it was written, and waits for the wire."""
+    it sends is queued at the read time exactly, not at the instant it was written, and waits for the wire. The
+    first frame must be on the wire by the read time: where the host held the test past it (the sync then comes
+    late, as it should), the exchange is tried again, up to three times."""
     bitrate = 20_000  # 50 µs bits: an 8-byte frame lasts about 5.5 ms
     with NativeBusServer("lze", "bus1", bitrate, log=BusLog("bus1", bitrate)) as srv:
-        sender_bus = TrainhilBus("lze/bus1", node_name="S", lazy_reader=True)
-        reader_bus = TrainhilBus("lze/bus1", node_name="R", lazy_reader=True)
-        sender = engine.FrameLink(sender_bus.fileno(), 0.0, 1.0, keep=True, lazy=True)
-        reader = engine.FrameLink(reader_bus.fileno(), 0.0, 1.0, keep=True, lazy=True)
-        try:
-            t_read = time.time() + 0.03
-            reader.read_every(t_read, 0.0)
-            time.sleep(max(0.0, t_read - 0.004 - time.time()))
-            sender.send([(0x100, bytes(8))])  # on the wire from about 4 ms before the read time to 1.5 ms after
-            assert reader.sync_to(t_read, 1.0)
-            synced_at = time.time()
-            reader.act_at(t_read)
-            reader.send([(0x200, bytes(1))])
-            assert synced_at < t_read - 0.001, f"synced {t_read - synced_at:.4f} s before the read time"
-            reader.read_every(t_read + 0.015, 0.0)  # both frames have ended by then: the server has run the bus
-            assert reader.sync_to(t_read + 0.015, 1.0)
-            rows = srv.with_log(lambda log: log.frames.rows_from(0).copy())
-        finally:
-            sender_bus.shutdown()
-            reader_bus.shutdown()
+        for _ in range(3):
+            t_read, synced_at, rows = _sync_early_once(srv)
+            if synced_at < t_read - 0.001:
+                break
+        assert synced_at < t_read - 0.001, f"synced {t_read - synced_at:.4f} s before the read time, three times"
     (end1, id1, _, _), (end2, id2, latency2, queueing2) = rows
     assert (int(id1), int(id2)) == (0x100, 0x200)
     queued_at = srv.epoch0 + end2 - latency2  # the frame's enqueue instant, in epoch seconds
     assert abs(queued_at - t_read) < 2e-6, queued_at - t_read
     assert abs(queueing2 - (end1 + srv.epoch0 - t_read)) < 2e-6  # it waited for the wire, from the read time
+
+
+def _sync_early_once(srv: NativeBusServer) -> tuple[float, float, np.ndarray]:
+    """A sender puts a frame on the wire 4 ms before a reader's read time; the reader syncs, acts at its read time
+    and sends. (The read time, when the sync returned, this exchange's two frame rows: those that ended after the
+    first was sent, since a frame of a try before may end after this one began.)"""
+    sender_bus = TrainhilBus("lze/bus1", node_name="S", lazy_reader=True)
+    reader_bus = TrainhilBus("lze/bus1", node_name="R", lazy_reader=True)
+    sender = engine.FrameLink(sender_bus.fileno(), 0.0, 1.0, keep=True, lazy=True)
+    reader = engine.FrameLink(reader_bus.fileno(), 0.0, 1.0, keep=True, lazy=True)
+    try:
+        t_read = time.time() + 0.03
+        reader.read_every(t_read, 0.0)
+        time.sleep(max(0.0, t_read - 0.004 - time.time()))
+        sender.send([(0x100, bytes(8))])  # on the wire from about 4 ms before the read time to 1.5 ms after
+        assert reader.sync_to(t_read, 1.0)
+        synced_at = time.time()
+        reader.act_at(t_read)
+        reader.send([(0x200, bytes(1))])
+        reader.read_every(t_read + 0.015, 0.0)  # both frames have ended by then: the server has run the bus
+        assert reader.sync_to(t_read + 0.015, 1.0)
+        rows = srv.with_log(lambda log: log.frames.rows_from(0).copy())
+    finally:
+        sender_bus.shutdown()
+        reader_bus.shutdown()
+    return t_read, synced_at, rows[rows[:, 0] + srv.epoch0 > t_read - 0.004]
 
 
 @pytest.mark.parametrize("turns", [True, False])
