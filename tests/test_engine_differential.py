@@ -128,6 +128,19 @@ def test_engine_and_python_model_give_the_same_frames_and_signals(name, override
         assert sorted(said) == sorted(bus.dropped_by_node), (bus.name, said, bus.dropped_by_node)
 
 
+def test_an_ecu_that_crashes_with_frames_queued_says_how_many_it_lost_on_both_models():
+    """An ECU whose TX queue is full (an overloaded 125 kbit/s FIFO bus) crashes: its queued frames are dropped and
+    counted, and a WARN event from its bus at the crash says how many, as a real-time server says a node's leave."""
+    data = load_scenario("seed000", {"can.queue_policy": "fifo", "can.bitrate": 125_000}).model_dump()
+    data["faults"] = [{"kind": "ecu_crash", "train": 1, "unit": 3, "at_s": 1.0}]
+    sc = scenario_from_dict(data, "crash-on-a-full-queue")
+    (_, py_log), (_, en_log) = (_schedule_and_log(network, sc, 2.0) for network in ("python", "engine"))
+    assert same_events(py_log, en_log)
+    left = [e for e in en_log.events if " left (crashed)" in e.text]
+    assert [(e.t, e.level, e.source) for e in left] == [(1.0, "WARN", "bus1")], left
+    assert left[0].text == "node ECU_U03 left (crashed); 64 queued frames dropped"  # its whole TX queue
+
+
 def _faults_with_every_bus_fault() -> Scenario:
     """The faults scenario (an ECU crash and restart, a babbler, a corruption burst that drives nodes bus-off) with
     error flags and frame drops added on bus 2, each selecting frames by ID and by chance."""

@@ -51,9 +51,9 @@ class PythonNetworkRig(VirtualRig):
         return self.buses[i].attach("Plant", on_rx, set(self.plant_io.cmd_unit[i]))
 
     def _ecu_node(self, u: int, ecu) -> CanNode:
-        train, unit = self.layout.train_unit(u)
+        train, _ = self.layout.train_unit(u)
         on_frame = ecu.on_frame
-        return self.buses[train].attach(f"ECU_U{unit + 1:02d}", lambda fid, data, t: on_frame(fid, data, t * 1e-9),
+        return self.buses[train].attach(self.ecu_node_name(u), lambda fid, data, t: on_frame(fid, data, t * 1e-9),
                                         ecu.rx_ids)
 
     def _attach_radio(self) -> tuple[RadioGateway | None, list[CanNode]]:
