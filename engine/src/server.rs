@@ -469,6 +469,7 @@ impl Server {
             c.flush_to = c.out.len(); // a lazy reader's last frames too
         }
         self.flush(&mut shared);
+        self.say_refusals(&mut shared);
         for i in 0..self.clients.len() {
             self.drop_client(&mut shared, i, "server closing");
         }
@@ -615,25 +616,23 @@ impl Server {
     fn radio_send(&mut self, shared: &mut Shared, t: u64) {
         let Some(r) = self.radio.as_mut() else { return };
         let Some(d) = r.pending.pop_front() else { return };
-        let (node, format) = (r.node, shared.bus.format);
-        if self.enqueue(shared, node, d.frame_id, d.data.as_slice(), t, None, format) && shared.bus.current.is_none() {
+        let format = shared.bus.format;
+        if shared.bus.enqueue_as(r.node, d.frame_id, d.data.as_slice(), t, None, format) && shared.bus.current.is_none() {
             self.arbitrate_at.get_or_insert(t);
         }
     }
 
-    /// Queue a frame in `node`'s TX queue (false: refused, counted by the bus). A node's first refused frame is a
-    /// warning with its time and cause (`Bus::take_refusals`), so a run's loss can be found on its timeline.
-    #[allow(clippy::too_many_arguments)]
-    fn enqueue(&mut self, shared: &mut Shared, node: usize, can_id: u32, data: &[u8], t: u64, extended: Option<bool>,
-               format: Format) -> bool {
-        let queued = shared.bus.enqueue_as(node, can_id, data, t, extended, format);
-        if !queued {
-            for (t_ns, text) in shared.bus.take_refusals() {
-                let text = format!("bus {}: {text}", self.cfg.channel);
-                shared.messages.push(LogLine { level: "WARNING", text, t_ns });
-            }
+    /// Each node's first frame its TX queue refused since the last call (from its records, the radio or a babbler)
+    /// as a warning at its time and with its cause (`Bus::take_refusals`), so a run's loss can be found on its
+    /// timeline.
+    fn say_refusals(&self, shared: &mut Shared) {
+        if shared.bus.refusals.is_empty() {
+            return;
         }
-        queued
+        for (t_ns, text) in shared.bus.take_refusals() {
+            let text = format!("bus {}: {text}", self.cfg.channel);
+            shared.messages.push(LogLine { level: "WARNING", text, t_ns });
+        }
     }
 
     /// Before a turn: its descriptors onto the serving thread's poll set (FIRST_CLIENT_FD of its own, then one per
@@ -791,6 +790,7 @@ impl Server {
             let _ = shared.bus.arbitrate(now);
         }
         self.flush(shared);
+        self.say_refusals(shared);
         self.remove_closed();
         if now >= self.next_window {
             Self::close_windows(shared, now, self.cfg.keep_log);
@@ -1374,7 +1374,7 @@ impl Server {
                         return Ok(());
                     }
                     let ext = Some(long.flags & FLAG_EXTENDED != 0);
-                    self.enqueue(shared, long.node, long.can_id, &long.data, long.t, ext, record_format(long.flags));
+                    shared.bus.enqueue_as(long.node, long.can_id, &long.data, long.t, ext, record_format(long.flags));
                     if shared.bus.current.is_none() {
                         self.arbitrate_at.get_or_insert(long.t); // else it competes at the end of the frame on the wire
                     }
@@ -1393,7 +1393,7 @@ impl Server {
                     }
                     None => {
                         let ext = Some(flags & FLAG_EXTENDED != 0);
-                        self.enqueue(shared, node, can_id, &r[16..16 + dlc as usize], now, ext, record_format(flags));
+                        shared.bus.enqueue_as(node, can_id, &r[16..16 + dlc as usize], now, ext, record_format(flags));
                         if shared.bus.current.is_none() {
                             self.arbitrate_at.get_or_insert(now);
                         }
