@@ -29,11 +29,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import trainhil_engine as engine
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' oracles (the Python network)
 
 from ecu_sim.runtime import Ecu, Output  # noqa: E402
 from ecu_sim.view import BrakeMode  # noqa: E402
+from hil.runtime.engine_net import EngineKernel  # noqa: E402
 from hil.runtime.ideal import IdealLoop  # noqa: E402
 from hil.runtime.virtual import VirtualRig  # noqa: E402
 from hil.scenario import load_scenario  # noqa: E402
@@ -279,6 +281,27 @@ def breakdown(sc, sim_s: float, repeat: int) -> None:
     for name, a, b in rows:
         print(f"  {name:52s} {a * ms:7.2f} {b * ms:8.2f}")
     print(f"  {'total':52s} {ideal_wall * ms:7.2f} {net_wall * ms:8.2f}   ({net_wall / ideal_wall:.2f} x)")
+    per_event, events = kernel_dispatch_us(), task_events_per_s(sc)
+    print(f"  of the rest, the event kernel's dispatch alone (a no-op task): {per_event:.2f} us per task event, "
+          f"{events:.0f} task events per simulated second: {per_event * events * 1e-3:.2f} ms")
+
+
+def kernel_dispatch_us(events: int = 20_000, repeat: int = 3) -> float:
+    """Microseconds per task event that the engine's event kernel costs by itself: a no-op periodic task, best of
+    ``repeat`` runs (what batching tasks into fewer returns to Python could save at most)."""
+    best = float("inf")
+    for _ in range(repeat):
+        kernel = EngineKernel(engine.Network())
+        kernel.every(0, 1_000_000, lambda t: None)
+        t0 = time.perf_counter()
+        kernel.run(events * 1_000_000)
+        best = min(best, time.perf_counter() - t0)
+    return best / events * 1e6
+
+
+def task_events_per_s(sc) -> float:
+    """The rig's task events per simulated second: plant steps, ECU cycles and wayside ticks."""
+    return 1 / sc.plant.step_s + sc.trains.count * sc.trains.units / sc.ecu.cycle_s + 1 / sc.reference.period_s
 
 
 def main() -> None:
