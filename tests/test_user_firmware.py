@@ -230,6 +230,21 @@ def test_hil_run_realtime_runs_the_users_law_from_their_own_folder(user_dir):
     assert run.metrics["runtime"] == "realtime"
 
 
+def test_saturations_in_real_time_are_counted_once_per_encode_with_several_ecus_in_a_process(user_dir, tmp_path):
+    """A law that always asks more than the DBC's Force signal carries: every TractionCmd it sends saturates, so each
+    message's count is at most its units' cycles (and near them), though a process's ECUs share one set of codecs
+    and each writes its own file (the merge once summed the process's count once per ECU: three times here)."""
+    from hil.runtime.realtime.orchestrator import run_realtime
+
+    sc = build_scenario(CRUISE, {"controller.law": "mylaw:Push", "controller.params": {"force_n": 1e9}})
+    m = run_realtime(sc, tmp_path / "rt", duration_s=2.0, ecus_per_process=3, record=False).metrics
+    cycles = {slot: sum(e["cycles"] for name, e in m["realtime"]["ecus"].items() if f"/unit{slot}/" in name)
+              for slot in (1, 2, 3)}
+    for slot, n in cycles.items():
+        saturated = m["codec_saturations"][f"TractionCmd_U{slot:02d}.Force"]
+        assert 0.8 * n <= saturated <= n, (slot, saturated, n)
+
+
 def test_a_real_time_node_that_cannot_load_the_law_reports_the_whole_error(tmp_path):
     """A law registered in this process only is unknown to the node processes: the start-up error comes through
     whole, the node's last line included, not cut mid-word."""

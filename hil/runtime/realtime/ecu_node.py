@@ -81,13 +81,14 @@ def main(argv: list[str] | None = None) -> int:
         for b in buses:
             b.shutdown()
     out = Path(args.out)
+    first = min(ecus)  # the ECUs of this process share its codecs: their saturation counts go into one file
     for u, ecu in ecus.items():
         train, unit = layout.train_unit(u)
         stats[u].series.close()  # its rows are in timing_ecu_<train>_<unit>.bin
         write_json_atomic(out / f"ecu_{train + 1}_{unit + 1}.json", {
             "name": ecu.name, "unit": u, **stats[u].summary(), "scheduling": scheduling, "e2e": ecu.e2e_summary(),
-            "controller_errors": ecu.counters.controller_errors,
-            "events": [list(e) for e in ecu.events], "codec_saturations": db.total_saturations()})
+            "controller_errors": ecu.counters.controller_errors, "events": [list(e) for e in ecu.events],
+            "codec_saturations": db.total_saturations() if u == first else {}})
     return 0
 
 
