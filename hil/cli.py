@@ -160,10 +160,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from hil.runtime.assembly import check_firmware
 
     check_firmware(scenario, ecus=not args.ideal)  # a law or program that cannot be built: exit 2, nothing written
+    live = live_target(args)
+    if args.realtime and silkit is None:
+        from hil.runtime.realtime.command_line import check_realtime_args
+
+        check_realtime_args(args, scenario)
     out = Path(args.out) if args.out else default_output_dir(scenario.name, args)
-    check_output_dir(out, args.overwrite)
+    check_output_dir(out, args.overwrite)  # from here on, --overwrite has removed the previous run's files
     try:
-        return _run_in(out, scenario, args, overrides, silkit)
+        return _run_in(out, scenario, args, overrides, live, silkit)
     finally:
         free_reserve(out)
         release_folder(out)
@@ -214,13 +219,12 @@ def _network_names(pairs: list[str]) -> dict[str, str]:
     return names
 
 
-def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict, silkit=None) -> int:
-    """The run itself, into ``out`` (checked and held)."""
+def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict, live=None, silkit=None) -> int:
+    """The run itself, into ``out`` (checked and held), with every option already checked."""
     from hil.faults.schedule import late_faults
 
     for warning in late_faults(scenario, scenario.duration_s if args.duration is None else args.duration):
         print(f"hil: warning: {warning}", file=sys.stderr)
-    live = live_target(args)
     if live is not None and not args.quiet:
         print(f"hil: {live.describe()}", file=sys.stderr)
     if args.realtime and silkit is None:

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from ecu_sim.codec import default_dbc_path
 from hil.cli import main
@@ -50,6 +51,24 @@ def test_a_second_run_into_the_same_directory_is_refused_unless_overwrite(tmp_pa
     assert main(["run", str(CRUISE), "--duration", "0.3", "--quiet", "--overwrite", "--out", str(out)]) == 0
     assert not (out / "bus2.asc").exists()  # the old run's files went first: nothing stale is mistaken for new
     assert main(["run", str(CRUISE), "--duration", "0.3", "--quiet", "--out", str(out / "metrics.json")]) == 2
+
+
+@pytest.mark.parametrize(("bad", "said"), [
+    (["--realtime", "--pace", "0"], "--pace 0.0: must be a positive finite number"),
+    (["--realtime", "--ecus-per-process", "0"], "--ecus-per-process 0: must be >= 1"),
+    (["--realtime", "--run", "a/b"], "--run name 'a/b' is invalid"),
+    (["--connect", "rerun+http://127.0.0.1:9876/proxy", "--serve", "0"], "--connect and --serve exclude each other"),
+])
+def test_a_bad_option_with_overwrite_is_refused_before_the_previous_run_goes(tmp_path, capsys, bad, said):
+    """--overwrite removes the previous run's files only once every option has passed: a mistyped one loses nothing
+    (a bad --pace once emptied the folder, then failed)."""
+    out = tmp_path / "r"
+    assert main(["run", str(CRUISE), "--duration", "0.3", "--quiet", "--out", str(out)]) == 0
+    before = (out / "metrics.json").read_text()
+    capsys.readouterr()
+    assert main(["run", str(CRUISE), "--duration", "0.3", "--quiet", "--overwrite", "--out", str(out), *bad]) == 2
+    assert said in capsys.readouterr().err
+    assert (out / "metrics.json").read_text() == before and (out / "run.rrd").exists()
 
 
 def test_heatmap_cells_keep_close_values_apart_and_axes_read_as_written():

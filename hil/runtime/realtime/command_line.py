@@ -169,20 +169,17 @@ def add_realtime_arguments(run: argparse.ArgumentParser) -> None:
                    help="with --realtime: the run name, i.e. the python-can channel prefix NAME/bus1 (default: fresh)")
 
 
-def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=None, overrides: dict | None = None):
-    """``hil run --realtime``: the RunResult of a real-time run; ScenarioError (``hil`` prints it, exit 2) naming an
-    option that does not combine with it."""
-    from hil.runtime.realtime.orchestrator import run_realtime
+def check_realtime_args(args: argparse.Namespace, scenario) -> None:
+    """ScenarioError (``hil`` prints it, exit 2) naming a ``hil run --realtime`` option that does not combine with it
+    or with the scenario: checked before the output folder is touched, so a bad option loses no previous run."""
     from hil.runtime.realtime.socketcan import SocketCanUnavailable, check_channels
     from hil.scenario import ScenarioError
 
     if getattr(args, "ideal", False):
         raise ScenarioError("--ideal cannot be combined with --realtime (the ideal loop has no network to run in real time)")
-    pace = 1.0 if args.pace is None else args.pace
-    per_process = args.ecus_per_process
-    if not (math.isfinite(pace) and pace > 0):
+    if args.pace is not None and not (math.isfinite(args.pace) and args.pace > 0):
         raise ScenarioError(f"--pace {args.pace}: must be a positive finite number")
-    if per_process is not None and per_process < 1:
+    if args.ecus_per_process is not None and args.ecus_per_process < 1:
         raise ScenarioError(f"--ecus-per-process {args.ecus_per_process}: must be >= 1")
     if scenario.can.transport == "socketcan":
         if getattr(args, "can_log", False):
@@ -198,11 +195,18 @@ def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=N
             validate_name(args.run_name, "--run")
         except ValueError as exc:
             raise ScenarioError(str(exc)) from None
+
+
+def run_realtime_from_args(args: argparse.Namespace, scenario, out: Path, live=None, overrides: dict | None = None):
+    """``hil run --realtime`` with options that ``check_realtime_args`` passed: the RunResult of a real-time run."""
+    from hil.runtime.realtime.orchestrator import run_realtime
+
     with WarningLines():
-        return run_realtime(scenario, out, pace=pace, duration_s=args.duration, ecus_per_process=per_process,
-                            record=not args.no_record, progress=not args.quiet, can_log=getattr(args, "can_log", False),
-                            run=args.run_name, on_channels=print_channels, live=live, overrides=overrides,
-                            source=str(args.scenario), keep_signals=False, scheduling=args.scheduling or "auto",
+        return run_realtime(scenario, out, pace=1.0 if args.pace is None else args.pace, duration_s=args.duration,
+                            ecus_per_process=args.ecus_per_process, record=not args.no_record,
+                            progress=not args.quiet, can_log=getattr(args, "can_log", False), run=args.run_name,
+                            on_channels=print_channels, live=live, overrides=overrides, source=str(args.scenario),
+                            keep_signals=False, scheduling=args.scheduling or "auto",
                             idle_latency_us="auto" if args.idle_latency_us is None else args.idle_latency_us,
                             cpu_layout=args.cpu_layout or "auto", turns=args.turns or "auto")
 
