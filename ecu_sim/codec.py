@@ -192,6 +192,7 @@ def _compile(message, expected: tuple[str, ...], where: str) -> MessageCodec:
 _PARSED: dict[tuple[str, bytes], cantools.database.can.Database] = {}  # (suffix, contents) -> cantools' model
 _PARSED_KEPT = 8
 _PARSED_LOCK = threading.Lock()  # a sweep's threads load DBCs at once
+DATABASE_FORMATS = ("dbc", "arxml", "kcd", "sym", "cdd")  # the file suffixes cantools loads a database by
 _CP1252_FORMATS = ("dbc", "sym")  # cantools' load_file reads these as cp1252, every other format as UTF-8
 
 
@@ -242,6 +243,10 @@ class TrainDb:
         path = default_dbc_path() if path is None else Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"train DBC not found: {path}")
+        if path.suffix.lower()[1:] not in DATABASE_FORMATS:  # cantools reads the format from the suffix
+            raise DbcMismatchError(f"DBC {path}: cantools reads a database by its file name's suffix, one of "
+                                   f"{', '.join('.' + f for f in DATABASE_FORMATS)}; this one has "
+                                   f"{repr(path.suffix) if path.suffix else 'none'}")
         try:
             database = _parsed_dbc(path)
         except cantools.errors.Error as exc:

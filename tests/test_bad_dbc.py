@@ -83,6 +83,16 @@ def test_mismatched_dbc_is_refused_naming_file_and_message(tmp_path: Path, edit,
     assert re.search(expected, msg, re.S), msg
 
 
+@pytest.mark.parametrize("name", ["train.txt", "train", "train.dbc.bak"])
+def test_a_dbc_whose_suffix_cantools_does_not_read_is_refused_naming_the_file(tmp_path: Path, name: str) -> None:
+    """cantools reads a database's format from its file name: the train DBC under another suffix (or none) is a
+    DbcMismatchError naming the file and the suffixes it takes, not cantools' bare ValueError."""
+    path = tmp_path / name
+    path.write_text(DBC)
+    with pytest.raises(DbcMismatchError, match=rf"^DBC {re.escape(str(path))}: .*one of \.dbc, .*this one has"):
+        TrainDb.load(path)
+
+
 def test_the_committed_dbc_meets_every_need() -> None:
     db = TrainDb.load()
     assert db.max_units == 16 and len(db.by_id) == len(db.by_name)
