@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from hil.scenario.layout import TrainLayout
 from hil.record.metrics import compute_metrics
@@ -13,7 +14,7 @@ from hil.record.runlog import SUMMARY_BLOCK_ROWS, BusLog
 from hil.runtime.realtime import bus_spool
 from hil.runtime.realtime.bus_spool import FRAME_WIDTH, BusSpool, spool_paths
 from hil.sample_table import row_chunks
-from hil.runtime.realtime.merge import merge_nodes
+from hil.runtime.realtime.merge import _stream_bus, merge_nodes
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.scenario import load_scenario
 from tests.test_realtime_rig import rt  # noqa: F401  (fixture)
@@ -81,3 +82,17 @@ def test_a_real_time_run_merged_chunk_by_chunk_has_the_metrics_of_the_whole(rt, 
     assert len(merged[0].signals.array) == len(merged[1].signals.array) == 30  # under one block: none let go yet
     assert_same(let_go, whole)
     assert whole["per_bus"]["bus1"]["latency_p99_s"] is not None
+
+
+def test_the_merge_keeps_only_whole_load_windows_of_the_run(tmp_path):
+    """A server's load windows start at its own time zero: here the first one the run sees ends 1 ms after the
+    run's start and is 99 % before it (load 0.004). The cut keeps whole windows only, so the mean load is the run's
+    (it read 0.41 for 0.43 over a 3 s run of seed000 with that window in)."""
+    ends = 0.1 * np.arange(1, 32)  # the server's windows, in its time; the run starts at its 0.099 s
+    loads = np.where(ends < 0.15, 0.004, 0.43)
+    spool_paths(tmp_path, "bus1")[1].write_bytes(np.column_stack((ends, loads)).tobytes())
+    spool_paths(tmp_path, "bus1")[0].write_bytes(b"")
+    log = _stream_bus(BusLog("bus1", 500_000), tmp_path, 0.099, 3.0, (), True)
+    t = log.load.array[:, 0]
+    assert np.allclose(t, 0.001 + 0.1 * np.arange(1, 30)) and log.load.count == 29  # 0.101 .. 2.901: whole ones
+    assert log.load.sum / log.load.count == pytest.approx(0.43)

@@ -8,6 +8,8 @@ import numpy as np
 from hil.can.frame_stats import FrameTable
 from hil.sample_table import SampleTable
 
+LOAD_WINDOW_S = 0.1  # the bus load's window, in every runtime: a row at t is the load of (t - LOAD_WINDOW_S, t]
+
 
 class LoadTable(SampleTable):
     """(t_window_end, load 0..1) per load window, with the running maximum and sum of the loads: the metrics need

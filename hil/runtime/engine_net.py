@@ -17,13 +17,15 @@ from typing import Any, Protocol
 import trainhil_engine as engine
 
 from ecu_sim.runtime import Ecu, Output
+from hil.can.bus_log import LOAD_WINDOW_S
 from hil.can.transmission import Transmission
 from hil.radio.gateway import RadioIds, link_name, standard_routes
 from hil.radio.link import RadioLink
 from hil.record.runlog import BusLog
+from hil.runtime.kernel import to_ns
 from hil.scenario.model import CanConfig
 
-LOAD_WINDOW_NS = 100_000_000  # the bus model's load window (0.1 s), as the Python model's default
+LOAD_WINDOW_NS = to_ns(LOAD_WINDOW_S)  # the bus model's load window
 
 
 class EngineKernel:

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hil.can.bus_log import LOAD_WINDOW_S
 from hil.scenario.layout import TrainLayout
 from hil.runtime.realtime.bus_server import BusServer
 from hil.runtime.realtime.live_tail import SIGNAL_STREAM
@@ -98,17 +99,20 @@ def _stream_signals(log: RunLog, nodes_dir: Path, sinks: Sequence[Sink], keep_ro
 def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | None, sinks: Sequence[Sink],
                 keep_rows: bool) -> BusLog:
     """A server's spooled rows (hil/runtime/realtime/bus_spool.py) moved to simulated time (model t -> t - shift)
-    and cut to [0, duration] (None: as they are), as one BusLog, written to the sinks chunk by chunk."""
+    and cut to [0, duration] (None: as they are), as one BusLog, written to the sinks chunk by chunk. Cut, a load
+    window is kept only whole: the server's windows start at its own time zero, not the run's, so the one that ends
+    just after the run's start holds mostly time before it (a short run's mean load read low by its share)."""
     out = BusLog(src.name, src.bitrate, frames_sent=src.frames_sent, frames_dropped=src.frames_dropped,
                  dropped_by_node=dict(src.dropped_by_node))
     frames_path, load_path = spool_paths(nodes_dir, src.name)
     offsets = [(0, 0) for _ in sinks]
-    for path, width, dst in ((load_path, LOAD_WIDTH, out.load), (frames_path, FRAME_WIDTH, out.frames)):
+    for path, width, dst, first in ((load_path, LOAD_WIDTH, out.load, LOAD_WINDOW_S),
+                                    (frames_path, FRAME_WIDTH, out.frames, 0.0)):
         for rows in row_chunks(path, width):
             rows = rows.copy()
             rows[:, 0] -= shift
             if duration is not None:
-                rows = rows[(rows[:, 0] >= 0) & (rows[:, 0] <= duration + 1e-9)]
+                rows = rows[(rows[:, 0] >= first - 1e-9) & (rows[:, 0] <= duration + 1e-9)]
             dst.extend_bytes(np.ascontiguousarray(rows, dtype=float).tobytes())
             offsets = [writer.write_bus(out, *at) for (writer, _), at in zip(sinks, offsets)]
             for writer, _ in sinks:

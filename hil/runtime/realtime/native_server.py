@@ -19,6 +19,7 @@ from typing import Any, Callable
 
 import trainhil_engine as engine
 
+from hil.can.bus_log import LOAD_WINDOW_S
 from hil.can.transmission import Transmission
 from hil.runtime.realtime.bus_server import DEFAULT_SPIN_US, HELLO_TIMEOUT_S, MAX_CLIENTS, BusServerStats
 from hil.runtime.realtime.sockets import (
@@ -35,7 +36,7 @@ class NativeBusServer:
     ``BusServer``: ``start``, ``shutdown``, ``close``, ``stats``, ``log``, ``epoch0``, ``frame_listeners``."""
 
     def __init__(self, run: str, bus: str, bitrate: int, policy: str = "priority", depth: int = 64, *,
-                 path: Path | str | None = None, extended: bool = False, load_window_s: float = 0.1,
+                 path: Path | str | None = None, extended: bool = False, load_window_s: float = LOAD_WINDOW_S,
                  spin_us: float = DEFAULT_SPIN_US, keep_log: bool = True, log: BusLog | None = None,
                  pace: float = 1.0, tcp: bool = False, tcp_host: str = "127.0.0.1", tcp_port: int = 0,
                  max_clients: int = MAX_CLIENTS, hello_timeout_s: float = HELLO_TIMEOUT_S, fd: bool = False,
