@@ -63,6 +63,9 @@ class Fmu:
                           for v in md.modelVariables}
         self._unzipped: Path | None = None
         self._free: list[FmuInstance] = []
+        # its own word that two instances in one process would share its state (static data, as Simulink's often do)
+        self.once_per_process = bool(md.coSimulation.canBeInstantiatedOnlyOncePerProcess)
+        self._alive: weakref.WeakSet[FmuInstance] = weakref.WeakSet()  # its instances in this process, lent or free
 
 
     def variable(self, name: str, causalities: Iterable[str], role: str) -> FmuVariable:
@@ -88,7 +91,14 @@ class Fmu:
             instance = self._free.pop()
             instance.reset()
         else:
+            if self.once_per_process and len(self._alive):
+                holder = next(iter(self._alive)).name
+                raise FmuError(f"{self.path}: it can be instantiated only once per process "
+                               "(canBeInstantiatedOnlyOncePerProcess), and this process already has an instance of it "
+                               f"({holder}): a process that runs ECUs builds every unit's law, so such an FMU can be "
+                               "the plant or one unit's law, not several units'; export it without that restriction")
             instance = FmuInstance(self, instance_name)
+            self._alive.add(instance)
         return instance, weakref.finalize(owner, self._release, instance)
 
     def _release(self, instance: FmuInstance) -> None:

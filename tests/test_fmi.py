@@ -308,6 +308,26 @@ def test_a_missing_law_fmu_file_is_named(tmp_path, capsys):
     assert code == 2 and "nowhere.fmu" in err and "cannot read the FMU" in err
 
 
+def test_an_fmu_that_allows_one_instance_per_process_is_not_instantiated_twice_in_one(tmp_path, plant_fmu, capsys):
+    """An FMU that says canBeInstantiatedOnlyOncePerProcess (its instances would share static state, as exports from
+    Simulink often do) is refused as every unit's law, naming the FMU and why, before anything is written; as the
+    plant it runs (one instance a process: the check's is given back before the run takes its own)."""
+    def once(xml: str) -> str:
+        return xml.replace('canBeInstantiatedOnlyOncePerProcess="false"', 'canBeInstantiatedOnlyOncePerProcess="true"')
+
+    law = rewrite_description(Path(load_scenario("seed000-fmu-law").controller.law.removeprefix("fmu:")),
+                              tmp_path / "once_law.fmu", once)
+    text = (PACKAGED / "seed000-fmu-law.toml").read_text()
+    (tmp_path / "once.toml").write_text(text.replace('"fmu:trainhil:consensus_law"', f'"fmu:{law}"'))
+    code, err = run_exit(["run", str(tmp_path / "once.toml"), "--duration", "1", "--quiet", "--out",
+                          str(tmp_path / "v")], capsys)
+    assert code == 2 and "once_law.fmu: it can be instantiated only once per process" in err
+    assert "not several units'" in err and not (tmp_path / "v").exists()
+    plant = rewrite_description(plant_fmu, tmp_path / "once_plant.fmu", once)
+    assert main(["run", str(plant_scenario(tmp_path, plant)), "--duration", "1", "--quiet", "--out",
+                 str(tmp_path / "p")]) == 0
+
+
 def test_fmu_paths_are_relative_to_the_scenario_file(tmp_path, plant_fmu):
     (tmp_path / "models").mkdir()
     (tmp_path / "models" / "plant.fmu").write_bytes(plant_fmu.read_bytes())
