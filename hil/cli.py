@@ -225,6 +225,9 @@ def _run_in(out: Path, scenario, args: argparse.Namespace, overrides: dict, live
 
     for warning in late_faults(scenario, scenario.duration_s if args.duration is None else args.duration):
         print(f"hil: warning: {warning}", file=sys.stderr)
+    if scenario.can.transport == "socketcan" and not (args.realtime or args.ideal):
+        print("hil: warning: can.transport = 'socketcan' is for real-time runs (--realtime); this run is in virtual "
+              "time, on the rig's emulated buses", file=sys.stderr)
     if live is not None and not args.quiet:
         print(f"hil: {live.describe()}", file=sys.stderr)
     if args.realtime and silkit is None:

@@ -37,6 +37,15 @@ def test_a_host_without_af_can_gets_a_clear_error_from_hil_run(tmp_path):
     assert "AF_CAN is unavailable" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_a_virtual_time_run_of_a_socketcan_scenario_says_it_runs_on_the_emulated_buses(tmp_path, capsys):
+    from hil.cli import main
+
+    assert main(["run", "seed000-consensus", "--duration", "0.3", "--set", "can.transport=socketcan", "--set",
+                 'can.socketcan_channels=["vcan0","vcan1","vcan2"]', "--out", str(tmp_path), "--quiet"]) == 0
+    assert ("hil: warning: can.transport = 'socketcan' is for real-time runs (--realtime); this run is in virtual "
+            "time, on the rig's emulated buses") in capsys.readouterr().err
+
+
 def _vcans_up() -> bool:
     try:
         check_channels(VCANS, 3)
