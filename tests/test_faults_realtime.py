@@ -9,6 +9,7 @@ import pytest
 
 from hil.runtime.realtime.orchestrator import run_realtime
 from hil.scenario import load_scenario
+from hil.session import run_scenario
 from tests.test_realtime_rig import rt  # noqa: F401  (fixture)
 
 PACE = 0.5
@@ -37,6 +38,12 @@ def test_faults_in_real_time(rt, tmp_path):  # noqa: F811
     rig = [e.text for e in log.events if e.source == "rig"]
     assert any("train2/unit3 killed (SIGKILL)" in t for t in rig)
     assert any("restart asked" in t for t in rig)
+    # the new process is a restart, as in virtual time: the ecu_failure verdict (--check fails on it) names it
+    failure = res.metrics["safety"]["ecu_failure"]
+    assert failure["violated"] and failure["violations"][0]["where"] == "rig", failure
+    assert failure["violations"][0]["text"].startswith("ECU process train2/unit3 restarted with a reset controller")
+    virtual = run_scenario(sc, tmp_path / "virtual", duration_s=4.0, record=False, progress=False).metrics
+    assert virtual["safety"]["ecu_failure"]["count"] == failure["count"] == 1
     assert log.radio_stats["1>2"].get("fault", 0) > 0
     assert res.metrics["safety"]["collision"]["violated"] is False
     assert not res.metrics["interrupted"] and res.metrics["sim_time_s"] == pytest.approx(4.0)

@@ -33,6 +33,7 @@ CAUSE_WINDOW_S = 60.0
 VERDICTS = ("gap_below_le", "collision", "coupler_out_of_band", "overspeed")  # judged on the sampled signals
 ECU_FAILURE = "ecu_failure"  # judged on the events: an ECU stopped, died or was restarted
 _ECU_EXIT = re.compile(r"^ECU process \S+ exited with code")
+_ECU_RESPAWN = re.compile(rf"^ECU process \S+ {RESTARTED}")  # real time: a new process for a unit (its restart)
 _FAULT_EVENT = re.compile(r"^#(\d+) (\S+) on (.+?): (injected|over)")
 
 
@@ -144,7 +145,7 @@ def _is_ecu_failure(ev: Event) -> bool:
         return True
     if ev.level == "ERROR" and ev.source == "rig" and _ECU_EXIT.match(ev.text):
         return True
-    return ev.text.startswith(RESTARTED)
+    return ev.text.startswith(RESTARTED) or (ev.source == "rig" and bool(_ECU_RESPAWN.match(ev.text)))
 
 
 def ecu_failure_verdict(events: list[Event]) -> dict:

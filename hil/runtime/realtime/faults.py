@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from ecu_sim.runtime import RESTARTED
 from hil.faults.actuator import ActuatorFaults
 from hil.faults.bus import EngineBusFaults, describe_bus_event, e2e_checker
 from hil.faults.radio import RadioFaults
@@ -158,7 +159,7 @@ class RealtimeFaults:
             if node.ready:
                 self._pending.remove(item)
                 node.tell(f"go {self.t0!r}")
-                self._event(sim_now, "INFO", f"ECU process {node.name} restarted (a new process, reset controller), "
+                self._event(sim_now, "INFO", f"ECU process {node.name} {RESTARTED} (a new process), "
                                              f"{sim_now - asked:.2f} s after the restart was asked")
 
     def _dispatch(self, k: int, what: str, sim_now: float) -> None:
