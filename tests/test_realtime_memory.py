@@ -84,15 +84,18 @@ def test_a_real_time_run_merged_chunk_by_chunk_has_the_metrics_of_the_whole(rt, 
     assert whole["per_bus"]["bus1"]["latency_p99_s"] is not None
 
 
-def test_the_merge_keeps_only_whole_load_windows_of_the_run(tmp_path):
+def test_the_merge_keeps_only_whole_load_windows_and_the_frames_of_the_run(tmp_path):
     """A server's load windows start at its own time zero: here the first one the run sees ends 1 ms after the
     run's start and is 99 % before it (load 0.004). The cut keeps whole windows only, so the mean load is the run's
-    (it read 0.41 for 0.43 over a 3 s run of seed000 with that window in)."""
+    (it read 0.41 for 0.43 over a 3 s run of seed000 with that window in). Its frames sent are those in the run."""
     ends = 0.1 * np.arange(1, 32)  # the server's windows, in its time; the run starts at its 0.099 s
     loads = np.where(ends < 0.15, 0.004, 0.43)
     spool_paths(tmp_path, "bus1")[1].write_bytes(np.column_stack((ends, loads)).tobytes())
-    spool_paths(tmp_path, "bus1")[0].write_bytes(b"")
-    log = _stream_bus(BusLog("bus1", 500_000), tmp_path, 0.099, 3.0, (), True)
+    frame_ends = np.array([0.05, 0.5, 1.5, 3.2, 3.3])  # in its time: one before the run, two after its end
+    frames = np.column_stack((frame_ends, np.full(5, 0x80), np.full(5, 2e-4), np.zeros(5)))
+    spool_paths(tmp_path, "bus1")[0].write_bytes(frames.tobytes())
+    log = _stream_bus(BusLog("bus1", 500_000, frames_sent=5), tmp_path, 0.099, 3.0, (), True)
     t = log.load.array[:, 0]
     assert np.allclose(t, 0.001 + 0.1 * np.arange(1, 30)) and log.load.count == 29  # 0.101 .. 2.901: whole ones
     assert log.load.sum / log.load.count == pytest.approx(0.43)
+    assert log.frames_sent == len(log.frames.array) == 2  # the run's frames: the server's count went on past it
