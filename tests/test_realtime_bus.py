@@ -232,6 +232,28 @@ def test_lower_id_wins_while_the_bus_is_busy_and_stamps_follow_exact_frame_durat
     assert stats.latency_p99_s >= frame_bits(0x300, DATA8) * bit_ns * 1e-9  # 0x300 waited for two frames
 
 
+@pytest.mark.parametrize("pace", [1.0, 4.0])
+def test_load_windows_aligned_to_a_run_s_zero_end_at_whole_windows_of_it_and_hold_its_frames(rt, server_cls, pace):
+    """The rig aligns each server's load windows to the run's t = 0 (its epoch ``t0``) before "go", so that a
+    window reads the same span of the run as virtual time's: every window after t0 ends at t0 + k x the window,
+    and the bus time of the frames sent after t0 is all in them."""
+    window = 0.02
+    with server_cls("r1", "bus1", 500_000, load_window_s=window, pace=pace) as server, node("tx") as tx:
+        t0 = time.time() + 0.033  # a third of the way into a window of the server's own time, most likely
+        server.align_load_windows(t0)
+        time.sleep(max(0.0, t0 - time.time()) + 0.01)
+        for i in range(3):
+            tx.send(can.Message(arbitration_id=0x100 + i, data=DATA8, is_extended_id=False))
+        time.sleep(8 * window / pace)
+        origin = (t0 - server.epoch0) * pace  # the run's zero in the bus's model time
+        rows = [(t, load) for t, load in server.with_log(lambda log: log.load.array.tolist()) if t > origin]
+    assert len(rows) >= 5
+    k = [(t - origin) / window for t, _ in rows]
+    assert all(abs(x - round(x)) < 1e-4 for x in k), k  # the ends: t0 + whole windows
+    busy = sum(load for _, load in rows) * window
+    assert busy == pytest.approx(sum(frame_bits(0x100 + i, DATA8) for i in range(3)) * 2e-6)  # 2 us a bit
+
+
 def test_server_applies_acceptance_filters(server):
     with node("f", can_filters=[{"can_id": 0x100, "can_mask": 0x7FF}]) as f, node("tx") as tx, node("all") as al:
         deadline = time.monotonic() + 5

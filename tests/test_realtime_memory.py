@@ -85,9 +85,10 @@ def test_a_real_time_run_merged_chunk_by_chunk_has_the_metrics_of_the_whole(rt, 
 
 
 def test_the_merge_keeps_only_whole_load_windows_and_the_frames_of_the_run(tmp_path):
-    """A server's load windows start at its own time zero: here the first one the run sees ends 1 ms after the
-    run's start and is 99 % before it (load 0.004). The cut keeps whole windows only, so the mean load is the run's
-    (it read 0.41 for 0.43 over a 3 s run of seed000 with that window in). Its frames sent are those in the run."""
+    """A server whose load windows are not aligned to the run's zero (one the rig did not align, as before
+    ``align_load_windows``): here the first window the run sees ends 1 ms after its start and is 99 % before it
+    (load 0.004). The cut keeps whole windows only, so the mean load is the run's (it read 0.41 for 0.43 over a
+    3 s run of seed000 with that window in). Its frames sent are those in the run."""
     ends = 0.1 * np.arange(1, 32)  # the server's windows, in its time; the run starts at its 0.099 s
     loads = np.where(ends < 0.15, 0.004, 0.43)
     spool_paths(tmp_path, "bus1")[1].write_bytes(np.column_stack((ends, loads)).tobytes())

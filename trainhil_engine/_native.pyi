@@ -251,6 +251,9 @@ class BusServerCore:
         bus's bell FIFO opened read-write and non-blocking, which quiet readers ring (taken over, closed on error);
         ``thread``: the serving thread it shares with the rig's other buses (None: a thread of its own)."""
     def now_ns(self) -> int: ...
+    def align_load_windows(self, origin_ns: int) -> None:
+        """From now on the load windows end at model time ``origin_ns`` + k x the window (the run's zero); call it
+        before that time."""
     def stats(self) -> dict[str, float | int | None | dict[str, int]]:
         """The server's counters and figures (``BusServerStats``); ``turns_let_go`` and ``dropped_by_node`` are
         counts by node name."""

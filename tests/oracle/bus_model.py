@@ -276,7 +276,15 @@ class CanBusModel:
             self.log.load.append((self._window_end * 1e-9, self._window_busy / self._window_ns))
             self._window_busy = 0
             self._window_end += self._window_ns
-        self._window_busy += end - max(start, self._window_end - self._window_ns)
+        self._window_busy += max(0, end - max(start, self._window_end - self._window_ns))
+
+    def align_load_windows(self, origin_ns: int, now: int) -> None:
+        """From now on the windows end at origin_ns + k x the window; the time booked so far counts in the first
+        one, up to the part of it that has passed (engine: ``Bus::align_load_windows``)."""
+        self._close_windows(now)
+        ahead = (origin_ns - now) % self._window_ns
+        self._window_end = now + (ahead or self._window_ns)
+        self._window_busy = min(self._window_busy, now - min(self._window_end - self._window_ns, now))
 
     def _close_windows(self, t: int, inclusive: bool = False) -> None:
         """Emit load samples for every window that ended before t (at or before t if inclusive)."""

@@ -284,6 +284,11 @@ class PythonBusServer:
         with self._lock:
             return fn(self.model.log)
 
+    def align_load_windows(self, t0: float) -> None:
+        """Let the load windows end at the run's t = k x the window (t0: the epoch time of its t = 0)."""
+        with self._lock:
+            self.model.align_load_windows(round((t0 - self.epoch0) * self._pace * 1e9), self._now())
+
     # ---- running
     def serve_forever(self) -> None:
         """Run the loop in this thread until shutdown()."""

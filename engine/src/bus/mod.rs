@@ -504,7 +504,26 @@ impl Bus {
             self.window_busy = 0;
             self.window_end += self.window_ns;
         }
-        self.window_busy += end - start.max(self.window_end - self.window_ns);
+        // saturating: a frame that ended before the window began (only after `align_load_windows`) adds nothing
+        self.window_busy += end.saturating_sub(start.max(self.window_end - self.window_ns));
+    }
+
+    /// From now on the load windows end at `origin_ns` + k x the window (a real-time bus server's at the run's
+    /// time zero, as virtual time's end at k x the window). The bus time booked since the last window closed counts
+    /// in the first aligned window, up to the part of that window that has passed, so no window reads above full;
+    /// call it before the run's time zero, where no run's figure reads it.
+    pub fn align_load_windows(&mut self, origin_ns: u64, now: u64) {
+        self.close_windows(now, false);
+        let w = self.window_ns as i128;
+        let ahead = (origin_ns as i128 - now as i128).rem_euclid(w) as u64; // from now to the next aligned end
+        self.window_end = now + if ahead == 0 { self.window_ns } else { ahead };
+        self.window_busy = self.window_busy.min(now - (self.window_end - self.window_ns).min(now));
+    }
+
+    /// Where the load window in progress ends (model ns).
+    #[cfg(test)]
+    fn load_window_end(&self) -> u64 {
+        self.window_end
     }
 
     /// Emit a load sample for every window that ended before t (at or before t if inclusive).
@@ -776,5 +795,58 @@ mod tests {
         let loads: Vec<f64> = b.stats.load.chunks(2).map(|w| w[1]).collect();
         assert_eq!(end, 133_000);
         assert_eq!(loads, vec![0.2, 0.33]);
+    }
+
+    /// The load rows (window end in ns, load).
+    fn load_rows(b: &Bus) -> Vec<(u64, f64)> {
+        b.stats.load.chunks(2).map(|w| ((w[0] * 1e9).round() as u64, w[1])).collect()
+    }
+
+    #[test]
+    fn aligned_load_windows_end_at_the_origin_plus_whole_windows() {
+        let mut b = Bus::new("b", BitTiming::new(1_000_000, 1_000_000).unwrap(), Policy::Priority, 8, false, 100_000);
+        let a = b.attach("A", Sink::None, None, false);
+        b.align_load_windows(1_030_000, 250_000); // the run's zero at 1.03 ms, in the future: the next end is 330 us
+        assert_eq!(load_rows(&b), vec![(100_000, 0.0), (200_000, 0.0)]);
+        assert_eq!(b.load_window_end(), 330_000);
+        b.enqueue(a, 0, &[], 1_010_000, None);
+        let end = b.arbitrate(1_010_000).unwrap().unwrap(); // 1010 .. 1063 us: 20 us before the zero, 33 after
+        b.complete();
+        b.finish(1_130_000);
+        assert_eq!(end, 1_063_000);
+        let rows = load_rows(&b);
+        assert_eq!(rows[2..].iter().map(|r| r.0).collect::<Vec<_>>(), vec![330_000, 430_000, 530_000, 630_000, 730_000,
+                                                                          830_000, 930_000, 1_030_000, 1_130_000]);
+        assert_eq!(rows[rows.len() - 2..], [(1_030_000, 0.2), (1_130_000, 0.33)]);
+    }
+
+    #[test]
+    fn aligning_keeps_no_window_above_full() {
+        let mut b = Bus::new("b", BitTiming::new(1_000_000, 1_000_000).unwrap(), Policy::Priority, 8, false, 100_000);
+        let a = b.attach("A", Sink::None, None, false);
+        b.enqueue(a, 0, &[], 0, None);
+        b.enqueue(a, 0, &[], 0, None);
+        b.arbitrate(0).unwrap();
+        b.complete(); // 0 .. 53 us booked in the window ending at 100 us
+        b.align_load_windows(60_000, 70_000); // the window now in progress ends at 160 us and began at 60 us
+        assert_eq!(b.load_window_end(), 160_000);
+        let end = b.arbitrate(70_000).unwrap().unwrap(); // 70 .. 123 us
+        b.complete();
+        b.finish(160_000);
+        assert_eq!(end, 123_000);
+        // the 53 us booked before the call count as at most the 10 us of the new window that had passed
+        assert_eq!(load_rows(&b), vec![(160_000, 0.63)]);
+    }
+
+    #[test]
+    fn a_frame_that_ended_before_an_aligned_window_began_adds_nothing() {
+        let mut b = Bus::new("b", BitTiming::new(1_000_000, 1_000_000).unwrap(), Policy::Priority, 8, false, 100_000);
+        let a = b.attach("A", Sink::None, None, false);
+        b.enqueue(a, 0, &[], 0, None);
+        b.arbitrate(0).unwrap(); // 0 .. 53 us, completed only after the windows were moved
+        b.align_load_windows(170_000, 90_000); // now in the window (70, 170] us
+        b.complete();
+        b.finish(170_000);
+        assert_eq!(load_rows(&b), vec![(170_000, 0.0)]);
     }
 }

@@ -204,6 +204,15 @@ impl BusServerCore {
         })
     }
 
+    /// From now on the load windows end at model time `origin_ns` + k x the window (the run's zero: virtual
+    /// time's phase); call it before that time.
+    fn align_load_windows(&self, origin_ns: u64) -> PyResult<()> {
+        self.with_bus(|bus, now| {
+            bus.align_load_windows(origin_ns, now);
+            Ok(())
+        })
+    }
+
     /// Watch this bus for a babbling idiot (see `Network.set_guardian`).
     fn set_guardian(&self, allowances: std::collections::HashMap<u32, u32>, window_ns: u64, share_ns: f64) -> PyResult<()> {
         check_window(window_ns)?;

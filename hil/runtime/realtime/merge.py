@@ -100,9 +100,9 @@ def _stream_bus(src: BusLog, nodes_dir: Path, shift: float, duration: float | No
                 keep_rows: bool) -> BusLog:
     """A server's spooled rows (hil/runtime/realtime/bus_spool.py) moved to simulated time (model t -> t - shift)
     and cut to [0, duration] (None: as they are), as one BusLog, written to the sinks chunk by chunk. Cut, a load
-    window is kept only whole: the server's windows start at its own time zero, not the run's, so the one that ends
-    just after the run's start holds mostly time before it (a short run's mean load read low by its share); and the
-    frames sent are the run's, those of its rows (the server's count goes on past the run's end)."""
+    window is kept only whole: the server's windows end at the run's t = k x the window (``align_load_windows``), so
+    the first kept ends at t = one window, as in virtual time; and the frames sent are the run's, those of its rows
+    (the server's count goes on past the run's end)."""
     out = BusLog(src.name, src.bitrate, frames_sent=src.frames_sent, frames_dropped=src.frames_dropped,
                  dropped_by_node=dict(src.dropped_by_node))
     frames_path, load_path = spool_paths(nodes_dir, src.name)

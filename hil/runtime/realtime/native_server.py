@@ -134,6 +134,11 @@ class NativeBusServer:
             self._pump.start()
         return self
 
+    def align_load_windows(self, t0: float) -> None:
+        """Let the load windows end at the run's t = k x the window, as virtual time's (``t0``: the epoch time of
+        its t = 0, still ahead), so that a window's load reads the same span of the run in both runtimes."""
+        self._core.align_load_windows(round((t0 - self.epoch0) * self._pace * 1e9))
+
     def serve_forever(self) -> None:
         """Block until shutdown() (the CLI's foreground mode)."""
         self.start()

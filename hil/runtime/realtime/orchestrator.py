@@ -364,6 +364,8 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
                                          ready + scenario.ecu.join_timeout_s, lambda: stop.requested is not None, say)
             if not stop.requested:
                 t0 = clock["t0"] = time.time() + GO_MARGIN_S
+                for bus_server in servers:  # their load windows end where virtual time's do: t = k x the window
+                    bus_server.align_load_windows(t0)
                 write_json_atomic(nodes_dir / RUN_FILE, {  # what hil recover needs
                     "run": run, "t0": t0, "pace": pace, "duration_s": duration, "seed": seed,
                     "buses": {s.log.name: {"epoch0": s.epoch0, "bitrate": s.log.bitrate} for s in servers}})
