@@ -205,6 +205,8 @@ struct Client {
     /// Its open turns: the read times (bus ns) it was synced to and has not ended with DONE (a DONE ends every
     /// turn up to its stamp), and whether the bus has waited for each yet (counted once in `turns_held`).
     turns: Vec<(u64, bool)>,
+    /// The latest read time (bus ns) it was synced to: its frames since carry that instant or a later one.
+    synced_to: u64,
     /// A quiet lazy reader (`OPTION_QUIET`): its records do not wake the loop (it rings the bell when they must).
     quiet: bool,
     /// The bus nodes of its senders 1, 2, ... (FRAME byte 3; sender 0 is `node`), attached at their first frame.
@@ -975,6 +977,7 @@ impl Server {
         let window_ns = (TURNS_BEHIND_WINDOW_S * 1e9 * self.cfg.pace) as u64;
         for c in self.clients.iter_mut().filter(|c| c.next_read() == Some(r)) {
             c.push_now(&pack_sync(stamp));
+            c.synced_to = r;
             if shared.turns_given_up_s.is_none() && c.reads.iter().any(|&(next, _, turn)| turn && next <= r) {
                 if on_time {
                     c.turns.push((r, false));
@@ -1196,7 +1199,7 @@ impl Server {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
                 authed: !tcp, t_open: Instant::now(), long: None, rx_off: 0, flush_to: 0, lazy: false, reads: Vec::new(),
-                turns: Vec::new(), quiet: false, senders: Vec::new(), least_data: 0, sent: false,
+                turns: Vec::new(), synced_to: 0, quiet: false, senders: Vec::new(), least_data: 0, sent: false,
             });
         }
     }
@@ -1329,13 +1332,23 @@ impl Server {
         let floor = self.floor.min(now);
         match r[0] {
             KIND_FRAME if c.lazy => match self.bus_ns(stamp_of(r)) {
-                Some(t) if t <= now + self.max_ahead_ns() => t.max(floor),
+                Some(t) if t <= now + self.max_ahead_ns() => self.at_read_time(c, t).max(floor),
                 _ => now, // further ahead than a node synced early can be: not believed, taken as read
             },
             KIND_FRAME_DATA if c.long.is_some() => c.long.as_ref().unwrap().t,
             _ if c.lazy => floor,
             _ => now,
         }
+    }
+
+    /// A lazy reader's frame time `t` (bus ns, from its epoch stamp): the read time it was synced to when `t` is
+    /// within SYNC_TOLERANCE_S before it. The node acts at that read time and stamps its frames with the SYNC's own
+    /// epoch seconds, whose float (a quarter of a microsecond apart at today's epoch) may convert back to just
+    /// before it: such a frame would be queued before a turn's instant, ahead of the frames of the other turns of
+    /// that instant it must compete with (a plant's sensor frames beat its wayside's Reference).
+    fn at_read_time(&self, c: &Client, t: u64) -> u64 {
+        let tolerance = (SYNC_TOLERANCE_S * 1e9 * self.cfg.pace) as u64;
+        if t < c.synced_to && c.synced_to - t <= tolerance { c.synced_to } else { t }
     }
 
     fn record(&mut self, shared: &mut Shared, i: usize, r: &[u8], now: u64) -> Result<(), Fault> {
@@ -2218,6 +2231,45 @@ mod tests {
             handle.shutdown();
             let _ = std::fs::remove_dir_all(&dir);
         }
+    }
+
+    /// Two nodes' turns at one read time: the frames both queue at it compete there, however late the second's
+    /// come (a plant's sensor frames and its wayside's Reference frames, on two connections of one process). Each
+    /// stamps its frames with the SYNC's epoch seconds, which may convert back to just before the read time (the
+    /// float's rounding: made certain here by one step down): they still act at the read time.
+    #[test]
+    fn frames_of_two_turns_at_one_instant_are_arbitrated_together() {
+        let (mut handle, path, dir) = serve("turn2", 500_000, 500_000, Format::Classical);
+        let (mut a, mut b) = (connect_node(&path, "A", OPTION_LAZY), connect_node(&path, "B", OPTION_LAZY));
+        let mut reader = connect_node(&path, "R", 0);
+        let epoch0 = handle.epoch0_ns as f64 * 1e-9;
+        let t_turn = epoch0 + handle.now_ns() as f64 * 1e-9 + 0.01;
+        a.write_all(&pack_read_every(t_turn, 0.0, true)).unwrap();
+        b.write_all(&pack_read_every(t_turn, 0.0, true)).unwrap();
+        let mut rec = [0u8; RECORD_SIZE];
+        let mut act = |node: &mut UnixStream, id: u32, work: Duration| {
+            node.read_exact(&mut rec).unwrap();
+            assert_eq!(rec[0], KIND_SYNC);
+            let stamp = stamp_of(&rec);
+            let just_before = f64::from_bits(stamp.to_bits() - 1); // the SYNC's stamp, a rounding step down
+            assert!(just_before < stamp);
+            std::thread::sleep(work);
+            let mut out = pack_frame(id, &[1; 8], 0, just_before).to_vec();
+            out.extend_from_slice(&pack_done(stamp));
+            node.write_all(&out).unwrap();
+        };
+        act(&mut a, 0x200, Duration::ZERO); // A's turn is over at once
+        act(&mut b, 0x100, Duration::from_millis(1)); // B's work: its frame comes after A's DONE
+        let mut ids = Vec::new();
+        while ids.len() < 2 {
+            reader.read_exact(&mut rec).unwrap();
+            if rec[0] == KIND_FRAME {
+                ids.push(u32::from_le_bytes(rec[4..8].try_into().unwrap()));
+            }
+        }
+        assert_eq!(ids, vec![0x100, 0x200]); // 0x100 won the arbitration at the turn's instant
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A node leaves in the turn in which a frame ends: the receivers of that frame, found after it left, must
