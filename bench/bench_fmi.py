@@ -48,7 +48,7 @@ def law_step_us(name: str, n: int = 20_000) -> float:
                                                valid=True),
                                  NeighbourView("intra", "behind", float(off[u + 1]), x=-float(off[u + 1]), v=80.0,
                                                valid=True)])
-    law = parts.controllers[u]
+    law = parts.law(u)
     t0 = time.perf_counter()
     for k in range(n):
         view.t = k * 0.01

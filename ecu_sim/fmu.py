@@ -95,8 +95,9 @@ class Fmu:
                 holder = next(iter(self._alive)).name
                 raise FmuError(f"{self.path}: it can be instantiated only once per process "
                                "(canBeInstantiatedOnlyOncePerProcess), and this process already has an instance of it "
-                               f"({holder}): a process that runs ECUs builds every unit's law, so such an FMU can be "
-                               "the plant or one unit's law, not several units'; export it without that restriction")
+                               f"({holder}): such an FMU can be the plant or the law of one unit per process (virtual "
+                               "time runs every unit in one process; real time with --ecus-per-process 1 one in each); "
+                               "export it without that restriction")
             instance = FmuInstance(self, instance_name)
             self._alive.add(instance)
         return instance, weakref.finalize(owner, self._release, instance)

@@ -159,7 +159,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         refuse_external_units(scenario, "the ideal loop" if args.ideal else "virtual time")
     from hil.runtime.assembly import check_firmware
 
-    check_firmware(scenario, ecus=not args.ideal)  # a law or program that cannot be built: exit 2, nothing written
+    processes = None  # virtual time: every unit in one process
+    if args.realtime and silkit is None and not args.ideal:
+        from hil.runtime.realtime.orchestrator import planned_ecu_processes
+
+        processes = planned_ecu_processes(scenario, args.ecus_per_process, args.pace or 1.0)
+    # a law or program that cannot be built (in the process that will run it): exit 2, nothing written
+    check_firmware(scenario, ecus=not args.ideal, processes=processes)
     live = live_target(args)
     if args.realtime and silkit is None:
         from hil.runtime.realtime.command_line import check_realtime_args

@@ -148,7 +148,7 @@ def test_fmu_law_keeps_the_firmware_emergency_rule():
 
     parts = assemble(load_scenario("seed000-fmu-law"))
     u = parts.layout.index(1, 0)  # head of train 2: its radio neighbour ahead is train 1's tail
-    law = parts.controllers[u]
+    law = parts.law(u)
     ahead = NeighbourView("inter", "ahead", float(parts.layout.offset_m[u - 1]), x=0.0, v=80.0, age_s=0.0, valid=True)
     delta = parts.plant_info.emergency_gap_m - parts.plant_info.spacing_m - 10.0  # the gap is l_e - 10 m
     own_x = ahead.x + (ahead.offset_m - float(parts.layout.offset_m[u])) - delta
@@ -302,6 +302,28 @@ def test_a_law_fmu_that_fails_initialization_is_named(tmp_path, capsys):
     assert code == 2 and "initialization failed" in err and "mass = 0: expected a positive mass" in err
 
 
+def test_in_real_time_an_fmu_that_allows_one_instance_per_process_is_the_law_of_one_unit_per_process(
+        tmp_path, capsys, rt):
+    """A real-time ECU process builds the laws of the units it runs and no other: with --ecus-per-process 1 such an
+    FMU is each unit's law (one instance in each process), with two units a process it is refused before the run,
+    naming the FMU (the check builds each process's laws together, as that process would)."""
+    law = rewrite_description(Path(load_scenario("seed000-fmu-law").controller.law.removeprefix("fmu:")),
+                              tmp_path / "once_law.fmu", lambda xml: xml.replace(
+                                  'canBeInstantiatedOnlyOncePerProcess="false"',
+                                  'canBeInstantiatedOnlyOncePerProcess="true"'))
+    text = (PACKAGED / "seed000-fmu-law.toml").read_text().replace('"fmu:trainhil:consensus_law"', f'"fmu:{law}"')
+    scenario = tmp_path / "once_rt.toml"  # one train of two units: two ECU processes
+    scenario.write_text(text + "[trains]\ncount = 1\nunits = 2\nhead_positions_m = [108800.0]\n"
+                               "speeds_kmh = [295.0]\n")
+    argv = ["run", str(scenario), "--realtime", "--duration", "0.5", "--quiet", "--no-record"]
+    code, err = run_exit([*argv, "--ecus-per-process", "2", "--out", str(tmp_path / "two")], capsys)
+    assert code == 2 and "once_law.fmu: it can be instantiated only once per process" in err
+    assert not (tmp_path / "two").exists()
+    assert main([*argv, "--ecus-per-process", "1", "--out", str(tmp_path / "one")]) == 0
+    m = json.loads((tmp_path / "one" / "metrics.json").read_text())
+    assert m["sim_time_s"] == pytest.approx(0.5) and m["frames_lost"] == 0
+
+
 def test_a_missing_law_fmu_file_is_named(tmp_path, capsys):
     code, err = run_exit(["run", "seed000-fmu-law", "--set", "controller.law=fmu:nowhere.fmu", "--out",
                           str(tmp_path / "o"), "--duration", "1"], capsys)
@@ -322,7 +344,7 @@ def test_an_fmu_that_allows_one_instance_per_process_is_not_instantiated_twice_i
     code, err = run_exit(["run", str(tmp_path / "once.toml"), "--duration", "1", "--quiet", "--out",
                           str(tmp_path / "v")], capsys)
     assert code == 2 and "once_law.fmu: it can be instantiated only once per process" in err
-    assert "not several units'" in err and not (tmp_path / "v").exists()
+    assert "the law of one unit per process" in err and not (tmp_path / "v").exists()
     plant = rewrite_description(plant_fmu, tmp_path / "once_plant.fmu", once)
     assert main(["run", str(plant_scenario(tmp_path, plant)), "--duration", "1", "--quiet", "--out",
                  str(tmp_path / "p")]) == 0

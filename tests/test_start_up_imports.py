@@ -74,5 +74,27 @@ def test_the_firmware_parts_are_the_full_assembly_s_without_the_plant():
     assert not hasattr(fw, "plant") and full.plant is not None
     assert fw.layout.n_units == full.layout.n_units == 12
     assert fw.firmware == full.firmware and fw.plant_info == full.plant_info
-    assert [type(c) for c in fw.controllers] == [type(c) for c in full.controllers]
-    assert [c is d for c, d in zip(fw.controllers, full.controllers)] == [False] * 12  # each builds its own
+    assert [type(fw.law(u)) for u in range(12)] == [type(full.law(u)) for u in range(12)]
+    assert [fw.law(u) is full.law(u) for u in range(12)] == [False] * 12  # each builds its own
+    assert all(fw.law(u) is fw.law(u) for u in range(12))  # once
+
+
+def test_a_process_builds_the_laws_of_the_units_it_runs_and_no_other(monkeypatch):
+    """A real-time ECU node hosting units 0 and 5 builds those two laws (a heavy law, an FMU's instances), not all
+    twelve; each once."""
+    import hil.runtime.firmware as firmware
+    from hil.runtime.train_db import load_train_db
+
+    built: list[int] = []
+    real = firmware.build_controller
+
+    def counting(law, params, agent, info):
+        built.append(agent.train * agent.n_units + agent.unit)  # seed000: 4 units a train
+        return real(law, params, agent, info)
+
+    monkeypatch.setattr(firmware, "build_controller", counting)
+    sc = load_scenario("seed000")
+    parts, db = assemble_firmware(sc), load_train_db(sc)
+    assert built == []  # nothing before it is asked for
+    ecus = [firmware.build_ecu(parts, db, u) for u in (0, 5, 0)]
+    assert built == [0, 5] and ecus[0].controller is ecus[2].controller

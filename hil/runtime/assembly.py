@@ -27,8 +27,7 @@ class Assembly(FirmwareParts):
     def close(self) -> None:
         """The run is over: the plant and the laws give back what they hold (FMU instances, to the pool)."""
         self.plant.close()
-        for controller in self.controllers:
-            controller.close()
+        self.close_laws()
 
 
 def random_streams(seed: int) -> dict[str, np.random.Generator]:
@@ -64,19 +63,27 @@ def assemble(scenario: Scenario, seed: int | None = None) -> Assembly:
     x0 = np.array(given, dtype=float) if given is not None else layout.initial_positions(scenario.trains.head_positions_m)
     v0 = np.repeat(scenario.trains.initial_speeds_mps, layout.units_per_train).astype(float)
     plant = build_plant(scenario, layout, x0, v0, streams["plant"])
-    return Assembly(scenario, layout, fw.controllers, fw.firmware, fw.plant_info, plant,
+    return Assembly(scenario, layout, fw.firmware, fw.plant_info, plant,
                     ReferenceProfile.from_config(scenario.reference), seed, streams)
 
 
-def check_firmware(scenario: Scenario, *, ecus: bool = True) -> None:
-    """Build every controller (and, with ``ecus``, every rig ECU) once, so a law or program that cannot be built
-    is one line (ReferenceLoadError, exit 2) before a run writes anything, in either runtime."""
+def check_firmware(scenario: Scenario, *, ecus: bool = True, processes: list[list[int]] | None = None) -> None:
+    """Build every law (and, with ``ecus``, every rig ECU; an external unit has neither here) once, so a law or
+    program that cannot be built is one line (ReferenceLoadError, exit 2) before a run writes anything, in either
+    runtime. ``processes``: the units each process of the run will run (default: all in one, as virtual time
+    does); each group's laws are built together and given back before the next's, as their processes would."""
     from hil.runtime.firmware import build_ecu
     from hil.runtime.train_db import load_train_db
 
     parts = assemble(scenario)
-    if ecus:
-        db = load_train_db(scenario)
-        for u, firmware in enumerate(parts.firmware):
-            if not firmware.external:
-                build_ecu(parts, db, u)
+    db = load_train_db(scenario) if ecus else None
+    try:
+        for units in processes if processes is not None else [list(range(parts.layout.n_units))]:
+            for u in units:
+                if db is None:
+                    parts.law(u)
+                elif not parts.firmware[u].external:
+                    build_ecu(parts, db, u)
+            parts.close_laws()
+    finally:
+        parts.close()

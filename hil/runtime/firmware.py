@@ -8,7 +8,7 @@ The scenario says it all by name or reference (``controller.law``, ``ecu.program
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ecu_sim.codec import TrainDb
@@ -38,13 +38,28 @@ def import_roots(sc: Scenario) -> list[Path]:
 @dataclass
 class FirmwareParts:
     """The parts of a run its ECUs are built from: the laws and the configuration, no plant. A real-time ECU node
-    builds only these, so it neither imports nor builds the plant (scipy, an FMU)."""
+    builds only these, so it neither imports nor builds the plant (scipy, an FMU). Each unit's law is built when it
+    is first asked for (``law``), so a process builds the laws of the units it runs and no other."""
 
     scenario: Scenario
     layout: TrainLayout
-    controllers: list[Controller]  # one per flat unit, its own law
     firmware: list[UnitFirmware]  # per unit: law, params, ECU program, external
     plant_info: PlantInfo
+    _laws: dict[int, Controller] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def law(self, u: int) -> Controller:
+        """Flat unit u's own law, built on first use."""
+        law = self._laws.get(u)
+        if law is None:
+            f = self.firmware[u]
+            law = self._laws[u] = build_controller(f.law, f.params, self.layout.agent_info(u), self.plant_info)
+        return law
+
+    def close_laws(self) -> None:
+        """Give back what the laws built so far hold (an FMU's instances, to its pool) and forget them."""
+        laws, self._laws = self._laws, {}
+        for law in laws.values():
+            law.close()
 
 
 EcuFactory = Callable[[FirmwareParts, TrainDb, int], Ecu]  # (the parts, or the whole assembly; db; flat unit) -> ECU
@@ -62,12 +77,9 @@ def plant_info(scenario: Scenario) -> PlantInfo:
 
 
 def assemble_firmware(scenario: Scenario) -> FirmwareParts:
-    """The layout, one controller per unit (its own law) and the firmware plan."""
-    layout = TrainLayout.from_config(scenario.trains)
-    info = plant_info(scenario)
-    firmware = firmware_plan(scenario)
-    controllers = [build_controller(f.law, f.params, layout.agent_info(u), info) for u, f in enumerate(firmware)]
-    return FirmwareParts(scenario, layout, controllers, firmware, info)
+    """The layout, the firmware plan and what the laws are configured with (each law is built when first asked for)."""
+    return FirmwareParts(scenario, TrainLayout.from_config(scenario.trains), firmware_plan(scenario),
+                         plant_info(scenario))
 
 
 # ---------------------------------------------------------------------- building one unit's ECU
@@ -91,7 +103,7 @@ def neighbour_links(db: TrainDb, layout: TrainLayout, forward_aux: bool, u: int)
 def ecu_setup(parts: FirmwareParts, db: TrainDb, u: int) -> EcuSetup:
     """What unit u's program is built from."""
     sc, layout = parts.scenario, parts.layout
-    return EcuSetup(f"{layout.unit_name(u)}/ecu", u, layout.agent_info(u), parts.controllers[u], db,
+    return EcuSetup(f"{layout.unit_name(u)}/ecu", u, layout.agent_info(u), parts.law(u), db,
                     neighbour_links(db, layout, sc.radio.forward_aux, u), sc.ecu, sc.can.sensor_period_s)
 
 

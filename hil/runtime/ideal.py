@@ -44,6 +44,7 @@ class IdealLoop:
                                   for q, link, side in self._neighbours[u]])
             for u in range(self.layout.n_units)
         ]
+        self._laws = [self.parts.law(u) for u in range(self.layout.n_units)]  # built before the run, each its own
         self._demanded = [0.0] * self.layout.n_units  # last demanded acceleration per unit
         self._applied = [0.0] * self.layout.n_units  # last commanded force per unit
         self.log = RunLog(self.layout)
@@ -59,7 +60,7 @@ class IdealLoop:
             view.ref.x, view.ref.v, view.ref.a, view.ref.age_s, view.ref.valid = x_r, v_r, a_r, 0.0, True
             for nv, (q, _, _) in zip(view.neighbours, nbrs):
                 nv.x, nv.v, nv.a, nv.u = x[q], v[q], self._demanded[q], self._applied[q]
-            commands.append(self.parts.controllers[u].step(view))
+            commands.append(self._laws[u].step(view))
         for u, cmd in enumerate(commands):  # all agents decide on the same sampled state, then act
             mass = self.layout.effective_mass_kg[u]
             self._demanded[u] = cmd.accel_mps2 if math.isfinite(cmd.accel_mps2) else cmd.force_n / mass

@@ -648,14 +648,33 @@ def _start_nodes(layout: TrainLayout, nodes_dir: Path, common: list[str], per_pr
     specs = [("plant", "plant", ["hil.runtime.realtime.plant_node", "--spin-us", repr(spin_us)])]
     if radio_node and layout.n_trains > 1:
         specs.append(("radio", "radio", ["hil.runtime.realtime.radio_node"]))
-    units = [u for u in range(layout.n_units) if u not in solo and u not in external]  # ECU faults: a process each
-    groups = [units[k:k + per_process] for k in range(0, len(units), per_process)] + [[u] for u in sorted(solo)]
-    for group in groups:
+    for group in ecu_process_units(layout, per_process, solo, external):
         names = ",".join(layout.unit_name(u) for u in group)
         specs.append((names, "ecu", ["hil.runtime.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
     return [launch_node(name, kind, [argv[0], *common, *_cpu_arguments(cpus, kind), *argv[1:]],
                         nodes_dir / f"{kind}_{i}.stderr", env)
             for i, (name, kind, argv) in enumerate(specs)]
+
+
+def ecu_process_units(layout: TrainLayout, per_process: int, solo=(), external=()) -> list[list[int]]:
+    """The flat units of each ECU process: ``per_process`` at a time, front to back; a unit with an ECU fault
+    (``solo``) in a process of its own (the fault kills or stops that process); an ``external`` unit in none."""
+    units = [u for u in range(layout.n_units) if u not in solo and u not in external]
+    return [units[k:k + per_process] for k in range(0, len(units), per_process)] + [[u] for u in sorted(solo)]
+
+
+def planned_ecu_processes(scenario: Scenario, ecus_per_process: int | None = None,
+                          pace: float = 1.0) -> list[list[int]]:
+    """The flat units of each ECU process a real-time run of ``scenario`` starts (``hil run --realtime`` builds
+    each group's firmware together before the run: ``check_firmware``)."""
+    from hil.runtime.realtime.faults import ECU_KINDS
+
+    layout = TrainLayout.from_config(scenario.trains)
+    external = [layout.unit_index(name) for name in scenario.ecu.external]
+    per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
+                                                               units_per_train=scenario.trains.units, pace=pace)
+    solo = {layout.index(f.train - 1, f.unit - 1) for f in scenario.faults if f.kind in ECU_KINDS}
+    return ecu_process_units(layout, per_process, solo, external)
 
 
 def launch_node(name: str, kind: str, argv: list[str], stderr_path: Path, env: dict[str, str] | None) -> Node:
