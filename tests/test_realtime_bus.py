@@ -239,6 +239,7 @@ def test_load_windows_aligned_to_a_run_s_zero_end_at_whole_windows_of_it_and_hol
     and the bus time of the frames sent after t0 is all in them."""
     window = 0.02
     with server_cls("r1", "bus1", 500_000, load_window_s=window, pace=pace) as server, node("tx") as tx:
+        server.align_load_windows(server.epoch0 - 1.0)  # a t0 before the bus's zero (a clock set back): no error
         t0 = time.time() + 0.033  # a third of the way into a window of the server's own time, most likely
         server.align_load_windows(t0)
         time.sleep(max(0.0, t0 - time.time()) + 0.01)

@@ -137,7 +137,7 @@ class NativeBusServer:
     def align_load_windows(self, t0: float) -> None:
         """Let the load windows end at the run's t = k x the window, as virtual time's (``t0``: the epoch time of
         its t = 0, still ahead), so that a window's load reads the same span of the run in both runtimes."""
-        self._core.align_load_windows(round((t0 - self.epoch0) * self._pace * 1e9))
+        self._core.align_load_windows(max(0, round((t0 - self.epoch0) * self._pace * 1e9)))  # (a clock set back)
 
     def serve_forever(self) -> None:
         """Block until shutdown() (the CLI's foreground mode)."""
