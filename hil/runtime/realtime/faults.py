@@ -42,6 +42,11 @@ ECU_KINDS = ("ecu_crash", "ecu_hang")
 PLANT_KINDS = ("sensor_stuck", "sensor_noise", "actuator_degradation", "traction_loss")
 
 
+def solo_units(scenario, layout) -> set[int]:
+    """The flat units an ECU fault kills or stops: each runs in an ECU process of its own."""
+    return {layout.index(f.train - 1, f.unit - 1) for f in scenario.faults if f.kind in ECU_KINDS}
+
+
 # --------------------------------------------------------------------------- plant node
 
 
@@ -106,7 +111,7 @@ class RealtimeFaults:
         self.sc, self.layout, self.seed = scenario, layout, seed
         self.specs = list(scenario.faults)
         self.watchdog = Watchdog(scenario.ecu.restart_after_s)
-        self.solo_units = {layout.index(s.train - 1, s.unit - 1) for s in self.specs if s.kind in ECU_KINDS}
+        self.solo_units = solo_units(scenario, layout)
         self.servers = servers
         periods = db.cycle_times()
         ok, packing = e2e_checker(db), bus_packing(scenario, db)

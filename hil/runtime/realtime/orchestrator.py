@@ -343,8 +343,7 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if on_channels is not None:
                 on_channels(channels(run, scenario))
             env = node_environment(scenario)
-            per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
-                                                                        units_per_train=scenario.trains.units, pace=pace)
+            per_process = _ecus_per_process(scenario, layout, ecus_per_process, pace)
             node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo", took_turns)
             nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
                                  faults.solo_units if faults else (), external, env, radio_node=radio is None, cpus=cpus)
@@ -667,14 +666,18 @@ def planned_ecu_processes(scenario: Scenario, ecus_per_process: int | None = Non
                           pace: float = 1.0) -> list[list[int]]:
     """The flat units of each ECU process a real-time run of ``scenario`` starts (``hil run --realtime`` builds
     each group's firmware together before the run: ``check_firmware``)."""
-    from hil.runtime.realtime.faults import ECU_KINDS
+    from hil.runtime.realtime.faults import solo_units
 
     layout = TrainLayout.from_config(scenario.trains)
     external = [layout.unit_index(name) for name in scenario.ecu.external]
-    per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
-                                                               units_per_train=scenario.trains.units, pace=pace)
-    solo = {layout.index(f.train - 1, f.unit - 1) for f in scenario.faults if f.kind in ECU_KINDS}
-    return ecu_process_units(layout, per_process, solo, external)
+    return ecu_process_units(layout, _ecus_per_process(scenario, layout, ecus_per_process, pace),
+                             solo_units(scenario, layout), external)
+
+
+def _ecus_per_process(scenario: Scenario, layout: TrainLayout, given: int | None, pace: float) -> int:
+    """ECUs per process: ``given`` (``--ecus-per-process``), else the default for the units the rig runs."""
+    return given or default_ecus_per_process(layout.n_units - len(scenario.ecu.external),
+                                             units_per_train=scenario.trains.units, pace=pace)
 
 
 def launch_node(name: str, kind: str, argv: list[str], stderr_path: Path, env: dict[str, str] | None) -> Node:
