@@ -47,6 +47,9 @@ def test_faults_in_real_time(rt, tmp_path):  # noqa: F811
     assert log.radio_stats["1>2"].get("fault", 0) > 0
     assert res.metrics["safety"]["collision"]["violated"] is False
     assert not res.metrics["interrupted"] and res.metrics["sim_time_s"] == pytest.approx(4.0)
+    # the babbler is put on its bus at the wall clock's now, while the server's bus may still run events before
+    # it: its frames wait from then on, never a negative wait (it wrapped to 1.8e10 s in a 45 s run)
+    assert 0 < res.metrics["frame_latency_max_s"] < 4.0 and 0 < res.metrics["latency_to_period_max"] < 400
 
 
 FAILS_ONCE = '''

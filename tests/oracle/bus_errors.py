@@ -353,7 +353,7 @@ class BusErrors:
             node.queued -= 1
             node.dropped += 1
             self.stats["dropped_by_fault"] += 1
-            won = self.bus._pop_winner()
+            won = self.bus._pop_winner(t_ns)
         return won
 
     def on_start(self, tx: Transmission, won: _Item) -> None:

@@ -170,10 +170,21 @@ class CanBusModel:
             node.fifo.append(item)
         return True
 
-    def _pop_winner(self) -> _Item | None:
+    def _pop_winner(self, t: int) -> _Item | None:
+        """The frame that wins at t among those queued by then (engine: ``Bus::pop_winner``)."""
         if self._priority:
-            return heapq.heappop(self._heap) if self._heap else None
-        heads = [n for n in self.nodes if n.fifo]
+            later = []
+            won = None
+            while self._heap:
+                item = heapq.heappop(self._heap)
+                if item[3] <= t:
+                    won = item
+                    break
+                later.append(item)
+            for item in later:
+                heapq.heappush(self._heap, item)
+            return won
+        heads = [n for n in self.nodes if n.fifo and n.fifo[0][3] <= t]
         if not heads:
             return None
         return min(heads, key=lambda n: n.fifo[0][0]).fifo.popleft()
@@ -185,7 +196,7 @@ class CanBusModel:
         errors = self.errors
         if errors is not None:
             errors.before_arbitrate(t)
-        won = self._pop_winner()
+        won = self._pop_winner(t)
         if errors is not None:
             won = errors.filter_winner(won, t)
         if won is None:

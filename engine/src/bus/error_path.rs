@@ -44,7 +44,7 @@ impl Bus {
     }
 
     /// Frame drops: a hit frame vanishes from its sender's queue; the next pending frame competes instead.
-    pub(crate) fn filter_winner(&mut self, mut won: Option<Item>) -> Option<Item> {
+    pub(crate) fn filter_winner(&mut self, mut won: Option<Item>, t: u64) -> Option<Item> {
         let Some(mut e) = self.errors.take() else { return won };
         while let Some(item) = won {
             if e.drops.is_empty() || !e.drops.iter_mut().any(|d| d.hit(item.frame_id)) {
@@ -54,7 +54,7 @@ impl Bus {
             n.queued -= 1;
             n.dropped += 1;
             e.stats.dropped_by_fault += 1;
-            won = self.pop_winner();
+            won = self.pop_winner(t);
         }
         self.errors = Some(e);
         won

@@ -342,11 +342,27 @@ impl Bus {
         true
     }
 
-    pub(crate) fn pop_winner(&mut self) -> Option<Item> {
+    /// Take the frame that wins arbitration at `t` among those queued by then. A frame queued after `t` is not
+    /// there yet: only a frame put on a real-time bus from outside its turns (a fault's babbling node, queued at the
+    /// wall clock's now) can be, while the server's lazy bus still runs events before that now; it won ahead of
+    /// frames queued before it, and its wait came out negative (a u64 wrapped to 1.8e10 s).
+    pub(crate) fn pop_winner(&mut self, t: u64) -> Option<Item> {
         match self.policy {
-            Policy::Priority => self.heap.pop().map(|Reverse(item)| item),
+            Policy::Priority => {
+                let mut later = Vec::new();
+                let mut won = None;
+                while let Some(Reverse(item)) = self.heap.pop() {
+                    if item.t_enqueue <= t {
+                        won = Some(item);
+                        break;
+                    }
+                    later.push(Reverse(item));
+                }
+                self.heap.extend(later);
+                won
+            }
             Policy::Fifo => {
-                let best = self.fifo_winner(|i| self.nodes[i].fifo.front());
+                let best = self.fifo_winner(|i| self.nodes[i].fifo.front().filter(|item| item.t_enqueue <= t));
                 best.and_then(|b| self.nodes[b].fifo.pop_front())
             }
         }
@@ -429,9 +445,9 @@ impl Bus {
         if errors {
             self.before_arbitrate(t);
         }
-        let mut won = self.pop_winner();
+        let mut won = self.pop_winner(t);
         if errors {
-            won = self.filter_winner(won);
+            won = self.filter_winner(won, t);
         }
         let Some(won) = won else { return Ok(None) };
         self.nodes[won.node].queued -= 1;
@@ -795,6 +811,28 @@ mod tests {
         let loads: Vec<f64> = b.stats.load.chunks(2).map(|w| w[1]).collect();
         assert_eq!(end, 133_000);
         assert_eq!(loads, vec![0.2, 0.33]);
+    }
+
+    /// A frame queued after the arbitration's instant (a real-time fault's babbler, queued at the wall clock's
+    /// now while the server's lazy bus runs events before it) does not take part in it: the frames queued by then
+    /// compete, and it waits for its own time. It took the bus before and its wait wrapped (t_start < t_enqueue).
+    #[test]
+    fn a_frame_queued_after_an_arbitration_s_instant_does_not_take_part_in_it() {
+        for policy in [Policy::Priority, Policy::Fifo] {
+            let mut b = Bus::new("b", BitTiming::new(500_000, 500_000).unwrap(), policy, 8, false, 100_000_000);
+            let (a, c) = (b.attach("A", Sink::None, None, false), b.attach("C", Sink::None, None, false));
+            assert!(b.enqueue(c, 0x000, &[0xFF; 8], 200_000, None)); // the babbler, queued at 200 us
+            assert_eq!(b.arbitrate(150_000).unwrap(), None); // nothing was queued by 150 us
+            assert!(b.enqueue(a, 0x300, &[1], 100_000, None)); // a turn's frame of 100 us, taken later
+            let end = b.arbitrate(150_000).unwrap().unwrap();
+            assert_eq!(b.current.unwrap().frame_id, 0x300, "{policy:?}");
+            b.complete();
+            assert!(b.arbitrate(end).unwrap().is_some());
+            let tx = b.complete();
+            assert_eq!((tx.frame_id, tx.t_start, tx.t_enqueue), (0x000, end, 200_000), "{policy:?}");
+            let rows: Vec<f64> = b.stats.frames.chunks(4).map(|r| r[3]).collect(); // the waits
+            assert!(rows.iter().all(|&w| (0.0..1.0).contains(&w)), "{rows:?}");
+        }
     }
 
     /// The load rows (window end in ns, load).
