@@ -44,6 +44,12 @@ def test_faults_in_real_time(rt, tmp_path):  # noqa: F811
     assert failure["violations"][0]["text"].startswith("ECU process train2/unit3 restarted with a reset controller")
     virtual = run_scenario(sc, tmp_path / "virtual", duration_s=4.0, record=False, progress=False).metrics
     assert virtual["safety"]["ecu_failure"]["count"] == failure["count"] == 1
+    # the nodes whose error state the buses report go by virtual time's names: an ECU process's units by unit
+    # (ECU_U01, ...; SENDER_NAME), not by the process's connection (ECU_T1_U01x4, ECU_T1_U01x4.1, ...)
+    def error_nodes(metrics: dict) -> dict[str, set[str]]:
+        return {bus: set(d["nodes"]) for bus, d in metrics["faults"]["can_errors"]["buses"].items()}
+
+    assert error_nodes(res.metrics) == error_nodes(virtual) and "ECU_U02" in error_nodes(virtual)["bus1"]
     assert log.radio_stats["1>2"].get("fault", 0) > 0
     assert res.metrics["safety"]["collision"]["violated"] is False
     assert not res.metrics["interrupted"] and res.metrics["sim_time_s"] == pytest.approx(4.0)

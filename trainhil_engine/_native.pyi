@@ -318,6 +318,9 @@ class FrameLink:
     def sends_at_least(self, bytes: int) -> None:
         """Every frame this link will send carries at least ``bytes`` data bytes (protocol LEAST_DATA), said before
         its first frame: the server need not wait for shorter frames before it SYNCs, and refuses one."""
+    def name_sender(self, sender: int, name: str) -> None:
+        """Name sender ``sender``'s bus node ``name`` (protocol SENDER_NAME, 1 to 20 bytes), said before the link's
+        first frame: that sender's TX queue, drops and error state go by it."""
     def act_at(self, t: float) -> None:
         """The node acts at read time ``t`` (epoch s), perhaps synced to it before it comes: frames sent from now
         on carry ``t`` while it is still ahead (the server queues them then), else the instant they are sent; on a

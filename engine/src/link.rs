@@ -11,7 +11,8 @@
 
 use std::os::fd::RawFd;
 
-use crate::protocol::{pack_done, pack_frame_records_from, pack_least_data, pack_read_every, read_frames, BellSet, MAX_SENDERS, RECORD_SIZE};
+use crate::protocol::{pack_done, pack_frame_records_from, pack_least_data, pack_read_every, pack_sender_name, read_frames, BellSet,
+                      MAX_SENDERS, RECORD_SIZE};
 
 /// Why the link cannot go on.
 #[derive(Debug)]
@@ -102,6 +103,15 @@ impl Link {
     /// before the first frame): its reads need not wait for frames shorter than that. A shorter one is refused.
     pub fn sends_at_least(&self, bytes: u8) -> Result<(), LinkError> {
         self.write_all(&pack_least_data(bytes))
+    }
+
+    /// Name sender `sender`'s bus node (SENDER_NAME; before the first frame): its TX queue, drops and error state
+    /// go by that name.
+    pub fn name_sender(&self, sender: usize, name: &str) -> Result<(), LinkError> {
+        if sender >= MAX_SENDERS {
+            return Err(LinkError::Sender(sender));
+        }
+        self.write_all(&pack_sender_name(sender as u8, name))
     }
 
     /// End the node's turn at read time `stamp` (epoch s): a DONE record. The server listens for it while the turn

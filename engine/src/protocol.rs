@@ -99,6 +99,10 @@ pub const TURN_HOLD_MAX_S: f64 = 0.002;
 /// on an idle bus, SYNCs at once every read time that no frame of any possible sender could end by: the least
 /// frame of the fewest bytes any connection declared (none: an empty frame) is the bus's horizon.
 pub const KIND_LEAST_DATA: u8 = 14;
+/// Node to server, before its first frame: the name of its sender byte 1 on the bus (bytes 4.. as HELLO's, NAME_BYTES
+/// of UTF-8, NUL-padded), in place of "<node>.<k>" (sender 0: the node's own bus node, named by HELLO until then). A
+/// process that hosts several ECUs names each unit's TX queue as the unit's own controller is named.
+pub const KIND_SENDER_NAME: u8 = 15;
 /// A FILTER's format match: any, standard IDs only, extended IDs only.
 pub const MATCH_ANY: u8 = 0;
 pub const MATCH_STANDARD: u8 = 1;
@@ -128,7 +132,7 @@ pub fn constants() -> Vec<(&'static str, f64)> {
         ("KIND_BELL", KIND_BELL as f64), ("BELL_EVERY", BELL_EVERY as f64), ("BELL_RESET", BELL_RESET as f64),
         ("BELL_IDS_PER_RECORD", BELL_IDS_PER_RECORD as f64), ("MAX_SENDERS", MAX_SENDERS as f64),
         ("READ_TURNS", READ_TURNS as f64), ("KIND_DONE", KIND_DONE as f64), ("TURN_HOLD_MAX_S", TURN_HOLD_MAX_S),
-        ("KIND_LEAST_DATA", KIND_LEAST_DATA as f64),
+        ("KIND_LEAST_DATA", KIND_LEAST_DATA as f64), ("KIND_SENDER_NAME", KIND_SENDER_NAME as f64),
     ]
 }
 
@@ -287,6 +291,19 @@ pub fn pack_least_data(bytes: u8) -> [u8; RECORD_SIZE] {
     r
 }
 
+/// The SENDER_NAME record: sender `sender`'s bus node is called `name` (at most NAME_BYTES of it, cut at a character).
+pub fn pack_sender_name(sender: u8, name: &str) -> [u8; RECORD_SIZE] {
+    let mut r = [0u8; RECORD_SIZE];
+    r[0] = KIND_SENDER_NAME;
+    r[1] = sender;
+    let mut end = name.len().min(NAME_BYTES);
+    while !name.is_char_boundary(end) {
+        end -= 1;
+    }
+    r[4..4 + end].copy_from_slice(&name.as_bytes()[..end]);
+    r
+}
+
 /// The SYNC record a lazy reader gets at its read time `stamp` (epoch s).
 pub fn pack_sync(stamp: f64) -> [u8; RECORD_SIZE] {
     let mut r = [0u8; RECORD_SIZE];
@@ -411,14 +428,15 @@ mod tests {
     #[test]
     fn kinds_and_flags_are_distinct() {
         let kinds = [KIND_FRAME, KIND_HELLO, KIND_WELCOME, KIND_FILTERS, KIND_FILTER, KIND_FILTERS_ACK, KIND_AUTH,
-                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC, KIND_BELL, KIND_DONE, KIND_LEAST_DATA];
+                     KIND_REFUSED, KIND_FRAME_DATA, KIND_READ_EVERY, KIND_SYNC, KIND_BELL, KIND_DONE, KIND_LEAST_DATA,
+                     KIND_SENDER_NAME];
         let mut sorted = kinds.to_vec();
         sorted.sort();
         sorted.dedup();
         assert_eq!(sorted.len(), kinds.len());
         let flags = [FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR, FLAG_ECHO, FLAG_FD, FLAG_BRS];
         assert_eq!(flags.iter().fold(0u8, |acc, f| { assert_eq!(acc & f, 0); acc | f }), KNOWN_FLAGS);
-        assert_eq!(constants().len(), 47);
+        assert_eq!(constants().len(), 48);
     }
 
     #[test]

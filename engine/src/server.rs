@@ -14,7 +14,7 @@
 //! the protocol disconnects that node, and both are counted and reported (the first few of each kind).
 //! The listening sockets are made (owner-only paths, loopback TCP, token file) by the Python side.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::io::{ErrorKind, Read, Write};
 use std::net::TcpListener;
 use std::os::fd::{AsRawFd, FromRawFd, RawFd};
@@ -211,6 +211,8 @@ struct Client {
     quiet: bool,
     /// The bus nodes of its senders 1, 2, ... (FRAME byte 3; sender 0 is `node`), attached at their first frame.
     senders: Vec<usize>,
+    /// The names its senders 1, 2, ... were given (SENDER_NAME) before their first frame, by sender.
+    sender_names: HashMap<usize, String>,
     /// The fewest data bytes any of its frames carries (LEAST_DATA; 0 until it says), and whether it sent a frame
     /// (after which it may no longer say).
     least_data: u8,
@@ -1199,7 +1201,8 @@ impl Server {
                 stream, cid, name: format!("#{cid}"), node: None, rx: Vec::new(), out: Vec::new(), closed: false,
                 receive_own: false, filters: None, pending: None, pending_left: 0, pending_gen: 0, rejected: 0,
                 authed: !tcp, t_open: Instant::now(), long: None, rx_off: 0, flush_to: 0, lazy: false, reads: Vec::new(),
-                turns: Vec::new(), synced_to: 0, quiet: false, senders: Vec::new(), least_data: 0, sent: false,
+                turns: Vec::new(), synced_to: 0, quiet: false, senders: Vec::new(), sender_names: HashMap::new(),
+                least_data: 0, sent: false,
             });
         }
     }
@@ -1439,6 +1442,7 @@ impl Server {
                 }
                 Ok(())
             }
+            KIND_SENDER_NAME if has_node => self.sender_name(shared, i, r),
             KIND_LEAST_DATA if has_node => {
                 let (c, bytes, most) = (&mut self.clients[i], r[1], shared.bus.format.max_data());
                 if c.sent {
@@ -1481,12 +1485,28 @@ impl Server {
         }
     }
 
+    /// SENDER_NAME: sender k's bus node is called by the name given (before the connection's first frame).
+    fn sender_name(&mut self, shared: &mut Shared, i: usize, r: &[u8]) -> Result<(), Fault> {
+        let (k, name) = (r[1] as usize, record_name(r, "SENDER_NAME")?);
+        let c = &mut self.clients[i];
+        if c.sent {
+            return Err(Fault::Protocol(format!("SENDER_NAME from node {} after its first frame", c.name)));
+        }
+        if k >= MAX_SENDERS {
+            return Err(Fault::Protocol(format!("SENDER_NAME for sender {k} of node {}: senders are 0..{}", c.name,
+                                               MAX_SENDERS - 1)));
+        }
+        if k == 0 {
+            shared.bus.rename_node(c.node.expect("a SENDER_NAME is taken after HELLO"), &name);
+        } else {
+            c.sender_names.insert(k, name);
+        }
+        Ok(())
+    }
+
     fn hello(&mut self, shared: &mut Shared, i: usize, r: &[u8]) -> Result<(), Fault> {
         let (version, options) = (r[1], r[2]);
-        let raw = &r[4..24];
-        let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());
-        let name = std::str::from_utf8(&raw[..end]).map_err(|_| Fault::Protocol(format!("HELLO: node name {:?} is not UTF-8", &raw[..end])))?;
-        let name = if name.is_empty() { "?".to_string() } else { loggable(name) };
+        let name = record_name(r, "HELLO")?;
         let fd_rate = if self.cfg.format.is_fd() { self.cfg.data_bitrate as u32 } else { 0 };
         let welcome = pack_welcome(self.cfg.bitrate as u32, self.epoch0_ns as f64 * 1e-9, self.clients[i].cid, fd_rate);
         if version != PROTOCOL_VERSION {
@@ -1523,7 +1543,8 @@ impl Server {
             return Err(Fault::Protocol(format!("FRAME from sender {k} of node {}: senders are 0..{}", c.name, MAX_SENDERS - 1)));
         }
         while c.senders.len() < k {
-            let name = format!("{}.{}", c.name, c.senders.len() + 1);
+            let k = c.senders.len() + 1;
+            let name = c.sender_names.remove(&k).unwrap_or_else(|| format!("{}.{}", c.name, k));
             c.senders.push(shared.bus.attach(&name, Sink::None, None, false));
         }
         Ok(c.senders[k - 1])
@@ -1638,6 +1659,16 @@ fn hold_from(turns: &mut [(&mut Server, &[libc::pollfd])], nows: &mut [u64], h: 
             s.held = true;
         }
     }
+}
+
+/// The node name of a HELLO or SENDER_NAME record (bytes 4..24, UTF-8, NUL-padded), as it goes into logs; "?" when
+/// empty.
+fn record_name(r: &[u8], kind: &str) -> Result<String, Fault> {
+    let raw = &r[4..24];
+    let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());
+    let name = std::str::from_utf8(&raw[..end])
+        .map_err(|_| Fault::Protocol(format!("{kind}: node name {:?} is not UTF-8", &raw[..end])))?;
+    Ok(if name.is_empty() { "?".to_string() } else { loggable(name) })
 }
 
 /// A node name as it goes into logs: control characters (newlines, escapes) become '?', so no node can forge a
@@ -2268,6 +2299,37 @@ mod tests {
             }
         }
         assert_eq!(ids, vec![0x100, 0x200]); // 0x100 won the arbitration at the turn's instant
+        handle.shutdown();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A process hosting several ECUs names each sender's bus node as the unit's own controller (SENDER_NAME),
+    /// before its first frame: sender 0 renamed, sender 2 named, sender 1 left "<node>.1"; a name after the first
+    /// frame is a protocol error.
+    #[test]
+    fn a_node_names_its_senders_before_its_first_frame() {
+        let (mut handle, path, dir) = serve("names", 500_000, 500_000, Format::Classical);
+        let mut node = connect_node(&path, "ECU_T1_U01x3", 0);
+        let mut out = pack_sender_name(0, "ECU_U01").to_vec();
+        out.extend_from_slice(&pack_sender_name(2, "ECU_U03"));
+        for k in [2u8, 0] {
+            let mut f = pack_frame(0x100 + k as u32, &[1; 8], 0, 0.0);
+            f[3] = k;
+            out.extend_from_slice(&f);
+        }
+        node.write_all(&out).unwrap();
+        let deadline = Instant::now() + Duration::from_secs(2);
+        let names = loop {
+            let names: Vec<String> = handle.shared.lock().unwrap().bus.nodes.iter().map(|n| n.name.clone()).collect();
+            if names.len() >= 3 || Instant::now() > deadline {
+                break names;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        };
+        assert_eq!(names, ["ECU_U01", "ECU_T1_U01x3.1", "ECU_U03"]);
+        node.write_all(&pack_sender_name(1, "late")).unwrap(); // after its first frame
+        let mut rec = [0u8; RECORD_SIZE];
+        assert!(matches!(node.read(&mut rec), Ok(0) | Err(_)), "the server hangs up on a late SENDER_NAME");
         handle.shutdown();
         let _ = std::fs::remove_dir_all(&dir);
     }

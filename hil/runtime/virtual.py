@@ -118,7 +118,7 @@ class VirtualRig:
 
     def ecu_node_name(self, u: int) -> str:
         """Unit u's ECU node's name on its train's bus."""
-        return f"ECU_U{self.layout.train_unit(u)[1] + 1:02d}"
+        return self.layout.ecu_node_name(u)
 
     def disconnect_ecu(self, u: int) -> None:
         """Unit u's ECU leaves its bus (a crash): its queued frames are dropped and counted, and a WARN event from

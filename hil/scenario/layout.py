@@ -66,6 +66,11 @@ class TrainLayout:
     def train_unit(self, u: int) -> tuple[int, int]:
         return divmod(u, self.units_per_train)
 
+    def ecu_node_name(self, u: int) -> str:
+        """Unit u's ECU's node on its train's bus (``ECU_U03``), in both runtimes: its TX queue, drops and error
+        state go by it."""
+        return f"ECU_U{self.train_unit(u)[1] + 1:02d}"
+
     def unit_name(self, u: int) -> str:
         """``train<t>/unit<k>`` (1-based) of flat unit u: the name in scenarios, events and node lists."""
         return self.name_of(*self.train_unit(u))

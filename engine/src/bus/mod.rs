@@ -242,6 +242,11 @@ impl Bus {
         }
     }
 
+    /// Call node `node` `name` from now on (its TX queue's drops, error state and refusals go by it).
+    pub fn rename_node(&mut self, node: usize, name: &str) {
+        self.nodes[node].name = name.to_string();
+    }
+
     /// Attach a node; returns its index on this bus.
     pub fn attach(&mut self, name: &str, sink: Sink, rx_ids: Option<Vec<u32>>, receive_own: bool) -> usize {
         self.nodes.push(Node { name: name.to_string(), sink, rx_ids, receive_own, queued: 0, fifo: VecDeque::new(), sent: 0,

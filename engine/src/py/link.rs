@@ -173,6 +173,16 @@ impl FrameLink {
         self.link.sends_at_least(bytes).map_err(link_err)
     }
 
+    /// Name sender `sender`'s bus node `name` (protocol SENDER_NAME), said before the link's first frame: that
+    /// sender's TX queue, drops and error state go by it on the bus (an ECU process names each unit it hosts).
+    fn name_sender(&self, sender: usize, name: &str) -> PyResult<()> {
+        if name.is_empty() || name.len() > crate::protocol::NAME_BYTES {
+            let most = crate::protocol::NAME_BYTES;
+            return Err(PyValueError::new_err(format!("sender name {name:?}: 1 to {most} bytes")));
+        }
+        self.link.name_sender(sender, name).map_err(link_err)
+    }
+
     /// The node acts at read time `t` (epoch s), synced to it perhaps before it comes: the frames it sends from
     /// now on carry `t` while that is still ahead (the server queues them then), else the instant they are sent;
     /// on a link of turns, `t` until `end_turn`, however late (the server holds its bus for the turn).

@@ -75,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
                     io.route(i, frame_id, ecu.mailbox)
             if (least := least_sent_bytes([e for u, e in ecus.items() if bus_of[u] == i])) is not None:
                 io.sends_at_least(i, least)
+        for u, sender in senders(ecus, bus_of).items():  # each unit's TX queue named as virtual time names its node
+            io.name_sender(bus_of[u], sender, layout.ecu_node_name(u))
         stats = run(clock, sc, layout, ecus, io, bus_of, args.duration, stop, args.join_late, Path(args.out),
                     args.turns)
     finally:

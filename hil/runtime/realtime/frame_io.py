@@ -101,6 +101,11 @@ class EngineFrames:
         if self.lazy and self.packing is None:
             self.links[bus].sends_at_least(data_bytes)
 
+    def name_sender(self, bus: int, sender: int, name: str) -> None:
+        """Call ``sender``'s bus node on ``bus`` ``name`` (said before its first frame; protocol SENDER_NAME): an
+        ECU process names each unit's TX queue as virtual time names that unit's node."""
+        self.links[bus].name_sender(sender, name)
+
     def end_turn(self, buses: list[int] | None = None) -> None:
         """End the node's open turns on ``buses`` (default: every bus; see ``read_every``): it sends nothing more
         there before its next read time. A turn left open ends when the node next waits for a later instant."""
@@ -197,6 +202,9 @@ class PythonCanFrames:
 
     def sends_at_least(self, bus: int, data_bytes: int) -> None:
         """Nothing: a SocketCAN bus has no server to tell."""
+
+    def name_sender(self, bus: int, sender: int, name: str) -> None:
+        """Nothing: on SocketCAN a process's frames leave through one socket."""
 
     def end_turn(self, buses: list[int] | None = None) -> None:
         """Nothing: a SocketCAN bus runs on the host's clock, with no turns."""

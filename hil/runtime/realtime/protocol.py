@@ -17,6 +17,7 @@ kind    name             way       layout (struct, after the common "<")
 11      SYNC             s -> c    ``B 7x d 8x``: kind, read time (epoch s): every frame that ended by then came before
 13      DONE             c -> s    ``B 7x d 8x``: kind, read time (epoch s) of the node's turn it ends; lazy only
 14      LEAST_DATA       c -> s    ``B B 22x``: kind, the fewest data bytes of any frame it will send; before its first
+15      SENDER_NAME      c -> s    ``B B x x 20s``: kind, sender (FRAME byte 3), its bus node's name; before the first frame
 ======  ===============  ========  ==================================================================
 
 FRAME: ``flags`` bits: EXTENDED (29-bit id), REMOTE, ERROR, ECHO (the node's own frame sent back because it
@@ -156,6 +157,7 @@ READ_TURNS = _int("READ_TURNS")  # READ_EVERY byte 1: each read time is the node
 KIND_DONE = _int("KIND_DONE")  # lazy reader -> server: its turn at this epoch second is over
 TURN_HOLD_MAX_S = float(_WIRE["TURN_HOLD_MAX_S"])  # wall seconds after its read time a turn may hold the bus
 KIND_LEAST_DATA = _int("KIND_LEAST_DATA")  # node -> server: its frames carry at least byte 1 data bytes
+KIND_SENDER_NAME = _int("KIND_SENDER_NAME")  # node -> server: sender byte 1's bus node is called the name given
 
 MATCH_ANY = _int("MATCH_ANY")
 MATCH_STANDARD = _int("MATCH_STANDARD")
