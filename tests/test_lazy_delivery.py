@@ -217,6 +217,9 @@ def test_each_ecu_a_process_hosts_sends_from_its_own_tx_queue(rt):
             assert order == [0x400, 0x100, 0x300]
             with pytest.raises(ValueError, match="sender 64"):
                 host.send([(0x100, bytes(8))], sender=64)
+            for sender, name in ((1, ""), (1, "E" * 21), (64, "ECU_U02")):  # names: 1 to 20 bytes, senders 0..63
+                with pytest.raises(ValueError, match="sender"):
+                    host.name_sender(sender, name)
         finally:
             host_bus.shutdown()
             listener.shutdown()
