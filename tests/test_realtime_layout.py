@@ -61,12 +61,13 @@ def test_ecu_processes_are_started_in_groups_of_the_layout(tmp_path, monkeypatch
     layout = TrainLayout.from_config(sc.trains)
     per_process = default_ecus_per_process(layout.n_units, cores=2, units_per_train=sc.trains.units, pace=10.0)
     common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 10.0, fifo=False)
-    orchestrator._start_nodes(layout, tmp_path, common, per_process, 0.0)
+    processes = orchestrator.ecu_process_units(layout, per_process)
+    orchestrator._start_nodes(layout, tmp_path, common, processes, 0.0)
     groups = [[int(argv[k + 1]) for k, a in enumerate(argv) if a == "--unit"] for kind, *argv in started if kind == "ecu"]
     assert groups == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]  # at pace 10, one ECU process per train
     assert [kind for kind, *_ in started] == ["plant", "ecu", "ecu", "ecu"]  # the radio is in the bus servers
     started.clear()
-    orchestrator._start_nodes(layout, tmp_path, common, per_process, 0.0, radio_node=True)  # SocketCAN
+    orchestrator._start_nodes(layout, tmp_path, common, processes, 0.0, radio_node=True)  # SocketCAN
     assert [kind for kind, *_ in started][:2] == ["plant", "radio"]
     assert not any("--fifo" in argv for _, *argv in started)
 
@@ -79,7 +80,7 @@ def test_under_sched_fifo_every_node_is_told_so_restarted_ones_too(tmp_path, mon
 
     layout = TrainLayout.from_config(load_scenario("seed000").trains)
     common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, fifo=True)
-    orchestrator._start_nodes(layout, tmp_path, common, 4, 0.0)
+    orchestrator._start_nodes(layout, tmp_path, common, orchestrator.ecu_process_units(layout, 4), 0.0)
     orchestrator._respawn(tmp_path, common, layout, {})(5)
     assert len(started) == 5 and all("--fifo" in argv for argv in started)
     assert started[-1][-3:] == ["--unit", "5", "--join-late"]
@@ -98,12 +99,13 @@ def test_each_node_is_told_the_cores_of_its_kind_restarted_ones_too(tmp_path, mo
     layout = TrainLayout.from_config(load_scenario("seed000").trains)
     common = orchestrator._node_arguments("run", tmp_path, 0, 1.0, 1.0, fifo=False)
     cpus = CpuLayout(rig=(0,), ecus=(1, 2))
-    orchestrator._start_nodes(layout, tmp_path, common, 6, 0.0, radio_node=True, cpus=cpus)
+    orchestrator._start_nodes(layout, tmp_path, common, orchestrator.ecu_process_units(layout, 6), 0.0,
+                              radio_node=True, cpus=cpus)
     orchestrator._respawn(tmp_path, common, layout, {}, cpus)(5)
     told = [(kind, argv[argv.index("--cpus") + 1]) for kind, argv in started]
     assert told == [("plant", "0"), ("radio", "0"), ("ecu", "1,2"), ("ecu", "1,2"), ("ecu", "1,2")]
     started.clear()
-    orchestrator._start_nodes(layout, tmp_path, common, 6, 0.0)
+    orchestrator._start_nodes(layout, tmp_path, common, orchestrator.ecu_process_units(layout, 6), 0.0)
     assert started and not any("--cpus" in argv for _, argv in started)
 
 

@@ -114,11 +114,7 @@ class VirtualRig:
     def _ecu_node(self, u: int, ecu: Ecu) -> int:
         """Unit u's ECU node on its train's bus, delivering into the ECU's mailboxes."""
         train, _ = self.layout.train_unit(u)
-        return self.buses[train].attach_ecu(self.ecu_node_name(u), ecu)
-
-    def ecu_node_name(self, u: int) -> str:
-        """Unit u's ECU node's name on its train's bus."""
-        return self.layout.ecu_node_name(u)
+        return self.buses[train].attach_ecu(self.layout.ecu_node_name(u), ecu)
 
     def disconnect_ecu(self, u: int) -> None:
         """Unit u's ECU leaves its bus (a crash): its queued frames are dropped and counted, and a WARN event from
@@ -126,7 +122,7 @@ class VirtualRig:
         node, bus = self._ecu_nodes[u], self.buses[self._train_of[u]]
         if bus.attached(node) and (lost := bus.detach(node)):
             self.log.event(self.kernel.now * 1e-9, "WARN", bus.name,
-                           f"node {self.ecu_node_name(u)} left (crashed); {lost} queued frames dropped")
+                           f"node {self.layout.ecu_node_name(u)} left (crashed); {lost} queued frames dropped")
 
     def reconnect_ecu(self, u: int) -> None:
         """Unit u's ECU joins its bus again (a restart after a crash), as a new node."""

@@ -53,8 +53,8 @@ class PythonNetworkRig(VirtualRig):
     def _ecu_node(self, u: int, ecu) -> CanNode:
         train, _ = self.layout.train_unit(u)
         on_frame = ecu.on_frame
-        return self.buses[train].attach(self.ecu_node_name(u), lambda fid, data, t: on_frame(fid, data, t * 1e-9),
-                                        ecu.rx_ids)
+        return self.buses[train].attach(self.layout.ecu_node_name(u),
+                                        lambda fid, data, t: on_frame(fid, data, t * 1e-9), ecu.rx_ids)
 
     def _attach_radio(self) -> tuple[RadioGateway | None, list[CanNode]]:
         if self.layout.n_trains < 2:

@@ -111,7 +111,6 @@ class RealtimeFaults:
         self.sc, self.layout, self.seed = scenario, layout, seed
         self.specs = list(scenario.faults)
         self.watchdog = Watchdog(scenario.ecu.restart_after_s)
-        self.solo_units = solo_units(scenario, layout)
         self.servers = servers
         periods = db.cycle_times()
         ok, packing = e2e_checker(db), bus_packing(scenario, db)

@@ -343,10 +343,9 @@ def run_realtime(scenario: Scenario, out_dir: Path, *, pace: float = 1.0, durati
             if on_channels is not None:
                 on_channels(channels(run, scenario))
             env = node_environment(scenario)
-            per_process = _ecus_per_process(scenario, layout, ecus_per_process, pace)
             node_args = _node_arguments(run, nodes_dir, seed, duration, pace, sched.policy == "fifo", took_turns)
-            nodes = _start_nodes(layout, nodes_dir, node_args, per_process, plant_spin_us,
-                                 faults.solo_units if faults else (), external, env, radio_node=radio is None, cpus=cpus)
+            nodes = _start_nodes(layout, nodes_dir, node_args, planned_ecu_processes(scenario, ecus_per_process, pace),
+                                 plant_spin_us, env, radio_node=radio is None, cpus=cpus)
             say = (lambda text: print(f"real-time rig {run}: {text}", file=sys.stderr)) if progress else None
             if say is not None:
                 say(f"{len(nodes)} node processes, pace {pace:g}, {sched.describe()}; {said}; "
@@ -638,16 +637,17 @@ def _cpu_arguments(cpus: CpuLayout | None, kind: str) -> list[str]:
     return [] if cpus is None else ["--cpus", format_cores(cpus.cores_for(kind))]
 
 
-def _start_nodes(layout: TrainLayout, nodes_dir: Path, common: list[str], per_process: int, spin_us: float,
-                 solo=(), external=(), env: dict[str, str] | None = None, radio_node: bool = False,
+def _start_nodes(layout: TrainLayout, nodes_dir: Path, common: list[str], ecu_processes: list[list[int]],
+                 spin_us: float, env: dict[str, str] | None = None, radio_node: bool = False,
                  cpus: CpuLayout | None = None) -> list[Node]:
     """The plant first (``nodes[0]``), the radio (``radio_node``: on SocketCAN; on the emulated buses the radio is
-    in the bus servers), then the ECU processes; none for ``external`` units. ``common``: ``_node_arguments``;
-    ``cpus``: the run's CPU layout (each node is told its cores)."""
+    in the bus servers), then one ECU process for each of ``ecu_processes`` (its flat units:
+    ``planned_ecu_processes``). ``common``: ``_node_arguments``; ``cpus``: the run's CPU layout (each node is told
+    its cores)."""
     specs = [("plant", "plant", ["hil.runtime.realtime.plant_node", "--spin-us", repr(spin_us)])]
     if radio_node and layout.n_trains > 1:
         specs.append(("radio", "radio", ["hil.runtime.realtime.radio_node"]))
-    for group in ecu_process_units(layout, per_process, solo, external):
+    for group in ecu_processes:
         names = ",".join(layout.unit_name(u) for u in group)
         specs.append((names, "ecu", ["hil.runtime.realtime.ecu_node", *[a for u in group for a in ("--unit", str(u))]]))
     return [launch_node(name, kind, [argv[0], *common, *_cpu_arguments(cpus, kind), *argv[1:]],
@@ -670,14 +670,9 @@ def planned_ecu_processes(scenario: Scenario, ecus_per_process: int | None = Non
 
     layout = TrainLayout.from_config(scenario.trains)
     external = [layout.unit_index(name) for name in scenario.ecu.external]
-    return ecu_process_units(layout, _ecus_per_process(scenario, layout, ecus_per_process, pace),
-                             solo_units(scenario, layout), external)
-
-
-def _ecus_per_process(scenario: Scenario, layout: TrainLayout, given: int | None, pace: float) -> int:
-    """ECUs per process: ``given`` (``--ecus-per-process``), else the default for the units the rig runs."""
-    return given or default_ecus_per_process(layout.n_units - len(scenario.ecu.external),
-                                             units_per_train=scenario.trains.units, pace=pace)
+    per_process = ecus_per_process or default_ecus_per_process(layout.n_units - len(external),
+                                                               units_per_train=scenario.trains.units, pace=pace)
+    return ecu_process_units(layout, per_process, solo_units(scenario, layout), external)
 
 
 def launch_node(name: str, kind: str, argv: list[str], stderr_path: Path, env: dict[str, str] | None) -> Node:
